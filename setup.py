@@ -1,0 +1,30 @@
+"""ament_python build description for gnsscam_ros."""
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = 'gnsscam_ros'
+
+setup(
+    name=PACKAGE,
+    version='0.1.0',
+    packages=find_packages(exclude=['test', 'test.*']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
+        ('share/' + PACKAGE, ['package.xml']),
+        ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=True,
+    maintainer='gnsscam_ros maintainers',
+    maintainer_email='maintainers@gnsscam-ros.invalid',
+    description='GNSS-camera particle filter with integrity risk for ROS 2 Jazzy',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'gnsscam_eval = gnsscam_ros.evaluation.cli:main',
+            'gnsscam_bench = gnsscam_ros.evaluation.bench:main',
+        ],
+    },
+)
