@@ -1,0 +1,1 @@
+"""Datasets: the emulated urban drive and the smartLoc (libRSF text) loader."""
