@@ -1,0 +1,14 @@
+"""Exceptions of the vision package; messages always name the offending file."""
+from __future__ import annotations
+
+
+class VisionError(Exception):
+    """Base class of every error raised by ``gnsscam_ros.vision``."""
+
+
+class ImageError(VisionError):
+    """An image is missing, cannot be decoded or has an unsupported layout."""
+
+
+class MapDatabaseError(VisionError):
+    """A map database, its positions CSV or its image set cannot be built or loaded."""
