@@ -378,11 +378,14 @@ def _speed_profile(route: Route, rng: np.random.Generator, cfg: EmulationConfig)
     t = np.arange(int(np.floor(t_knots[-1] / step)) + 1) * step
     s_raw = np.interp(t, t_knots, s_knots)
     # Smoothing s(t) with a positive kernel keeps it monotone (speed >= 0) and makes the
-    # acceleration continuous (no jerk spikes in the IMU).
+    # acceleration continuous (no jerk spikes in the IMU). Derivatives are taken by finite
+    # differences BEFORE smoothing (the operations commute): scipy's derivative-of-Gaussian
+    # kernels do not sum exactly to zero, which on s ~ 2 km gives accelerations off by m/s^2.
     sig = cfg.smoothing_s / step
     s_m = gaussian_filter1d(s_raw, sig, mode='nearest')
-    v_mps = np.maximum(gaussian_filter1d(s_raw, sig, order=1, mode='nearest') / step, 0.0)
-    a_mps2 = gaussian_filter1d(s_raw, sig, order=2, mode='nearest') / step ** 2
+    v_raw = np.gradient(s_raw, step)
+    v_mps = np.maximum(gaussian_filter1d(v_raw, sig, mode='nearest'), 0.0)
+    a_mps2 = gaussian_filter1d(np.gradient(v_raw, step), sig, mode='nearest')
     return t, np.clip(s_m, 0.0, L), v_mps, a_mps2, stops
 
 
