@@ -204,7 +204,8 @@ def test_imu_integrates_back_to_truth(drive):
         dt = np.diff(t[sl])
         dyaw = np.sum(0.5 * (gyro[sl][1:, 2] + gyro[sl][:-1, 2]) * dt)
         assert abs(dyaw - (yaw[i0 + 1000] - yaw[i0])) < 0.03
-        vi = v[i0] + np.concatenate([[0], np.cumsum(0.5 * (acc[sl][1:, 0] + acc[sl][:-1, 0]) * dt)])
+        vi = v[i0] + np.concatenate(
+            [[0], np.cumsum(0.5 * (acc[sl][1:, 0] + acc[sl][:-1, 0]) * dt)])
         assert np.abs(vi - v[sl]).max() < 0.15
         # Dead reckoning over 10 s with the IMU speed and the IMU heading.
         yi = yaw[i0] + np.concatenate(
@@ -228,6 +229,7 @@ def test_odometry_consistent_with_truth(drive):
     ev = od.speed_mps[moving] - v[idx][moving]
     ew = od.yaw_rate_rps - yr[idx]
     assert abs(ev.mean()) < 0.01 and abs(ew.mean()) < 0.002
+
     # Robust std: the finite-difference truth yaw rate smears the steps at turn entries.
     def mad_std(x):
         return 1.4826 * np.median(np.abs(x - np.median(x)))
