@@ -115,7 +115,8 @@ class Drive:
 
     Attributes:
         name: Human-readable name.
-        origin_llh: (lat_deg, lon_deg, alt_m) of the local ENU ``map`` frame.
+        origin_llh: (lat_deg, lon_deg, alt_m) of the local ENU ``map`` frame, or None to
+            anchor it at the first robust GNSS fix (what an online system can do).
         gnss: GNSS epochs in time order.
         odometry: Wheel odometry, or None.
         imu: IMU samples, or None.
@@ -125,7 +126,7 @@ class Drive:
     """
 
     name: str
-    origin_llh: tuple[float, float, float]
+    origin_llh: tuple[float, float, float] | None
     gnss: list[GnssEpoch]
     odometry: OdometrySeries | None
     imu: ImuSeries | None

@@ -1,0 +1,374 @@
+"""The particle filter: one object runs a GNSS epoch end to end.
+
+propagate (M motion samples) -> GNSS likelihood -> choose the posterior with the highest
+total log-likelihood -> integrity risk bound over the M posteriors -> resample.
+
+The M posteriors come from M motion samples drawn around the measured odometry, each
+moving the previous particle set (paper §2, §7). The estimate is the posterior with the
+highest total log-likelihood; all M feed the empirical risk (paper §6).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.special import logsumexp
+
+from . import gnss, integrity
+from .frames import LocalFrame
+from .particles import (POS, YAW, MotionIncrement, effective_sample_size, motion_samples,
+                        normalize_log_weights, propagate, systematic_resample,
+                        weighted_mean_cov)
+from .snapshot import solve_snapshot
+from .types import GnssEpoch
+
+PARTICLE_RAIM = 'particle_raim'
+ROBUST = 'robust'
+LIKELIHOODS = (PARTICLE_RAIM, ROBUST)
+
+# Epoch outcomes.
+UPDATED = 'updated'            # GNSS update applied; integrity computed
+PROPAGATED = 'propagated'      # epoch unusable: motion only, integrity not available
+REJECTED = 'rejected'          # epoch refused (time going backwards): state unchanged
+WAITING = 'waiting'            # no initial fix yet
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Filter parameters (the node parameters of ``config/fusion.yaml`` map onto these).
+
+    Attributes:
+        n_particles: Particles per posterior N.
+        n_posteriors: Motion samples M (posteriors per epoch).
+        measurement_var_m2: Pseudorange variance [m^2] (paper Table 1: 10).
+        use_reported_variance: Use max(measurement_var_m2, the receiver's variance).
+        propagation_var_m2: Position process noise per axis per second [m^2/s]
+            (paper Table 1: 3 m^2 at its 1 Hz epoch rate).
+        vertical_propagation_var_m2: Height process noise per second [m^2/s]; a road
+            vehicle's height changes slowly and GNSS observes it poorly.
+        yaw_propagation_var_rad2: Heading process noise per second [rad^2/s].
+        motion_perturbation_scale: Inflation of the odometry noise for the M samples.
+        likelihood: 'particle_raim' (paper's mixture) or 'robust' (Gaussian + outlier floor).
+        error_correlation_time_s: GNSS errors closer in time than this are not independent
+            evidence: each epoch's log-likelihood is tempered by min(1, dt / this); 0 = off.
+        dirichlet_alpha: Dirichlet prior concentration in the EM pooling.
+        outlier_prob: Outlier probability of the robust likelihood.
+        outlier_range_m: Width of the robust likelihood's uniform outlier density [m].
+        resample_ess_fraction: Resample when ESS < this * N.
+        init_position_sd_m: Horizontal spread of the initial set around the first fix [m].
+        init_vertical_sd_m: Vertical spread of the initial set [m]; snapshot heights in a
+            street canyon are tens of metres off, so this is wider than the horizontal one.
+        min_satellites: Fewest satellites for an update.
+        elevation_mask_deg: Satellites below are dropped [deg].
+        cn0_mask_dbhz: Satellites below are dropped [dB-Hz].
+        alert_limit_m: Alert limit of the integrity flag [m].
+        target_risk: Integrity is insufficient when the risk bound exceeds this.
+        risk_delta: Confidence parameter delta of the bound.
+        inverse_bernoulli: 'exact' (bisection) or 'approx' (the paper's closed form).
+        horizontal_risk: Alert limits on horizontal error (True) or 3D error.
+        extra_alert_limits_m: Further alert limits whose risk is computed (evaluation).
+    """
+
+    n_particles: int = 1000
+    n_posteriors: int = 10
+    measurement_var_m2: float = 10.0
+    use_reported_variance: bool = True
+    propagation_var_m2: float = 3.0
+    vertical_propagation_var_m2: float = 0.1
+    yaw_propagation_var_rad2: float = 1e-4
+    motion_perturbation_scale: float = 3.0
+    likelihood: str = PARTICLE_RAIM
+    error_correlation_time_s: float = 1.0
+    dirichlet_alpha: float = 1.01
+    outlier_prob: float = 0.3
+    outlier_range_m: float = 300.0
+    resample_ess_fraction: float = 0.5
+    init_position_sd_m: float = 30.0
+    init_vertical_sd_m: float = 60.0
+    min_satellites: int = 4
+    elevation_mask_deg: float = 0.0
+    cn0_mask_dbhz: float = 0.0
+    alert_limit_m: float = 8.0
+    target_risk: float = 0.1
+    risk_delta: float = 0.1
+    inverse_bernoulli: str = integrity.EXACT
+    horizontal_risk: bool = True
+    extra_alert_limits_m: tuple = ()
+
+    def __post_init__(self):
+        problems = []
+        if self.n_particles < 2:
+            problems.append('n_particles must be >= 2')
+        if self.n_posteriors < 1:
+            problems.append('n_posteriors must be >= 1')
+        for name in ('measurement_var_m2', 'alert_limit_m'):
+            if not getattr(self, name) > 0.0:
+                problems.append(f'{name} must be > 0')
+        for name in ('propagation_var_m2', 'vertical_propagation_var_m2',
+                     'yaw_propagation_var_rad2',
+                     'motion_perturbation_scale', 'error_correlation_time_s'):
+            if not getattr(self, name) >= 0.0:
+                problems.append(f'{name} must be >= 0')
+        if self.likelihood not in LIKELIHOODS:
+            problems.append(f'likelihood must be one of {LIKELIHOODS}')
+        if self.inverse_bernoulli not in integrity.INVERSE_METHODS:
+            problems.append(f'inverse_bernoulli must be one of {integrity.INVERSE_METHODS}')
+        if not 0.0 < self.target_risk < 1.0:
+            problems.append('target_risk must be in (0, 1)')
+        if not 0.0 < self.risk_delta <= 1.0:
+            problems.append('risk_delta must be in (0, 1]')
+        if not 0.0 <= self.resample_ess_fraction <= 1.0:
+            problems.append('resample_ess_fraction must be in [0, 1]')
+        if not self.dirichlet_alpha >= 1.0:
+            problems.append('dirichlet_alpha must be >= 1')
+        if not 0.0 < self.outlier_prob < 1.0:
+            problems.append('outlier_prob must be in (0, 1)')
+        if self.min_satellites < 4:
+            problems.append('min_satellites must be >= 4 (position and clock)')
+        if problems:
+            raise ValueError('invalid filter configuration: ' + '; '.join(problems))
+
+    @property
+    def alert_limits_m(self) -> np.ndarray:
+        """The flag's alert limit first, then the extra ones."""
+        extra = [a for a in self.extra_alert_limits_m if a != self.alert_limit_m]
+        return np.array([self.alert_limit_m, *extra], dtype=float)
+
+
+@dataclass
+class EpochResult:
+    """What one GNSS epoch produced.
+
+    Attributes:
+        stamp_ns: Epoch time [ns].
+        status: 'updated', 'propagated', 'rejected' or 'waiting'.
+        reason: Why the epoch was not used for an update ('' when it was).
+        position_enu_m: (3,) estimate in the map frame [m] (None while waiting).
+        covariance_m2: (3, 3) covariance of the chosen posterior [m^2].
+        yaw_rad: Heading estimate [rad].
+        chosen: Index of the chosen posterior.
+        total_log_lik: (M,) total log-likelihood of each posterior.
+        risk: Risk bound for ``config.alert_limits_m`` (None when not updated).
+        integrity_ok: Bound at the flag's alert limit <= target risk (False when unknown).
+        n_satellites: Satellites used in the update.
+        rejected: ``{reason: count}`` of satellites dropped by the checks.
+        gamma: (k,) mixture weights of the chosen posterior.
+        ess: Effective sample size of the chosen posterior before resampling.
+        resampled: Whether the chosen posterior was resampled.
+    """
+
+    stamp_ns: int
+    status: str
+    reason: str = ''
+    position_enu_m: np.ndarray | None = None
+    covariance_m2: np.ndarray | None = None
+    yaw_rad: float = float('nan')
+    chosen: int = -1
+    total_log_lik: np.ndarray | None = None
+    risk: integrity.RiskBound | None = None
+    integrity_ok: bool = False
+    n_satellites: int = 0
+    rejected: dict = field(default_factory=dict)
+    gamma: np.ndarray | None = None
+    ess: float = float('nan')
+    resampled: bool = False
+
+
+class ParticleFilter:
+    """Particle RAIM filter over (east, north, up, yaw) with integrity risk.
+
+    Args:
+        config: Parameters.
+        frame: The map frame; None anchors it at the first robust fix.
+        rng: Random generator (explicit, for reproducible runs).
+    """
+
+    def __init__(self, config: FilterConfig, frame: LocalFrame | None = None,
+                 rng: np.random.Generator | None = None):
+        self.config = config
+        self.frame = frame
+        self.rng = rng if rng is not None else np.random.default_rng()
+        self.particles: np.ndarray | None = None        # (N, 4) chosen set
+        self.log_w: np.ndarray | None = None            # (N,)
+        self.posteriors: np.ndarray | None = None       # (M, N, 4) of the last epoch
+        self.posterior_log_w: np.ndarray | None = None  # (M, N)
+        self.last_stamp_ns: int | None = None
+        self.last_result: EpochResult | None = None
+
+    @property
+    def initialised(self) -> bool:
+        return self.particles is not None
+
+    def set_parameters(self, **changes) -> None:
+        """Change parameters between epochs (validated; the old ones stay on error)."""
+        new = replace(self.config, **changes)
+        if new.n_particles != self.config.n_particles and self.initialised:
+            idx = systematic_resample(self.log_w, self.rng)
+            idx = self.rng.choice(idx, size=new.n_particles, replace=True)
+            self.particles = self.particles[idx]
+            self.log_w = np.full(new.n_particles, -np.log(new.n_particles))
+        self.config = new
+
+    # ------------------------------------------------------------------ epochs
+    def step(self, epoch: GnssEpoch, motion: MotionIncrement | None) -> EpochResult:
+        """Process one GNSS epoch.
+
+        Args:
+            epoch: The pseudoranges of the epoch.
+            motion: Motion since the previous epoch (None: no odometry, stand still and let
+                the process noise spread the set).
+
+        Returns:
+            The epoch's result; bad input never raises, it is reported in the result.
+        """
+        cfg = self.config
+        if self.last_stamp_ns is not None and epoch.stamp_ns <= self.last_stamp_ns:
+            return EpochResult(stamp_ns=epoch.stamp_ns, status=REJECTED,
+                               reason=f'time went backwards or repeated: {epoch.stamp_ns} '
+                                      f'<= {self.last_stamp_ns} ns')
+        check = gnss.check_epoch(epoch, cfg.min_satellites, cfg.elevation_mask_deg,
+                                 cfg.cn0_mask_dbhz)
+        if not self.initialised:
+            return self._initialise(epoch, check)
+        dt_s = (epoch.stamp_ns - self.last_stamp_ns) * 1e-9
+        if motion is None:
+            motion = MotionIncrement.stationary(dt_s)
+        distance, dyaw = motion_samples(motion, cfg.n_posteriors,
+                                        cfg.motion_perturbation_scale, self.rng)
+        priors = propagate(self.particles, distance, dyaw, motion.dup_m,
+                           np.array([cfg.propagation_var_m2, cfg.propagation_var_m2,
+                                     cfg.vertical_propagation_var_m2]) * dt_s,
+                           cfg.yaw_propagation_var_rad2 * dt_s, self.rng)
+        self.last_stamp_ns = epoch.stamp_ns
+        prep = None
+        if check.usable:
+            centre, cov = weighted_mean_cov(priors[0, :, POS], self.log_w)
+            prep = gnss.prepare_epoch(epoch.subset(check.keep), self.frame, centre,
+                                      cfg.measurement_var_m2, cfg.use_reported_variance)
+            if prep.pr_m.shape[0] < prep.n_systems + 3:
+                prep = None
+                check = replace(check, usable=False,
+                                reason='too few satellites once single-satellite '
+                                       'constellations are set aside')
+        if prep is None:
+            return self._propagate_only(epoch, check, priors)
+        return self._update(epoch, check, priors, prep, centre, cov, dt_s)
+
+    def _initialise(self, epoch: GnssEpoch, check: gnss.GnssCheck) -> EpochResult:
+        cfg = self.config
+        if not check.usable:
+            return EpochResult(stamp_ns=epoch.stamp_ns, status=WAITING, reason=check.reason,
+                               rejected=check.rejected)
+        try:
+            fix = solve_snapshot(epoch.subset(check.keep),
+                                 measurement_var_m2=cfg.measurement_var_m2)
+        except ValueError as err:
+            return EpochResult(stamp_ns=epoch.stamp_ns, status=WAITING, reason=str(err),
+                               rejected=check.rejected)
+        if not fix.converged:
+            return EpochResult(stamp_ns=epoch.stamp_ns, status=WAITING,
+                               reason='initial snapshot fix did not converge',
+                               rejected=check.rejected)
+        if self.frame is None:
+            self.frame = LocalFrame.from_ecef(fix.ecef_m)
+        n = cfg.n_particles
+        self.particles = np.empty((n, 4))
+        sd = np.array([cfg.init_position_sd_m, cfg.init_position_sd_m, cfg.init_vertical_sd_m])
+        self.particles[:, POS] = self.frame.ecef_to_enu(fix.ecef_m) + (
+            sd * self.rng.standard_normal((n, 3)))
+        # Heading is unknown before the vehicle has moved: spread it over the circle and let
+        # the GNSS updates pick the particles that move the right way.
+        self.particles[:, YAW] = self.rng.uniform(-np.pi, np.pi, n)
+        self.log_w = np.full(n, -np.log(n))
+        self.last_stamp_ns = epoch.stamp_ns
+        # Evaluate the first epoch's measurements on the fresh set.
+        priors = np.repeat(self.particles[None], cfg.n_posteriors, axis=0)
+        centre, cov = weighted_mean_cov(self.particles[:, POS], self.log_w)
+        prep = gnss.prepare_epoch(epoch.subset(check.keep), self.frame, centre,
+                                  cfg.measurement_var_m2, cfg.use_reported_variance)
+        return self._update(epoch, check, priors, prep, centre, cov, dt_s=0.0)
+
+    def _propagate_only(self, epoch: GnssEpoch, check: gnss.GnssCheck,
+                        priors: np.ndarray) -> EpochResult:
+        # No usable measurements: keep the measured-motion sample and report no integrity.
+        self.particles = priors[0]
+        self.posteriors = priors
+        self.posterior_log_w = np.broadcast_to(self.log_w, priors.shape[:2]).copy()
+        mean, cov = weighted_mean_cov(self.particles[:, POS], self.log_w)
+        result = EpochResult(stamp_ns=epoch.stamp_ns, status=PROPAGATED, reason=check.reason,
+                             position_enu_m=mean, covariance_m2=cov,
+                             yaw_rad=self._circular_mean(self.particles[:, YAW], self.log_w),
+                             chosen=0, rejected=check.rejected, integrity_ok=False)
+        self.last_result = result
+        return result
+
+    def _update(self, epoch: GnssEpoch, check: gnss.GnssCheck, priors: np.ndarray,
+                prep: gnss.PreparedEpoch, centre: np.ndarray, cov: np.ndarray,
+                dt_s: float) -> EpochResult:
+        cfg = self.config
+        m, n = priors.shape[:2]
+        # Receiver clock: robust inlier weights at the prior's centre, then per particle.
+        centre_residual = prep.pr_m - gnss.ranges(centre[None], prep.sv_enu_m)[0]
+        spread_m = float(np.sqrt(max(np.trace(cov), 0.0)))
+        clock_w = gnss.clock_inlier_weights(centre_residual, prep.sigma_m, prep.sys_index,
+                                            prep.n_systems, spread_m)
+        residual = gnss.clock_corrected_residuals(priors[..., POS].reshape(-1, 3), prep,
+                                                  clock_w)
+        z = (residual / prep.sigma_m).reshape(m, n, -1)
+        log_sigma = np.log(prep.sigma_m)
+        if cfg.likelihood == PARTICLE_RAIM:
+            lik = gnss.particle_raim_log_likelihood(z, log_sigma, self.log_w,
+                                                    cfg.dirichlet_alpha)
+        else:
+            lik = gnss.robust_log_likelihood(z, log_sigma, cfg.outlier_prob,
+                                             cfg.outlier_range_m)
+        log_lik = lik.log_lik
+        if cfg.error_correlation_time_s > 0.0 and dt_s > 0.0:
+            log_lik = log_lik * min(1.0, dt_s / cfg.error_correlation_time_s)
+        joint = self.log_w[None, :] + log_lik
+        total = logsumexp(joint, axis=1)
+        post_log_w = joint - total[:, None]
+        chosen = int(np.argmax(total))
+        result = self._finish(epoch, check, priors, post_log_w, chosen, total)
+        result.gamma = lik.gamma[chosen]
+        result.n_satellites = int(prep.pr_m.shape[0])
+        return result
+
+    def _finish(self, epoch: GnssEpoch, check: gnss.GnssCheck, priors: np.ndarray,
+                post_log_w: np.ndarray, chosen: int, total: np.ndarray) -> EpochResult:
+        """Estimate, integrity risk and resampling, shared by every update path."""
+        cfg = self.config
+        m, n = post_log_w.shape
+        pos = priors[..., POS]
+        mean, cov = weighted_mean_cov(pos[chosen], post_log_w[chosen])
+        # KL(pi_t || pi_t-1) between Gaussian fits of the pooled posteriors and priors.
+        pooled = pos.reshape(-1, 3)
+        post_mean, post_cov = weighted_mean_cov(pooled, (post_log_w - np.log(m)).reshape(-1))
+        prior_log_w = np.broadcast_to(self.log_w - np.log(m), (m, n)).reshape(-1)
+        prior_mean, prior_cov = weighted_mean_cov(pooled, prior_log_w)
+        kl = integrity.gaussian_kl(post_mean, post_cov, prior_mean, prior_cov)
+        limits = cfg.alert_limits_m
+        empirical = integrity.hazard_mass(pos, post_log_w, mean, limits, cfg.horizontal_risk)
+        risk = integrity.risk_bound(empirical, kl, m, cfg.risk_delta, cfg.inverse_bernoulli,
+                                    limits)
+        ess = float(effective_sample_size(post_log_w[chosen]))
+        particles, log_w = priors[chosen], post_log_w[chosen]
+        resampled = ess < cfg.resample_ess_fraction * n
+        if resampled:
+            particles = particles[systematic_resample(log_w, self.rng)]
+            log_w = np.full(n, -np.log(n))
+        self.particles, self.log_w = particles, normalize_log_weights(log_w)
+        self.posteriors, self.posterior_log_w = priors, post_log_w
+        result = EpochResult(
+            stamp_ns=epoch.stamp_ns, status=UPDATED, position_enu_m=mean, covariance_m2=cov,
+            yaw_rad=self._circular_mean(priors[chosen, :, YAW], post_log_w[chosen]),
+            chosen=chosen, total_log_lik=total, risk=risk,
+            integrity_ok=bool(risk.risk_bound[0] <= cfg.target_risk),
+            rejected=check.rejected, ess=ess, resampled=bool(resampled))
+        self.last_result = result
+        return result
+
+    @staticmethod
+    def _circular_mean(yaw: np.ndarray, log_w: np.ndarray) -> float:
+        w = np.exp(log_w)
+        return float(np.arctan2(w @ np.sin(yaw), w @ np.cos(yaw)))

@@ -1,0 +1,174 @@
+"""Loader for the smartLoc dataset in the libRSF text format.
+
+Each line is one measurement, whitespace separated, identified by its first token
+(``readme.txt`` of the dataset):
+
+* ``pseudorange3 t pr var x y z sv_id system elevation cn0`` (11 fields)
+* ``odom3 t vx vy vz wx wy wz cov_vx cov_vy cov_vz cov_wx cov_wy cov_wz`` (14 fields)
+* ``point3 t x y z c11 ... c33`` (14 fields, ground truth in ECEF)
+
+smartLoc data: Copyright 2016-2022 P. Reisdorf, T. Pfeifer, J. Bressler, S. Bauer,
+P. Weissig, S. Lange (TU Chemnitz), CC BY-SA 4.0.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..core.types import Drive, GnssEpoch, OdometrySeries, Trajectory
+from .errors import DatasetError
+
+_FIELDS = {'pseudorange3': 11, 'odom3': 14, 'point3': 14}
+
+
+def _seconds_to_ns(t_s: float) -> int:
+    return int(round(t_s * 1e9))
+
+
+def read_records(path: Path) -> dict[str, list[tuple[int, list[float]]]]:
+    """Parse a libRSF text file into ``{tag: [(line_no, values), ...]}``.
+
+    Args:
+        path: File to read.
+
+    Returns:
+        The numeric fields (after the tag) of every line, grouped by tag.
+
+    Raises:
+        DatasetError: The file is missing or unreadable, or a line has an unknown tag, the
+            wrong number of fields or a field that is not a number (file and line named).
+    """
+    path = Path(path)
+    records: dict[str, list[tuple[int, list[float]]]] = {tag: [] for tag in _FIELDS}
+    try:
+        handle = path.open('r', encoding='utf-8')
+    except OSError as err:
+        raise DatasetError(f'{path}: cannot open: {err.strerror}') from err
+    with handle:
+        try:
+            for line_no, line in enumerate(handle, start=1):
+                tokens = line.split()
+                if not tokens or tokens[0].startswith('#'):
+                    continue
+                tag = tokens[0]
+                if tag not in _FIELDS:
+                    raise DatasetError(f'{path}:{line_no}: unknown record type {tag!r}')
+                if len(tokens) != _FIELDS[tag]:
+                    raise DatasetError(
+                        f'{path}:{line_no}: {tag} needs {_FIELDS[tag]} fields, '
+                        f'got {len(tokens)}')
+                try:
+                    values = [float(tok) for tok in tokens[1:]]
+                except ValueError as err:
+                    raise DatasetError(f'{path}:{line_no}: {tag}: {err}') from err
+                if not np.isfinite(values[0]):
+                    raise DatasetError(f'{path}:{line_no}: {tag}: time stamp is not finite')
+                records[tag].append((line_no, values))
+        except UnicodeDecodeError as err:
+            raise DatasetError(f'{path}: not a text file ({err.reason})') from err
+    return records
+
+
+def _gnss_epochs(rows: list[tuple[int, list[float]]], path: Path) -> list[GnssEpoch]:
+    """Group pseudorange rows by time stamp into epochs, in file order."""
+    if not rows:
+        return []
+    data = np.array([values for _, values in rows], dtype=float)
+    stamps = np.array([_seconds_to_ns(t) for t in data[:, 0]], dtype=np.int64)
+    # Epoch boundaries: where the stamp changes (the files are written epoch by epoch).
+    starts = np.flatnonzero(np.r_[True, stamps[1:] != stamps[:-1]])
+    ends = np.r_[starts[1:], len(stamps)]
+    epochs = []
+    for s, e in zip(starts, ends):
+        block = data[s:e]
+        epochs.append(GnssEpoch(
+            stamp_ns=int(stamps[s]), pr_m=block[:, 1].copy(), var_m2=block[:, 2].copy(),
+            sv_pos_ecef_m=block[:, 3:6].copy(), sv_id=block[:, 6].astype(np.int64),
+            system=block[:, 7].astype(np.int64), elevation_deg=block[:, 8].copy(),
+            cn0_dbhz=block[:, 9].copy()))
+    order = np.array([ep.stamp_ns for ep in epochs])
+    if np.any(np.diff(order) <= 0):
+        bad = int(np.flatnonzero(np.diff(order) <= 0)[0]) + 1
+        line_no = rows[int(starts[bad])][0]
+        raise DatasetError(f'{path}:{line_no}: pseudorange epochs are not in time order')
+    return epochs
+
+
+def _odometry(rows: list[tuple[int, list[float]]], path: Path) -> OdometrySeries | None:
+    if not rows:
+        return None
+    data = np.array([values for _, values in rows], dtype=float)
+    stamps = np.array([_seconds_to_ns(t) for t in data[:, 0]], dtype=np.int64)
+    if np.any(np.diff(stamps) <= 0):
+        bad = int(np.flatnonzero(np.diff(stamps) <= 0)[0]) + 1
+        raise DatasetError(f'{path}:{rows[bad][0]}: odom3 time stamps are not increasing')
+    # Vehicle frame: x forward; yaw rate is the turn rate about z.
+    return OdometrySeries(stamp_ns=stamps, speed_mps=data[:, 1].copy(),
+                          yaw_rate_rps=data[:, 6].copy(), speed_var=data[:, 7].copy(),
+                          yaw_rate_var=data[:, 12].copy())
+
+
+def _truth(rows: list[tuple[int, list[float]]]) -> Trajectory | None:
+    if not rows:
+        return None
+    data = np.array([values for _, values in rows], dtype=float)
+    stamps = np.array([_seconds_to_ns(t) for t in data[:, 0]], dtype=np.int64)
+    return Trajectory(stamp_ns=stamps, ecef_m=data[:, 1:4].copy())
+
+
+def discover_files(folder: Path) -> tuple[Path, Path | None]:
+    """Find the input and ground-truth files in a smartLoc folder.
+
+    The input file is the ``*Input*.txt`` (or the only ``.txt`` holding pseudoranges); the
+    ground truth is the matching ``*GT*.txt`` when present.
+
+    Raises:
+        DatasetError: No or several candidate input files.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DatasetError(f'{folder}: not a directory')
+    inputs = sorted(p for p in folder.glob('*.txt') if 'input' in p.name.lower())
+    if len(inputs) != 1:
+        raise DatasetError(
+            f'{folder}: expected exactly one *Input*.txt file, found '
+            f'{[p.name for p in inputs] or "none"}; pass --input and --truth explicitly')
+    stem = inputs[0].name.lower().replace('input', 'gt')
+    truths = [p for p in folder.glob('*.txt') if p.name.lower() == stem]
+    return inputs[0], (truths[0] if truths else None)
+
+
+def load_smartloc(input_path: Path, truth_path: Path | None = None,
+                  name: str | None = None) -> Drive:
+    """Load a smartLoc run (pseudoranges, odometry and optional ground truth).
+
+    Args:
+        input_path: The ``*_Input.txt`` file (pseudorange3 and odom3 lines).
+        truth_path: The ``*_GT.txt`` file (point3 lines), or None.
+        name: Name for the run; defaults to the input file's stem.
+
+    Returns:
+        A Drive with ``origin_llh=None`` (the filter anchors its map frame at the first
+        robust fix) and the ground truth attached for evaluation only.
+
+    Raises:
+        DatasetError: Unreadable or malformed file (file and line named), or no pseudoranges.
+    """
+    input_path = Path(input_path)
+    records = read_records(input_path)
+    epochs = _gnss_epochs(records['pseudorange3'], input_path)
+    if not epochs:
+        raise DatasetError(f'{input_path}: no pseudorange3 lines')
+    odometry = _odometry(records['odom3'], input_path)
+    truth = None
+    if truth_path is not None:
+        truth_records = read_records(Path(truth_path))
+        truth = _truth(truth_records['point3'])
+        if truth is None:
+            raise DatasetError(f'{truth_path}: no point3 lines')
+    return Drive(name=name or input_path.stem.replace('_Input', ''), origin_llh=None,
+                 gnss=epochs, odometry=odometry, imu=None, truth=truth,
+                 info={'input': str(input_path),
+                       'truth': str(truth_path) if truth_path else None,
+                       'license': 'smartLoc dataset, TU Chemnitz, CC BY-SA 4.0'})

@@ -1,0 +1,1 @@
+"""Evaluation: filter runs against ground truth, metrics, tables, plots, benchmarks."""
