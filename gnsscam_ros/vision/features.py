@@ -103,10 +103,14 @@ def load_gray(path: str | os.PathLike) -> np.ndarray:
         raise ImageError(f'{path}: no such image file') from err
     except OSError as err:
         raise ImageError(f'{path}: cannot read image ({err.strerror or err})') from err
-    img = cv2.imdecode(raw, cv2.IMREAD_GRAYSCALE) if raw.size else None
+    # Decode to BGR and convert with to_gray() rather than IMREAD_GRAYSCALE: the codecs'
+    # own grey conversions (libpng's rgb_to_gray, JPEG's luma plane) differ from
+    # cvtColor by a grey level here and there, which changes ORB descriptors, and the
+    # camera node converts its BGR frames with cvtColor.
+    img = cv2.imdecode(raw, cv2.IMREAD_COLOR) if raw.size else None
     if img is None:
         raise ImageError(f'{path}: not a decodable image ({raw.size} bytes)')
-    return img
+    return to_gray(img)
 
 
 class OrbExtractor:
