@@ -426,12 +426,10 @@ class MapDatabase:
                                    for d in descriptors])
         t0 = time.perf_counter()
         if progress:
-            progress('train', 0, 1)
+            progress('train', 0, depth)
         tree = VocabularyTree.train(all_desc, branching=branching, depth=depth,
                                     iterations=iterations, seed=seed,
-                                    max_descriptors=max_train_descriptors)
-        if progress:
-            progress('train', 1, 1)
+                                    max_descriptors=max_train_descriptors, progress=progress)
         t1 = time.perf_counter()
         offs = tree.level_offsets
         first = depth - score_levels
@@ -439,7 +437,7 @@ class MapDatabase:
         docs = np.split(path.ravel(), np.cumsum(counts * score_levels)[:-1])
         index = InvertedIndex.from_documents(docs, int(offs[-1] - offs[first]))
         if progress:
-            progress('index', 1, 1)
+            progress('index', len(docs), len(docs))
         meta = {'branching': branching, 'depth': depth, 'iterations': iterations,
                 'seed': seed, 'max_train_descriptors': max_train_descriptors,
                 'n_descriptors': int(counts.sum()), 'train_s': t1 - t0,
@@ -499,6 +497,8 @@ class MapDatabase:
 
         descs, kept = [], []
         n_jobs = max(1, jobs or os.cpu_count() or 1)
+        if progress:
+            progress('features', 0, len(rows))
         with ThreadPoolExecutor(max_workers=n_jobs) as pool:
             for k, (row, (desc, err)) in enumerate(zip(rows, pool.map(extract, rows))):
                 line, name, _ = row

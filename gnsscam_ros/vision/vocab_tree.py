@@ -13,6 +13,8 @@ nodes. Descriptors are handled as 4 x uint64 words for the Hamming distance.
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 from scipy import sparse
 
@@ -115,7 +117,8 @@ class VocabularyTree:
     @classmethod
     def train(cls, descriptors: np.ndarray, branching: int = 10, depth: int = 5,
               iterations: int = 6, seed: int | np.random.Generator = 0,
-              max_descriptors: int | None = 200_000) -> 'VocabularyTree':
+              max_descriptors: int | None = 200_000,
+              progress: Callable[[str, int, int], None] | None = None) -> 'VocabularyTree':
         """Hierarchical k-majority clustering (k-means++ seeding) of binary descriptors.
 
         Args:
@@ -127,6 +130,7 @@ class VocabularyTree:
             seed: Seed or generator; the same seed and data give the same tree.
             max_descriptors: Train on a uniform random subsample of at most this many
                 descriptors (None: all); the database quantises every descriptor anyway.
+            progress: optional ``progress('train', level, depth)`` after each level.
 
         Returns:
             The trained tree.
@@ -163,6 +167,8 @@ class VocabularyTree:
             centres.append(c64)
             valid.append(ok)
             parent = labels
+            if progress:
+                progress('train', level, depth)
         return cls(branching, depth, centres, valid)
 
     # ---------------------------------------------------------------------- quantisation
