@@ -172,6 +172,10 @@ def test_tree_rejects_bad_input():
         VocabularyTree.train(np.zeros((0, 32), np.uint8))
     with pytest.raises(ValueError):
         VocabularyTree.train(np.zeros((10, 16), np.uint8))
+    with pytest.raises(ValueError, match='leaves'):
+        VocabularyTree.train(np.zeros((10, 32), np.uint8), branching=100, depth=4)
+    with pytest.raises(ValueError):
+        VocabularyTree.train(np.zeros((10, 32), np.uint8), branching=1)
 
 
 # =========================================================================== TF-IDF

@@ -23,6 +23,7 @@ from .features import DESCRIPTOR_BYTES
 _WORDS = DESCRIPTOR_BYTES // 8      # uint64 words per descriptor
 _INVALID_PENALTY = 1 << 12          # added to the distance of invalid nodes (> 256 bits)
 _CHUNK = 4096                       # rows per vectorised block: temporaries stay in cache
+_MAX_LEAVES = 10_000_000            # B**L limit (Nister & Stewenius used 10**6)
 
 if hasattr(np, 'bitwise_count'):    # numpy >= 2.0: hardware popcount per uint64 word
     _bitcount = np.bitwise_count
@@ -135,6 +136,12 @@ class VocabularyTree:
         Returns:
             The trained tree.
         """
+        if branching < 2 or depth < 1:
+            raise ValueError(f'need branching >= 2 and depth >= 1, got {branching}, {depth}')
+        if branching ** depth > _MAX_LEAVES:
+            # Node arrays are dense (B**L rows), so guard against a typo eating the RAM.
+            raise ValueError(f'branching**depth = {branching ** depth} leaves exceeds '
+                             f'{_MAX_LEAVES}')
         rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
         x8 = np.ascontiguousarray(descriptors, dtype=np.uint8)
         if x8.ndim != 2 or x8.shape[1] != DESCRIPTOR_BYTES or x8.shape[0] == 0:
