@@ -129,9 +129,10 @@ def ranges(positions_m: np.ndarray, sv_m: np.ndarray) -> np.ndarray:
     Uses ``|s|^2 - 2 p.s + |p|^2`` (one matrix product); in a local frame |p| is small, so
     the rounding of |s|^2 ~ 4e14 m^2 costs under a micrometre of range.
     """
-    sq = (sv_m * sv_m).sum(1)[None, :] - 2.0 * positions_m @ sv_m.T
-    sq += (positions_m * positions_m).sum(1)[:, None]
-    return np.sqrt(sq)
+    sq = positions_m @ (-2.0 * sv_m.T)
+    sq += (sv_m * sv_m).sum(1)
+    sq += np.einsum('ij,ij->i', positions_m, positions_m)[:, None]
+    return np.sqrt(sq, out=sq)
 
 
 def clock_inlier_weights(residual_m: np.ndarray, sigma_m: np.ndarray, sys_index: np.ndarray,
@@ -173,7 +174,8 @@ def clock_inlier_weights(residual_m: np.ndarray, sigma_m: np.ndarray, sys_index:
 def clock_corrected_residuals(positions_m: np.ndarray, prep: PreparedEpoch,
                               clock_weights: np.ndarray) -> np.ndarray:
     """Residuals (P, k) after removing each particle's own per-constellation clock [m]."""
-    residual = prep.pr_m[None, :] - ranges(positions_m, prep.sv_enu_m)
+    residual = ranges(positions_m, prep.sv_enu_m)
+    np.subtract(prep.pr_m, residual, out=residual)
     onehot = np.zeros((prep.pr_m.shape[0], prep.n_systems))
     onehot[np.arange(prep.pr_m.shape[0]), prep.sys_index] = clock_weights
     clock = residual @ onehot                       # (P, S): inlier-weighted mean residual
@@ -231,15 +233,20 @@ def robust_log_likelihood(z: np.ndarray, log_sigma: np.ndarray, outlier_prob: fl
 
     ``log L = sum_k log((1 - eps) N(e_k; 0, sigma_k) + eps / range_out)``: every healthy
     satellite contributes evidence (the mixture over satellites lets the best-fitting one
-    dominate), while a faulty one costs at most a constant.
+    dominate), while a faulty one costs at most a constant. The floor keeps the sum away
+    from zero, so the per-satellite term is evaluated directly (one exp, one log) without a
+    log-sum-exp shift: an underflowing Gaussian simply leaves the floor.
 
     Returns:
         Log-likelihoods (M, N) and the posterior inlier probability per satellite (M, k)
         averaged over particles, reported as ``gamma`` for diagnostics.
     """
-    log_gauss = -0.5 * z * z - log_sigma - LOG_SQRT_2PI + np.log1p(-outlier_prob)
-    log_floor = np.log(outlier_prob / outlier_range_m)
-    total = np.logaddexp(log_gauss, log_floor)
-    log_lik = total.sum(axis=-1)
-    inlier = np.exp(log_gauss - total).mean(axis=1)
+    gauss = np.multiply(z, z)
+    gauss *= -0.5
+    np.exp(gauss, out=gauss)
+    gauss *= ((1.0 - outlier_prob) * np.exp(-log_sigma - LOG_SQRT_2PI))
+    floor = outlier_prob / outlier_range_m
+    total = gauss + floor
+    inlier = (gauss / total).mean(axis=1)
+    log_lik = np.log(total, out=total).sum(axis=-1)
     return GnssLikelihood(log_lik=log_lik, gamma=inlier / inlier.sum(axis=-1, keepdims=True))
