@@ -1,0 +1,121 @@
+"""``gnsscam_bench``: time one GNSS epoch of the filter and the bare likelihood arithmetic.
+
+Prints, for each particle count N per posterior (M posteriors, 12 satellites), the median
+wall time of a full filter epoch (propagate, clock, likelihood, EM weights, choice,
+risk bound, resampling) next to the bare arithmetic on the same M*N array (ranges plus a
+Gaussian log-sum-exp over satellites), and the peak resident memory.
+"""
+from __future__ import annotations
+
+import argparse
+import resource
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from ..core.filter import FilterConfig, ParticleFilter
+from ..core.frames import LocalFrame
+from ..core.gnss import prepare_epoch, ranges
+from ..core.particles import MotionIncrement
+from ..datasets.emulated import make_emulated_drive
+from .report import OutputExistsError, format_table, write_json_atomic
+
+DEFAULT_COUNTS = (120, 1000, 10000, 100000)
+
+
+def _median_ms(fn, repeats: int) -> float:
+    fn()                                   # warm-up: allocations, caches
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return float(np.median(times) * 1e3)
+
+
+def bare_likelihood(positions_m: np.ndarray, prep) -> np.ndarray:
+    """The reference arithmetic: ranges and a Gaussian log-sum-exp over satellites."""
+    # Written lean on purpose (max shift by hand, no scipy overhead) so that the reference
+    # is not slower than it needs to be.
+    z = (prep.pr_m - ranges(positions_m, prep.sv_enu_m)) / prep.sigma_m
+    a = -0.5 * z * z - np.log(prep.sigma_m)
+    a_max = a.max(axis=1)
+    return a_max + np.log(np.exp(a - a_max[:, None]).sum(axis=1))
+
+
+def bench(counts=DEFAULT_COUNTS, n_posteriors: int = 10, likelihood: str | None = None,
+          repeats: int = 15, seed: int = 0) -> dict:
+    """Median epoch times [ms] per particle count, and the bare arithmetic's."""
+    drive = make_emulated_drive(seed, faults=4, duration_s=60.0)
+    epochs = [e for e in drive.gnss if e.n_sv == 12]
+    frame = LocalFrame(*drive.origin_llh)
+    rows = {}
+    for n in counts:
+        config = FilterConfig(n_particles=n, n_posteriors=n_posteriors,
+                              acquisition_particle_factor=1)
+        if likelihood is not None:
+            config = replace(config, likelihood=likelihood)
+        filt = ParticleFilter(config, frame=frame, rng=np.random.default_rng(seed))
+        filt.step(epochs[0], None)
+        state = {'i': 1}
+        motion = MotionIncrement(dt_s=1.0, distance_m=8.0, dyaw_rad=0.01,
+                                 distance_var_m2=0.01, dyaw_var_rad2=1e-5)
+
+        def one_epoch():
+            # Advance the stamp every call so each call is a fresh, valid epoch.
+            template = epochs[state['i'] % len(epochs)]
+            stamp = filt.last_stamp_ns + 1_000_000_000
+            filt.step(replace(template, stamp_ns=stamp), motion)
+            state['i'] += 1
+
+        reps = max(3, min(repeats, int(2e6 // (n * n_posteriors)) + 3))
+        epoch_ms = _median_ms(one_epoch, reps)
+        positions = np.ascontiguousarray(filt.posteriors[..., :3].reshape(-1, 3))
+        prep = prepare_epoch(epochs[1], frame, positions.mean(0), config.measurement_var_m2,
+                             False)
+        bare_ms = _median_ms(lambda: bare_likelihood(positions, prep), reps)
+        rows[n] = {'epoch_ms': epoch_ms, 'bare_likelihood_ms': bare_ms,
+                   'ratio': epoch_ms / bare_ms, 'evaluations': n * n_posteriors,
+                   'likelihood': config.likelihood}
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return {'epoch_ms_median': {str(n): r['epoch_ms'] for n, r in rows.items()},
+            'bare_likelihood_ms_median': {str(n): r['bare_likelihood_ms']
+                                          for n, r in rows.items()},
+            'details': {str(n): r for n, r in rows.items()},
+            'n_posteriors': n_posteriors, 'satellites': 12, 'peak_rss_mb': peak_mb}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog='gnsscam_bench', description=__doc__.split('\n')[0])
+    parser.add_argument('--particles', type=int, nargs='+', default=list(DEFAULT_COUNTS),
+                        help='particle counts per posterior (default %(default)s)')
+    parser.add_argument('--posteriors', type=int, default=10)
+    parser.add_argument('--likelihood', choices=('robust', 'particle_raim'), default=None)
+    parser.add_argument('--json', type=Path, help='write the figures as JSON')
+    parser.add_argument('--force', action='store_true', help='replace an existing --json')
+    args = parser.parse_args(argv)
+    if args.json is not None and args.json.exists() and not args.force:
+        print(f'gnsscam_bench: {args.json} exists; pass --force to replace it',
+              file=sys.stderr)
+        return 4
+    result = bench(args.particles, args.posteriors, args.likelihood)
+    rows = [[n, d['evaluations'], d['epoch_ms'], d['bare_likelihood_ms'], d['ratio'],
+             d['epoch_ms'] / d['evaluations'] * 1e3]
+            for n, d in result['details'].items()]
+    print(format_table(['N/posterior', 'M*N', 'epoch [ms]', 'bare lik [ms]', 'ratio',
+                        'us per 1k evals'], rows))
+    print(f"peak RSS: {result['peak_rss_mb']:.0f} MB")
+    if args.json is not None:
+        try:
+            write_json_atomic(args.json, result, force=args.force)
+        except (OSError, OutputExistsError) as err:
+            print(f'gnsscam_bench: cannot write {args.json}: {err}', file=sys.stderr)
+            return 4
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,142 @@
+"""``gnsscam_eval``: evaluate the filter on the smartLoc data or the emulated drive.
+
+Examples::
+
+    gnsscam_eval smartloc ../shared/data/smartloc --json out.json
+    gnsscam_eval emulated --faults 6 --bias-m 100 --seed 3 --json out.json
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from ..core import integrity
+from ..core.filter import LIKELIHOODS, FilterConfig
+from ..datasets.errors import DatasetError
+from .evaluate import evaluate_drive
+from .report import (INTEGRITY_HEADERS, OutputExistsError, format_table, integrity_rows,
+                     write_json_atomic)
+
+EXIT_OK, EXIT_USAGE, EXIT_INPUT, EXIT_OUTPUT = 0, 2, 3, 4
+DEFAULT_ALERT_LIMITS_M = (8.0, 16.0)
+
+
+def add_filter_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options shared by every command that runs the filter."""
+    defaults = FilterConfig()
+    group = parser.add_argument_group('filter')
+    group.add_argument('--particles', type=int, default=defaults.n_particles,
+                       help='particles per posterior N (default %(default)s)')
+    group.add_argument('--posteriors', type=int, default=defaults.n_posteriors,
+                       help='odometry perturbations M (default %(default)s)')
+    group.add_argument('--likelihood', choices=LIKELIHOODS, default=defaults.likelihood,
+                       help='GNSS likelihood (default %(default)s)')
+    group.add_argument('--correlation-time-s', type=float,
+                       default=defaults.error_correlation_time_s,
+                       help='GNSS error correlation time for tempering, 0 = off '
+                            '(default %(default)s)')
+    group.add_argument('--inverse-bernoulli', choices=integrity.INVERSE_METHODS,
+                       default=defaults.inverse_bernoulli,
+                       help='inverse Bernoulli divergence (default %(default)s)')
+    group.add_argument('--target-risk', type=float, default=defaults.target_risk)
+    group.add_argument('--seed', type=int, default=0, help='random seed (default 0)')
+
+
+def config_from_args(args: argparse.Namespace) -> FilterConfig:
+    """FilterConfig from the shared options; alert limits 8 m and 16 m are evaluated."""
+    return FilterConfig(n_particles=args.particles, n_posteriors=args.posteriors,
+                        likelihood=args.likelihood,
+                        error_correlation_time_s=args.correlation_time_s,
+                        inverse_bernoulli=args.inverse_bernoulli,
+                        target_risk=args.target_risk,
+                        alert_limit_m=DEFAULT_ALERT_LIMITS_M[0],
+                        extra_alert_limits_m=DEFAULT_ALERT_LIMITS_M[1:])
+
+
+def print_result(label: str, result: dict, out=sys.stdout) -> None:
+    """The readable summary of one evaluation."""
+    base = result['baseline_wls']
+    print(format_table(
+        ['run', 'epochs', 'RMSE 2D [m]', 'RMSE 3D [m]', 'p95 2D [m]', 'WLS 2D [m]',
+         'WLS 3D [m]', 'ratio 2D'],
+        [[label, result['epochs'], result['rmse_2d_m'], result['rmse_3d_m'],
+          result['p95_2d_m'], base['rmse_2d_m'], base['rmse_3d_m'],
+          result['rmse_2d_ratio_to_wls']]]), file=out)
+    print(file=out)
+    rows = []
+    for method, by_limit in result['integrity_by_inverse_bernoulli'].items():
+        rows += integrity_rows(f'{label} ({method})', by_limit)
+    print(format_table(INTEGRITY_HEADERS, rows), file=out)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog='gnsscam_eval', description='Evaluate the GNSS(-camera) particle filter '
+        'against ground truth, next to a robust snapshot WLS baseline.')
+    sub = parser.add_subparsers(dest='command', required=True)
+    smart = sub.add_parser('smartloc', help='a smartLoc run in the libRSF text format')
+    smart.add_argument('folder', type=Path, nargs='?',
+                       help='folder with *_Input.txt and *_GT.txt (or use --input/--truth)')
+    smart.add_argument('--input', type=Path, help='input file (pseudorange3/odom3 lines)')
+    smart.add_argument('--truth', type=Path, help='ground-truth file (point3 lines)')
+    emu = sub.add_parser('emulated', help='the seeded emulated urban drive')
+    emu.add_argument('--faults', type=int, default=0, help='faulty satellites of 12')
+    emu.add_argument('--bias-m', type=float, default=100.0, help='fault bias [m]')
+    emu.add_argument('--drive-seed', type=int, default=None,
+                     help='drive seed (default: --seed)')
+    emu.add_argument('--duration-s', type=float, default=None, help='cut the drive short')
+    emu.add_argument('--no-nlos', action='store_true', help='no NLOS errors')
+    for p in (smart, emu):
+        add_filter_arguments(p)
+        p.add_argument('--json', type=Path, help='write the metrics as JSON')
+        p.add_argument('--force', action='store_true', help='replace an existing --json')
+        p.add_argument('--quiet', action='store_true', help='no progress output')
+    return parser
+
+
+def load_drive(args: argparse.Namespace):
+    """The drive named on the command line."""
+    if args.command == 'smartloc':
+        from ..datasets.smartloc import discover_files, load_smartloc
+        if args.input is not None:
+            return load_smartloc(args.input, args.truth)
+        if args.folder is None:
+            raise DatasetError('give a smartLoc folder or --input/--truth')
+        found_input, found_truth = discover_files(args.folder)
+        return load_smartloc(found_input, args.truth or found_truth)
+    from ..datasets.emulated import make_emulated_drive
+    seed = args.seed if args.drive_seed is None else args.drive_seed
+    return make_emulated_drive(seed, faults=args.faults, bias_m=args.bias_m,
+                               nlos=not args.no_nlos, duration_s=args.duration_s)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        config = config_from_args(args)
+    except ValueError as err:
+        parser.error(str(err))
+    if args.json is not None and args.json.exists() and not args.force:
+        print(f'gnsscam_eval: {args.json} exists; pass --force to replace it', file=sys.stderr)
+        return EXIT_OUTPUT
+    try:
+        drive = load_drive(args)
+        result = evaluate_drive(drive, config, seed=args.seed, progress=not args.quiet)
+    except (DatasetError, ValueError) as err:
+        print(f'gnsscam_eval: {err}', file=sys.stderr)
+        return EXIT_INPUT
+    print_result(drive.name, result)
+    if args.json is not None:
+        try:
+            write_json_atomic(args.json, result, force=args.force)
+        except (OSError, OutputExistsError) as err:
+            print(f'gnsscam_eval: cannot write {args.json}: {err}', file=sys.stderr)
+            return EXIT_OUTPUT
+        print(f'\nwrote {args.json}')
+    return EXIT_OK
+
+
+if __name__ == '__main__':
+    sys.exit(main())
