@@ -25,6 +25,7 @@ setup(
         'console_scripts': [
             'gnsscam_eval = gnsscam_ros.evaluation.cli:main',
             'gnsscam_bench = gnsscam_ros.evaluation.bench:main',
+            'gnsscam_mapdb = gnsscam_ros.vision.mapdb_cli:main',
         ],
     },
 )

@@ -54,8 +54,9 @@ def config_from_args(args: argparse.Namespace) -> FilterConfig:
                         extra_alert_limits_m=DEFAULT_ALERT_LIMITS_M[1:])
 
 
-def print_result(label: str, result: dict, out=sys.stdout) -> None:
+def print_result(label: str, result: dict, out=None) -> None:
     """The readable summary of one evaluation."""
+    out = sys.stdout if out is None else out
     base = result['baseline_wls']
     print(format_table(
         ['run', 'epochs', 'RMSE 2D [m]', 'RMSE 3D [m]', 'p95 2D [m]', 'WLS 2D [m]',

@@ -1,0 +1,61 @@
+"""End-to-end evaluation on the committed smartLoc excerpt, and the metric definitions."""
+import json
+
+import numpy as np
+import pytest
+from conftest import SMARTLOC_EXCERPT
+
+from gnsscam_ros.evaluation import cli
+from gnsscam_ros.evaluation.metrics import integrity_metrics, rmse
+
+
+def test_metrics_known_answer():
+    err = np.array([1.0, 9.0, 20.0, 3.0])
+    bound = np.array([0.05, 0.5, 0.05, 0.2])
+    ref = np.array([0.0, 0.6, 0.9, 0.1])
+    m = integrity_metrics(err, bound, ref, alert_limit_m=8.0, target_risk=0.1)
+    # faults: epochs 1, 2; insufficient: epochs 1, 3.
+    assert m['p_fa'] == 0.5 and m['p_mi'] == 0.5
+    assert m['failure_ratio'] == 0.5 and m['failure_error_m'] == pytest.approx(14.5)
+    assert m['bound_gap'] == pytest.approx(np.mean(bound - ref))
+    assert rmse(np.array([3.0, 4.0])) == pytest.approx(np.sqrt(12.5))
+
+
+def test_eval_smartloc_excerpt_end_to_end(tmp_path, capsys):
+    out = tmp_path / 'out.json'
+    code = cli.main(['smartloc', str(SMARTLOC_EXCERPT), '--json', str(out), '--quiet',
+                     '--particles', '300', '--seed', '1'])
+    assert code == 0
+    result = json.loads(out.read_text())
+    assert result['epochs'] == 284
+    for key in ('rmse_2d_m', 'rmse_3d_m'):
+        assert 0.0 < result[key] < 60.0
+        assert 0.0 < result['baseline_wls'][key]
+    for limit in ('8', '16'):
+        metrics = result['integrity'][limit]
+        for key in ('p_fa', 'p_mi', 'failure_ratio', 'failure_error_m', 'bound_gap'):
+            assert key in metrics
+    assert 'RMSE 2D' in capsys.readouterr().out
+    # The filter on GNSS + odometry beats the snapshot fixes on the same data.
+    assert result['rmse_2d_m'] < result['baseline_wls']['rmse_2d_m']
+    # An existing output is not overwritten without --force.
+    before = out.read_text()
+    assert cli.main(['smartloc', str(SMARTLOC_EXCERPT), '--json', str(out), '--quiet']) == 4
+    assert out.read_text() == before
+
+
+def test_eval_reports_bad_input(tmp_path, capsys):
+    bad = tmp_path / 'bad_Input.txt'
+    bad.write_text('pseudorange3 0 1\n')
+    assert cli.main(['smartloc', '--input', str(bad), '--quiet']) == 3
+    assert f'{bad}:1' in capsys.readouterr().err
+
+
+def test_eval_emulated_short(tmp_path):
+    out = tmp_path / 'emu.json'
+    assert cli.main(['emulated', '--faults', '4', '--bias-m', '100', '--seed', '2',
+                     '--duration-s', '120', '--particles', '300', '--quiet',
+                     '--json', str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result['rmse_2d_m'] < result['baseline_wls']['rmse_2d_m']
+    assert result['dataset']['faults'] == 4

@@ -1,0 +1,121 @@
+"""The filter object: convergence on exact geometry, bad input, parameters."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from synthetic import FRAME, epoch_at, sky
+
+from gnsscam_ros.core.filter import (PROPAGATED, REJECTED, UPDATED, WAITING, FilterConfig,
+                                     ParticleFilter)
+from gnsscam_ros.core.particles import MotionIncrement
+
+SECOND = 1_000_000_000
+
+
+def config(**kw):
+    base = dict(n_particles=400, acquisition_particle_factor=2, heading_acquisition_m=20.0,
+                init_position_sd_m=10.0, init_vertical_sd_m=10.0)
+    base.update(kw)
+    return FilterConfig(**base)
+
+
+def drive_east(filt, n_epochs, speed=8.0, start=0, sv=None, clock=5000.0):
+    """Feed exact epochs of a vehicle driving east at ``speed`` m/s."""
+    results = []
+    for i in range(start, start + n_epochs):
+        pos = np.array([speed * i, 0.0, 0.0])
+        epoch = epoch_at(pos, clock_m=clock + 3.0 * i, sv_ecef=sv, stamp_ns=i * SECOND)
+        motion = None if i == start else MotionIncrement(1.0, speed, 0.0, 0.01, 1e-6)
+        results.append(filt.step(epoch, motion))
+    return results
+
+
+@pytest.mark.parametrize('likelihood', ['robust', 'particle_raim'])
+def test_converges_on_exact_geometry(likelihood):
+    filt = ParticleFilter(config(likelihood=likelihood, error_correlation_time_s=0.0),
+                          frame=FRAME, rng=np.random.default_rng(1))
+    results = drive_east(filt, 40)
+    assert all(r.status == UPDATED for r in results)
+    errors = [np.linalg.norm(r.position_enu_m[:2] - [8.0 * i, 0.0])
+              for i, r in enumerate(results)]
+    assert np.mean(errors[-10:]) < 2.0
+    heading_error = np.angle(np.exp(1j * results[-1].yaw_rad))
+    assert abs(heading_error) < np.radians(10)
+
+
+def test_time_going_backwards_is_rejected_and_state_kept():
+    filt = ParticleFilter(config(), frame=FRAME, rng=np.random.default_rng(2))
+    drive_east(filt, 5)
+    before = filt.particles.copy()
+    late = epoch_at([0.0, 0.0, 0.0], stamp_ns=2 * SECOND)
+    result = filt.step(late, MotionIncrement(1.0, 8.0, 0.0, 0.01, 1e-6))
+    assert result.status == REJECTED and 'backwards' in result.reason
+    np.testing.assert_array_equal(filt.particles, before)
+    assert filt.last_stamp_ns == 4 * SECOND
+
+
+def test_unusable_epoch_propagates_without_integrity():
+    filt = ParticleFilter(config(), frame=FRAME, rng=np.random.default_rng(3))
+    drive_east(filt, 5)
+    epoch = epoch_at([40.0, 0.0, 0.0], stamp_ns=5 * SECOND)
+    pr = epoch.pr_m.copy()
+    pr[:5] = np.nan                                  # 3 finite satellites left
+    result = filt.step(replace(epoch, pr_m=pr), MotionIncrement(1.0, 8.0, 0.0, 0.01, 1e-6))
+    assert result.status == PROPAGATED
+    assert result.integrity_ok is False and result.risk is None
+    assert result.rejected == {'non_finite': 5}
+    assert abs(result.position_enu_m[0] - 40.0) < 5.0       # still dead reckoning
+    # The next good epoch is used again.
+    nxt = filt.step(epoch_at([48.0, 0.0, 0.0], stamp_ns=6 * SECOND),
+                    MotionIncrement(1.0, 8.0, 0.0, 0.01, 1e-6))
+    assert nxt.status == UPDATED
+
+
+def test_duplicates_and_infinities_do_not_crash():
+    filt = ParticleFilter(config(), frame=FRAME, rng=np.random.default_rng(4))
+    drive_east(filt, 3)
+    epoch = epoch_at([24.0, 0.0, 0.0], sv_ecef=sky(10), stamp_ns=3 * SECOND)
+    sv_id = epoch.sv_id.copy()
+    sv_id[1] = sv_id[0]
+    sv = epoch.sv_pos_ecef_m.copy()
+    sv[2] = np.inf
+    result = filt.step(replace(epoch, sv_id=sv_id, sv_pos_ecef_m=sv), None)
+    assert result.status == UPDATED and result.n_satellites == 7
+    assert result.rejected == {'non_finite': 1, 'duplicate': 2}
+    assert np.all(np.isfinite(result.position_enu_m))
+
+
+def test_waits_for_a_usable_first_epoch():
+    filt = ParticleFilter(config(), frame=FRAME, rng=np.random.default_rng(5))
+    epoch = epoch_at([0.0, 0.0, 0.0], sv_ecef=sky(3))
+    result = filt.step(epoch, None)
+    assert result.status == WAITING and not filt.initialised
+
+
+def test_integrity_flag_follows_target_and_alert_limit():
+    filt = ParticleFilter(config(inverse_bernoulli='approx'), frame=FRAME,
+                          rng=np.random.default_rng(6))
+    result = drive_east(filt, 20)[-1]
+    bound = result.risk.risk_bound[0]
+    assert result.integrity_ok == (bound <= filt.config.target_risk)
+    filt.set_parameters(alert_limit_m=0.5)          # a limit inside the cloud
+    after = drive_east(filt, 1, start=20)[0]
+    assert after.risk.alert_limits_m[0] == 0.5
+    assert after.risk.empirical_risk[0] > 0.5 and not after.integrity_ok
+
+
+def test_invalid_configuration_is_refused_with_reasons():
+    with pytest.raises(ValueError, match='target_risk'):
+        FilterConfig(target_risk=1.5)
+    filt = ParticleFilter(config(), frame=FRAME)
+    with pytest.raises(ValueError, match='likelihood'):
+        filt.set_parameters(likelihood='magic')
+    assert filt.config.likelihood == 'robust'
+
+
+def test_same_seed_same_result():
+    out = []
+    for _ in range(2):
+        filt = ParticleFilter(config(), frame=FRAME, rng=np.random.default_rng(7))
+        out.append(drive_east(filt, 8)[-1].position_enu_m)
+    np.testing.assert_array_equal(out[0], out[1])
