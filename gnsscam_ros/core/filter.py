@@ -15,6 +15,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from . import gnss, integrity
+from .fusion import CameraMeasurement, camera_log_q, fuse_camera
 from .frames import LocalFrame
 from .particles import (POS, YAW, MotionIncrement, effective_sample_size, motion_samples,
                         normalize_log_weights, propagate, systematic_resample,
@@ -77,6 +78,14 @@ class FilterConfig:
         inverse_bernoulli: 'exact' (bisection) or 'approx' (the paper's closed form).
         horizontal_risk: Alert limits on horizontal error (True) or 3D error.
         extra_alert_limits_m: Further alert limits whose risk is computed (evaluation).
+        use_camera: Fuse camera matches when they are given (False = Particle RAIM only).
+        camera_temperature_m: Softmax temperature of the camera distribution [m].
+        camera_gate_m: Beyond this distance from a match a particle is no more likely
+            under the camera than the rest of the map (the "elsewhere" cell) [m].
+        camera_elsewhere_prob: GNSS probability that the vehicle is outside the cloud.
+        camera_kl_threshold_nats: The camera is excluded for an epoch when every image's
+            KL(Q_j || P) against the GNSS distribution exceeds this [nats]; with every
+            match beyond the gate KL -> log(1 / camera_elsewhere_prob) = 6.9.
     """
 
     n_particles: int = 1000
@@ -107,6 +116,11 @@ class FilterConfig:
     inverse_bernoulli: str = integrity.EXACT
     horizontal_risk: bool = True
     extra_alert_limits_m: tuple = ()
+    use_camera: bool = True
+    camera_temperature_m: float = 5.0
+    camera_gate_m: float = 20.0
+    camera_elsewhere_prob: float = 1e-3
+    camera_kl_threshold_nats: float = 5.0
 
     def __post_init__(self):
         problems = []
@@ -116,7 +130,8 @@ class FilterConfig:
             problems.append('acquisition_particle_factor must be >= 1')
         if self.n_posteriors < 1:
             problems.append('n_posteriors must be >= 1')
-        for name in ('measurement_var_m2', 'alert_limit_m'):
+        for name in ('measurement_var_m2', 'alert_limit_m', 'camera_temperature_m',
+                     'camera_kl_threshold_nats', 'camera_gate_m'):
             if not getattr(self, name) > 0.0:
                 problems.append(f'{name} must be > 0')
         for name in ('propagation_var_m2', 'vertical_propagation_var_m2',
@@ -137,6 +152,8 @@ class FilterConfig:
             problems.append('resample_ess_fraction must be in [0, 1]')
         if not self.dirichlet_alpha >= 1.0:
             problems.append('dirichlet_alpha must be >= 1')
+        if not 0.0 < self.camera_elsewhere_prob < 1.0:
+            problems.append('camera_elsewhere_prob must be in (0, 1)')
         if not 0.0 < self.outlier_prob < 1.0:
             problems.append('outlier_prob must be in (0, 1)')
         if self.min_satellites < 4:
@@ -171,6 +188,10 @@ class EpochResult:
         gamma: (k,) mixture weights of the chosen posterior.
         ess: Effective sample size of the chosen posterior before resampling.
         resampled: Whether the chosen posterior was resampled.
+        camera_frame_ids: Frame ids of the camera measurements offered this epoch.
+        camera_alpha: (K,) mixture weights alpha*_j of the chosen posterior.
+        camera_kl_nats: (K,) KL(Q_j || P) of the chosen posterior.
+        camera_excluded: The camera disagreed with GNSS and was left out this epoch.
     """
 
     stamp_ns: int
@@ -188,6 +209,10 @@ class EpochResult:
     gamma: np.ndarray | None = None
     ess: float = float('nan')
     resampled: bool = False
+    camera_frame_ids: tuple = ()
+    camera_alpha: np.ndarray | None = None
+    camera_kl_nats: np.ndarray | None = None
+    camera_excluded: bool = False
 
 
 class ParticleFilter:
@@ -227,13 +252,16 @@ class ParticleFilter:
         self.config = new
 
     # ------------------------------------------------------------------ epochs
-    def step(self, epoch: GnssEpoch, motion: MotionIncrement | None) -> EpochResult:
+    def step(self, epoch: GnssEpoch, motion: MotionIncrement | None,
+             camera: list[CameraMeasurement] | None = None) -> EpochResult:
         """Process one GNSS epoch.
 
         Args:
             epoch: The pseudoranges of the epoch.
             motion: Motion since the previous epoch (None: no odometry, stand still and let
                 the process noise spread the set).
+            camera: Camera matches of the images since the previous epoch, moved to this
+                epoch (``fusion.match_at_epoch``); None or empty for GNSS only.
 
         Returns:
             The epoch's result; bad input never raises, it is reported in the result.
@@ -270,7 +298,7 @@ class ParticleFilter:
                                        'constellations are set aside')
         if prep is None:
             return self._propagate_only(epoch, check, priors)
-        return self._update(epoch, check, priors, prep, centre, cov, dt_s)
+        return self._update(epoch, check, priors, prep, centre, cov, dt_s, camera)
 
     def _initialise(self, epoch: GnssEpoch, check: gnss.GnssCheck) -> EpochResult:
         cfg = self.config
@@ -322,7 +350,7 @@ class ParticleFilter:
 
     def _update(self, epoch: GnssEpoch, check: gnss.GnssCheck, priors: np.ndarray,
                 prep: gnss.PreparedEpoch, centre: np.ndarray, cov: np.ndarray,
-                dt_s: float) -> EpochResult:
+                dt_s: float, camera: list[CameraMeasurement] | None = None) -> EpochResult:
         cfg = self.config
         m, n = priors.shape[:2]
         # Receiver clock: robust inlier weights at the prior's centre, then per particle.
@@ -342,10 +370,25 @@ class ParticleFilter:
                                              cfg.outlier_range_m)
         log_lik = lik.log_lik * self._evidence_weight(dt_s)
         joint = self.log_w[None, :] + log_lik
+        fusion = None
+        if camera and cfg.use_camera:
+            # Camera and GNSS distributions share the domain: the particles of each set.
+            log_p = joint - logsumexp(joint, axis=1, keepdims=True)
+            log_q = np.stack([camera_log_q(priors[..., POS], c.position_enu_m,
+                                           cfg.camera_temperature_m, cfg.camera_gate_m)
+                              for c in camera])
+            fusion = fuse_camera(log_p, log_q, cfg.camera_kl_threshold_nats,
+                                 cfg.camera_elsewhere_prob)
+            joint = joint + fusion.log_q_mix
         total = logsumexp(joint, axis=1)
         post_log_w = joint - total[:, None]
         chosen = int(np.argmax(total))
         result = self._finish(epoch, check, priors, post_log_w, chosen, total)
+        if fusion is not None:
+            result.camera_frame_ids = tuple(c.frame_id for c in camera)
+            result.camera_alpha = fusion.alpha[:, chosen]
+            result.camera_kl_nats = fusion.kl_nats[:, chosen]
+            result.camera_excluded = bool(fusion.excluded[chosen])
         result.gamma = lik.gamma[chosen]
         result.n_satellites = int(prep.pr_m.shape[0])
         return result

@@ -1,0 +1,135 @@
+"""GNSS-camera fusion with the KL-divergence mixture-of-experts weights (paper §5).
+
+For the K camera images between two GNSS epochs, each image j gives a distribution Q_j over
+the particles (``core.camera``). Its weight minimises ``KL(alpha_j Q_j || P)`` against the
+GNSS distribution P over the same particles:
+
+    alpha_j = exp(k_j),  k_j = sum_i Q_j log(P / Q_j) / sum_i Q_j - 1 = -KL(Q_j || P) - 1
+
+normalised over j, and the mixture ``Q* = sum_j alpha*_j Q_j`` multiplies the GNSS
+likelihood (joint log-likelihood ``log P + log Q*``).
+
+A softmax over the particles alone sees only *relative* distances: a match 60 m from a
+tight cloud gives almost the same Q as one 5 m away, and no divergence could tell them
+apart. The domain is therefore the S particles plus one cell for "elsewhere in the map":
+the cell weighs like the whole cloud placed at the gate distance R, so the camera's mass
+lands there when the match is farther than R from the particles, where the GNSS distribution puts only
+``elsewhere_prob``. The paper's formula for alpha_j is applied on that domain.
+
+Normalisation gives the cameras full weight even when every one of them disagrees with
+GNSS. So when the smallest divergence of the epoch exceeds ``kl_threshold_nats`` the
+camera is excluded for that epoch (and the caller reports it) instead of being forced into
+the estimate. With every image far from the cloud, KL -> log(1 / elsewhere_prob).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import logsumexp
+
+from .camera import propagate_match_state
+
+
+@dataclass(frozen=True)
+class CameraMeasurement:
+    """One camera image's best database match, moved to the GNSS epoch.
+
+    Attributes:
+        stamp_ns: Image time [ns].
+        position_enu_m: (3,) matched position at the GNSS epoch, map frame [m].
+        score: Retrieval similarity score of the match.
+        frame_id: Identifier of the image (for diagnostics and evaluation).
+    """
+
+    stamp_ns: int
+    position_enu_m: np.ndarray
+    score: float = float('nan')
+    frame_id: int = -1
+
+
+def match_at_epoch(match_enu_m: np.ndarray, speed_mps: float, accel_mps2: float,
+                   yaw_rad: float, dt_s: float) -> np.ndarray:
+    """Move a matched position from the image time to the GNSS epoch.
+
+    The vehicle moves along its heading, ``x + v dt + a dt^2 / 2`` (paper eq. for the
+    camera state) with v and a the odometry speed and acceleration along ``yaw_rad``.
+    """
+    heading = np.array([np.cos(yaw_rad), np.sin(yaw_rad), 0.0])
+    return propagate_match_state(match_enu_m, speed_mps * heading, accel_mps2 * heading, dt_s)
+
+
+def camera_log_q(positions_m: np.ndarray, match_enu_m: np.ndarray, temperature_m: float,
+                 gate_m: float | None = None) -> np.ndarray:
+    """Per-set log softmax of ``-horizontal distance / T`` over the particles.
+
+    Args:
+        positions_m: (M, N, 3) particle positions [m].
+        match_enu_m: (3,) matched position at the epoch [m].
+        temperature_m: Softmax temperature T [m].
+        gate_m: Gate distance R [m]; None for the paper's plain softmax over particles.
+
+    Returns:
+        (M, N + 1) log Q with the "elsewhere" cell last, or (M, N) without a gate. Each
+        row sums to one in probability. The cell weighs as much as N particles at the gate
+        distance (logit ``-R / T + log N``), so the test does not depend on N.
+    """
+    diff = positions_m[..., :2] - match_enu_m[:2]
+    logits = -np.sqrt((diff * diff).sum(-1)) / temperature_m
+    if gate_m is not None:
+        logits = np.concatenate(
+            [logits, np.full(logits.shape[:-1] + (1,),
+                             -gate_m / temperature_m + np.log(logits.shape[-1]))], axis=-1)
+    return logits - logsumexp(logits, axis=-1, keepdims=True)
+
+
+@dataclass(frozen=True)
+class FusionResult:
+    """The camera mixture of one epoch, per posterior set.
+
+    Attributes:
+        log_q_mix: (M, N) log Q* (zeros where the camera is excluded).
+        alpha: (K, M) normalised mixture weights alpha*_j.
+        kl_nats: (K, M) KL(Q_j || P).
+        excluded: (M,) whether the camera was excluded for that set.
+    """
+
+    log_q_mix: np.ndarray
+    alpha: np.ndarray
+    kl_nats: np.ndarray
+    excluded: np.ndarray
+
+
+def fuse_camera(log_p: np.ndarray, log_q: np.ndarray, kl_threshold_nats: float,
+                elsewhere_prob: float | None = None) -> FusionResult:
+    """Mixture-of-experts weights and the camera mixture for every posterior set.
+
+    Args:
+        log_p: (M, N) normalised log GNSS distribution over the particles of each set.
+        log_q: (K, M, N) normalised log camera distributions, or (K, M, N + 1) with the
+            "elsewhere" cell last (see :func:`camera_log_q`).
+        kl_threshold_nats: Exclude the camera of a set when every KL(Q_j || P) exceeds it.
+        elsewhere_prob: GNSS probability of the "elsewhere" cell (needed with that cell).
+
+    Returns:
+        The fusion result; ``log_q_mix`` covers the N particles only.
+    """
+    n = log_p.shape[-1]
+    if log_q.shape[-1] == n + 1:
+        if elsewhere_prob is None:
+            raise ValueError('log_q has an elsewhere cell: give elsewhere_prob')
+        log_p = np.concatenate([log_p + np.log1p(-elsewhere_prob),
+                                np.full(log_p.shape[:-1] + (1,), np.log(elsewhere_prob))],
+                               axis=-1)
+    elif log_q.shape[-1] != n:
+        raise ValueError(f'log_q has {log_q.shape[-1]} cells for {n} particles')
+    q = np.exp(log_q)
+    # k_j = sum_i Q log(P/Q) / sum_i Q - 1 (sum_i Q = 1 for a normalised Q_j).
+    kl = (q * (log_q - log_p[None])).sum(-1)
+    k = -kl / q.sum(-1) - 1.0
+    alpha = np.exp(k - logsumexp(k, axis=0, keepdims=True))       # normalised over j
+    log_q_mix = logsumexp(log_q[..., :n] + np.log(np.maximum(alpha, 1e-300))[..., None],
+                          axis=0)
+    excluded = kl.min(axis=0) > kl_threshold_nats
+    log_q_mix[excluded] = 0.0
+    return FusionResult(log_q_mix=log_q_mix, alpha=alpha, kl_nats=kl, excluded=excluded)

@@ -1,0 +1,75 @@
+"""KL-divergence mixture-of-experts weights (paper §5) and camera exclusion."""
+import numpy as np
+import pytest
+from scipy.optimize import minimize_scalar
+from scipy.special import logsumexp
+
+from gnsscam_ros.core.fusion import camera_log_q, fuse_camera, match_at_epoch
+
+
+def normalised(logits):
+    return logits - logsumexp(logits, axis=-1, keepdims=True)
+
+
+def test_alpha_minimises_the_paper_objective(rng):
+    n = 300
+    log_p = normalised(rng.normal(size=(1, n)))
+    log_q = normalised(rng.normal(scale=2.0, size=(4, 1, n)))
+    result = fuse_camera(log_p, log_q, kl_threshold_nats=1e9)
+    raw = []
+    for j in range(4):
+        q, p = np.exp(log_q[j, 0]), np.exp(log_p[0])
+
+        def objective(log_alpha):
+            a = np.exp(log_alpha)
+            return np.sum(a * q * np.log(a * q / p))
+
+        best = minimize_scalar(objective, bounds=(-30, 5), method='bounded',
+                               options={'xatol': 1e-10})
+        raw.append(np.exp(best.x))
+    raw = np.array(raw)
+    np.testing.assert_allclose(result.alpha[:, 0], raw / raw.sum(), rtol=1e-5)
+    kl = np.sum(np.exp(log_q[:, 0]) * (log_q[:, 0] - log_p[0]), axis=1)
+    np.testing.assert_allclose(result.kl_nats[:, 0], kl)
+
+
+def test_consistent_camera_outweighs_inconsistent_one(rng):
+    positions = rng.normal(scale=5.0, size=(1, 2000, 3))            # GNSS cloud at origin
+    log_p = normalised(-0.5 * (positions[..., :2] ** 2).sum(-1) / 25.0)
+    good = camera_log_q(positions, np.array([1.0, 0.0, 0.0]), 5.0, gate_m=20.0)
+    bad = camera_log_q(positions, np.array([40.0, 0.0, 0.0]), 5.0, gate_m=20.0)
+    result = fuse_camera(log_p, np.stack([good, bad]), kl_threshold_nats=5.0,
+                         elsewhere_prob=1e-3)
+    assert result.alpha[0, 0] > 0.9 and not result.excluded[0]
+    # The mixture pulls the cloud towards the consistent match only.
+    w = np.exp(log_p + result.log_q_mix)
+    w /= w.sum()
+    assert abs(w @ positions[0, :, 0] - 1.0) < 2.0
+
+
+def test_camera_excluded_when_every_image_disagrees(rng):
+    positions = rng.normal(scale=3.0, size=(2, 1000, 3))
+    log_p = normalised(-0.5 * (positions[..., :2] ** 2).sum(-1) / 9.0)
+    far = [camera_log_q(positions, np.array([60.0, y, 0.0]), 5.0, gate_m=20.0)
+           for y in (-5.0, 5.0)]
+    result = fuse_camera(log_p, np.stack(far), kl_threshold_nats=5.0, elsewhere_prob=1e-3)
+    # Normalised weights would still sum to one: exclusion is what keeps it out.
+    np.testing.assert_allclose(result.alpha.sum(axis=0), 1.0)
+    assert result.excluded.all()
+    np.testing.assert_array_equal(result.log_q_mix, 0.0)
+    # Without the elsewhere cell (the paper's plain softmax) the same far matches look
+    # consistent: relative distances alone cannot reveal them.
+    plain = [camera_log_q(positions, np.array([60.0, y, 0.0]), 5.0) for y in (-5.0, 5.0)]
+    assert not fuse_camera(log_p, np.stack(plain), kl_threshold_nats=5.0).excluded.any()
+
+
+def test_match_moved_to_epoch_along_heading():
+    out = match_at_epoch(np.array([10.0, 0.0, 0.0]), 10.0, 1.0, np.pi / 2, 0.5)
+    np.testing.assert_allclose(out, [10.0, 10.0 * 0.5 + 0.5 * 1.0 * 0.25, 0.0])
+
+
+@pytest.mark.parametrize('temperature', [1.0, 5.0, 20.0])
+def test_camera_log_q_is_normalised_per_set(rng, temperature):
+    positions = rng.normal(scale=50.0, size=(3, 100, 3))
+    log_q = camera_log_q(positions, np.zeros(3), temperature)
+    np.testing.assert_allclose(logsumexp(log_q, axis=1), 0.0, atol=1e-12)
