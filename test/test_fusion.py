@@ -73,3 +73,15 @@ def test_camera_log_q_is_normalised_per_set(rng, temperature):
     positions = rng.normal(scale=50.0, size=(3, 100, 3))
     log_q = camera_log_q(positions, np.zeros(3), temperature)
     np.testing.assert_allclose(logsumexp(log_q, axis=1), 0.0, atol=1e-12)
+
+
+def test_measurements_moved_to_epoch_with_odometry():
+    from gnsscam_ros.core.fusion import CameraMeasurement, measurements_at_epoch
+    from gnsscam_ros.core.types import OdometrySeries
+    t = np.arange(0, 21) * 100_000_000                            # 10 Hz over 2 s
+    odo = OdometrySeries(t, np.full(21, 10.0), np.zeros(21), np.zeros(21), np.zeros(21))
+    matches = [CameraMeasurement(500_000_000, np.array([0.0, 0.0, 0.0]), 0.5, 7),
+               CameraMeasurement(1_500_000_000, np.array([1.0, 0.0, 0.0]), 0.4, 8)]
+    out = measurements_at_epoch(matches, odo, 0, 1_000_000_000, yaw_prev_rad=np.pi / 2)
+    assert [m.frame_id for m in out] == [7]
+    np.testing.assert_allclose(out[0].position_enu_m, [0.0, 5.0, 0.0], atol=1e-9)

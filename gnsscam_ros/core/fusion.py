@@ -13,8 +13,9 @@ A softmax over the particles alone sees only *relative* distances: a match 60 m 
 tight cloud gives almost the same Q as one 5 m away, and no divergence could tell them
 apart. The domain is therefore the S particles plus one cell for "elsewhere in the map":
 the cell weighs like the whole cloud placed at the gate distance R, so the camera's mass
-lands there when the match is farther than R from the particles, where the GNSS distribution puts only
-``elsewhere_prob``. The paper's formula for alpha_j is applied on that domain.
+lands there when the match is farther than R from the particles, and the GNSS
+distribution puts only ``elsewhere_prob`` there. The paper's formula for alpha_j is
+applied on that domain.
 
 Normalisation gives the cameras full weight even when every one of them disagrees with
 GNSS. So when the smallest divergence of the epoch exceeds ``kl_threshold_nats`` the
@@ -29,6 +30,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from .camera import propagate_match_state
+from .types import OdometrySeries
 
 
 @dataclass(frozen=True)
@@ -57,6 +59,49 @@ def match_at_epoch(match_enu_m: np.ndarray, speed_mps: float, accel_mps2: float,
     """
     heading = np.array([np.cos(yaw_rad), np.sin(yaw_rad), 0.0])
     return propagate_match_state(match_enu_m, speed_mps * heading, accel_mps2 * heading, dt_s)
+
+
+def measurements_at_epoch(matches: list[CameraMeasurement], odometry: OdometrySeries | None,
+                          t_prev_ns: int, t_epoch_ns: int,
+                          yaw_prev_rad: float) -> list[CameraMeasurement]:
+    """The camera matches of ``(t_prev_ns, t_epoch_ns]``, each moved to the GNSS epoch.
+
+    Speed, acceleration and heading at the image time come from the odometry: the heading
+    is the previous epoch's estimate turned by the integrated yaw rate.
+
+    Args:
+        matches: Best matches with their image stamps (positions at the image time).
+        odometry: Speed and yaw-rate series (None: the vehicle is taken as standing).
+        t_prev_ns: Previous GNSS epoch [ns].
+        t_epoch_ns: This GNSS epoch [ns].
+        yaw_prev_rad: Heading estimate at the previous epoch [rad].
+
+    Returns:
+        The matches inside the interval, positions moved to ``t_epoch_ns``.
+    """
+    inside = [m for m in matches if t_prev_ns < m.stamp_ns <= t_epoch_ns]
+    if not inside:
+        return []
+    if odometry is None or len(odometry) == 0:
+        return [CameraMeasurement(m.stamp_ns, np.asarray(m.position_enu_m, float), m.score,
+                                  m.frame_id) for m in inside]
+    t_odo = odometry.stamp_ns.astype(float) * 1e-9
+    stamps = np.array([m.stamp_ns for m in inside], dtype=float) * 1e-9
+    speed = np.interp(stamps, t_odo, odometry.speed_mps)
+    accel = np.interp(stamps, t_odo, np.gradient(odometry.speed_mps, t_odo)) if len(
+        odometry) > 1 else np.zeros_like(stamps)
+    # Heading at each image: the previous estimate plus the yaw rate integrated since.
+    t_prev_s = t_prev_ns * 1e-9
+    grid = np.concatenate(([t_prev_s], stamps))
+    rate = np.interp(grid, t_odo, odometry.yaw_rate_rps)
+    yaw = yaw_prev_rad + np.concatenate(
+        ([0.0], np.cumsum(0.5 * (rate[1:] + rate[:-1]) * np.diff(grid))))[1:]
+    out = []
+    for m, v, a, psi, t in zip(inside, speed, accel, yaw, stamps):
+        dt_s = t_epoch_ns * 1e-9 - t
+        out.append(CameraMeasurement(m.stamp_ns, match_at_epoch(m.position_enu_m, v, a, psi,
+                                                                dt_s), m.score, m.frame_id))
+    return out
 
 
 def camera_log_q(positions_m: np.ndarray, match_enu_m: np.ndarray, temperature_m: float,

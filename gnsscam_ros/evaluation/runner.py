@@ -10,6 +10,7 @@ import numpy as np
 from ..core import integrity
 from ..core.filter import UPDATED, FilterConfig, ParticleFilter
 from ..core.frames import LocalFrame
+from ..core.fusion import CameraMeasurement, measurements_at_epoch
 from ..core.gnss import check_epoch
 from ..core.motion import integrate_odometry
 from ..core.snapshot import solve_snapshot
@@ -29,6 +30,9 @@ class RunRecord:
     alert_limits_m: np.ndarray
     statuses: dict = field(default_factory=dict)
     seconds: float = 0.0
+    camera_alpha: dict = field(default_factory=dict)   # frame_id -> mixture weight alpha*
+    camera_excluded_epochs: int = 0
+    camera_epochs: int = 0
 
 
 def truth_at(drive: Drive, frame: LocalFrame, stamps_ns: np.ndarray) -> np.ndarray:
@@ -61,9 +65,17 @@ class Progress:
         sys.stderr.flush()
 
 
-def run_filter(drive: Drive, config: FilterConfig, seed: int = 0,
-               progress: bool = False) -> RunRecord:
+def run_filter(drive: Drive, config: FilterConfig, seed: int = 0, progress: bool = False,
+               camera_matches: list[CameraMeasurement] | None = None) -> RunRecord:
     """Run the particle filter over a drive; truth is used only for scoring.
+
+    Args:
+        drive: The data.
+        config: Filter parameters.
+        seed: Seed of the filter's random generator.
+        progress: Show progress on stderr.
+        camera_matches: Best database match of every camera image (position at the image
+            time, map frame); None runs GNSS only.
 
     Returns:
         Per-epoch estimates, truth, risk bounds (configured and other inverse method) and
@@ -78,12 +90,23 @@ def run_filter(drive: Drive, config: FilterConfig, seed: int = 0,
     bar = Progress(f'filter {drive.name}', len(drive.gnss), progress)
     start = time.monotonic()
     truth_enu = None
+    camera_alpha: dict[int, float] = {}
+    camera_epochs = camera_excluded = 0
     for i, epoch in enumerate(drive.gnss):
-        motion = None
-        if filt.last_stamp_ns is not None and drive.odometry is not None and (
-                epoch.stamp_ns > filt.last_stamp_ns):
-            motion = integrate_odometry(drive.odometry, filt.last_stamp_ns, epoch.stamp_ns)
-        result = filt.step(epoch, motion)
+        motion, camera = None, None
+        if filt.last_stamp_ns is not None and epoch.stamp_ns > filt.last_stamp_ns:
+            if drive.odometry is not None:
+                motion = integrate_odometry(drive.odometry, filt.last_stamp_ns,
+                                            epoch.stamp_ns)
+            if camera_matches and filt.last_result is not None:
+                camera = measurements_at_epoch(camera_matches, drive.odometry,
+                                               filt.last_stamp_ns, epoch.stamp_ns,
+                                               filt.last_result.yaw_rad)
+        result = filt.step(epoch, motion, camera)
+        if result.camera_alpha is not None:
+            camera_epochs += 1
+            camera_excluded += int(result.camera_excluded)
+            camera_alpha.update(zip(result.camera_frame_ids, result.camera_alpha.tolist()))
         statuses[result.status] = statuses.get(result.status, 0) + 1
         bar.update(i + 1)
         if result.status != UPDATED or drive.truth is None:
@@ -109,7 +132,8 @@ def run_filter(drive: Drive, config: FilterConfig, seed: int = 0,
         risk_bound={config.inverse_bernoulli: np.array(bounds).reshape(-1, len(limits)),
                     other: np.array(bounds_other).reshape(-1, len(limits))},
         reference_risk=np.array(references).reshape(-1, len(limits)), alert_limits_m=limits,
-        statuses=statuses, seconds=seconds)
+        statuses=statuses, seconds=seconds, camera_alpha=camera_alpha,
+        camera_excluded_epochs=camera_excluded, camera_epochs=camera_epochs)
 
 
 def run_snapshot_baseline(drive: Drive, frame: LocalFrame,
