@@ -1,0 +1,37 @@
+"""ROS message <-> numpy/dataclass conversions for gnsscam_ros (no node logic).
+
+Every converter raises :class:`MessageError` (with a short ``reason``) on malformed input;
+time stamps are integer nanoseconds. See each module for the message layouts
+(design.md §3).
+"""
+from .errors import MessageError
+from .geometry import (GeodeticFix, PoseEstimate, fix_to_navsatfix, msg_to_pose,
+                       navsatfix_to_fix, particles_to_posearray, pose_covariance, pose_to_msg,
+                       posearray_to_particles, quaternion_to_yaw, service_bits,
+                       yaw_to_quaternion)
+from .image import ENCODINGS, array_to_image, image_to_array
+from .integrity import (ERROR, OK, STALE, WARN, IntegrityRisk, integrity_risk_to_msg,
+                        level_to_int, make_diagnostic_array, make_status, parse_integrity_risk,
+                        status_values)
+from .motion import (ImuSample, TwistSample, dead_reckoning_to_odometry, imu_to_sample,
+                     odometry_to_dead_reckoning, sample_to_imu, sample_to_twist,
+                     twist_to_sample)
+from .pointcloud import (GNSS_DTYPE, MATCH_DTYPE, CameraMatches, gnss_epoch_to_pointcloud2,
+                         matches_to_pointcloud2, pointcloud2_to_gnss_epoch,
+                         pointcloud2_to_matches, pointcloud2_to_structured,
+                         structured_to_pointcloud2)
+from .stamps import ns_to_stamp, stamp_to_ns
+
+__all__ = [
+    'CameraMatches', 'ENCODINGS', 'ERROR', 'GNSS_DTYPE', 'GeodeticFix', 'ImuSample',
+    'IntegrityRisk', 'MATCH_DTYPE', 'MessageError', 'OK', 'PoseEstimate', 'STALE',
+    'TwistSample', 'WARN', 'array_to_image', 'dead_reckoning_to_odometry',
+    'fix_to_navsatfix', 'gnss_epoch_to_pointcloud2', 'image_to_array', 'imu_to_sample',
+    'integrity_risk_to_msg', 'level_to_int', 'make_diagnostic_array', 'make_status',
+    'matches_to_pointcloud2', 'msg_to_pose', 'navsatfix_to_fix', 'ns_to_stamp',
+    'odometry_to_dead_reckoning', 'parse_integrity_risk', 'particles_to_posearray',
+    'pointcloud2_to_gnss_epoch', 'pointcloud2_to_matches', 'pointcloud2_to_structured',
+    'pose_covariance', 'pose_to_msg', 'posearray_to_particles', 'quaternion_to_yaw',
+    'sample_to_imu', 'sample_to_twist', 'service_bits', 'stamp_to_ns', 'status_values',
+    'structured_to_pointcloud2', 'twist_to_sample', 'yaw_to_quaternion',
+]

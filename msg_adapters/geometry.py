@@ -1,0 +1,225 @@
+"""Pose, particle cloud and WGS84 fix messages <-> numpy.
+
+* ``pose``: ``geometry_msgs/PoseWithCovarianceStamped``, frame ``map`` (local ENU); the 6x6
+  covariance is (x, y, z, roll, pitch, yaw); roll and pitch are not estimated and carry
+  :data:`UNESTIMATED_VAR`.
+* ``particles``: ``geometry_msgs/PoseArray``, one pose per particle (east, north, up, yaw).
+* ``fix``, ``gnss/fix``: ``sensor_msgs/NavSatFix``; covariance in the ENU order of the
+  message definition [m^2].
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from geometry_msgs.msg import Pose, PoseArray, PoseWithCovarianceStamped, Quaternion
+from sensor_msgs.msg import NavSatFix, NavSatStatus
+from std_msgs.msg import Header
+
+from .errors import MessageError
+from .stamps import ns_to_stamp, stamp_to_ns
+
+UNESTIMATED_VAR = 1e6     # variance of the pose axes the filter does not estimate [rad^2]
+
+
+def yaw_to_quaternion(yaw_rad: float) -> Quaternion:
+    """Rotation about z by ``yaw_rad`` [rad] as a unit quaternion."""
+    half = 0.5 * float(yaw_rad)
+    return Quaternion(x=0.0, y=0.0, z=float(np.sin(half)), w=float(np.cos(half)))
+
+
+def quaternion_to_yaw(q: Quaternion) -> float:
+    """Heading (rotation about z, ZYX convention) of a quaternion [rad], in [-pi, pi].
+
+    Raises:
+        MessageError: Non-finite or zero-norm quaternion.
+    """
+    x, y, z, w = float(q.x), float(q.y), float(q.z), float(q.w)
+    if not np.all(np.isfinite([x, y, z, w])) or x * x + y * y + z * z + w * w < 1e-12:
+        raise MessageError(f'invalid quaternion {(x, y, z, w)}', 'non_finite')
+    return float(np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)))
+
+
+# ------------------------------------------------------------------------------ pose
+@dataclass(frozen=True)
+class PoseEstimate:
+    """A pose with covariance.
+
+    Attributes:
+        stamp_ns: Stamp [ns].
+        position_m: (3,) east, north, up in ``frame_id`` [m].
+        yaw_rad: Heading, counter-clockwise from east [rad].
+        covariance: (6, 6) over (x, y, z, roll, pitch, yaw) [m^2, rad^2].
+        frame_id: Frame.
+    """
+
+    stamp_ns: int
+    position_m: np.ndarray
+    yaw_rad: float
+    covariance: np.ndarray
+    frame_id: str = 'map'
+
+    @property
+    def position_covariance_m2(self) -> np.ndarray:
+        """(3, 3) position block [m^2]."""
+        return self.covariance[:3, :3]
+
+
+def pose_to_msg(estimate: PoseEstimate) -> PoseWithCovarianceStamped:
+    """:class:`PoseEstimate` -> PoseWithCovarianceStamped.
+
+    Raises:
+        MessageError: Non-finite position or heading, or a covariance that is not 6x6.
+    """
+    pos = np.asarray(estimate.position_m, dtype=float).reshape(3)
+    cov = np.asarray(estimate.covariance, dtype=float)
+    if not (np.all(np.isfinite(pos)) and np.isfinite(estimate.yaw_rad)):
+        raise MessageError('pose must be finite', 'non_finite')
+    if cov.shape != (6, 6):
+        raise MessageError(f'covariance shape {cov.shape}, expected (6, 6)', 'value')
+    msg = PoseWithCovarianceStamped()
+    msg.header = Header(stamp=ns_to_stamp(estimate.stamp_ns), frame_id=estimate.frame_id)
+    msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z = (
+        float(v) for v in pos)
+    msg.pose.pose.orientation = yaw_to_quaternion(estimate.yaw_rad)
+    msg.pose.covariance = cov.reshape(-1).tolist()
+    return msg
+
+
+def pose_covariance(position_cov_m2: np.ndarray, yaw_var_rad2: float) -> np.ndarray:
+    """(6, 6) pose covariance from a (3, 3) position block and a heading variance."""
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = position_cov_m2
+    cov[3, 3] = cov[4, 4] = UNESTIMATED_VAR
+    cov[5, 5] = yaw_var_rad2
+    return cov
+
+
+def msg_to_pose(msg: PoseWithCovarianceStamped, what: str = 'pose') -> PoseEstimate:
+    """PoseWithCovarianceStamped -> :class:`PoseEstimate`.
+
+    Raises:
+        MessageError: Non-finite position or orientation.
+    """
+    p = msg.pose.pose.position
+    pos = np.array([p.x, p.y, p.z], dtype=float)
+    if not np.all(np.isfinite(pos)):
+        raise MessageError(f'{what}: non-finite position', 'non_finite')
+    return PoseEstimate(stamp_ns=stamp_to_ns(msg.header.stamp), position_m=pos,
+                        yaw_rad=quaternion_to_yaw(msg.pose.pose.orientation),
+                        covariance=np.array(msg.pose.covariance, dtype=float).reshape(6, 6),
+                        frame_id=msg.header.frame_id)
+
+
+# ------------------------------------------------------------------------- particles
+def particles_to_posearray(particles: np.ndarray, stamp_ns: int,
+                           frame_id: str = 'map') -> PoseArray:
+    """(N, 4) particles (east, north, up, yaw) -> PoseArray.
+
+    Building the Python message costs ~6 us per particle; nodes subsample large sets.
+    """
+    p = np.asarray(particles, dtype=float).reshape(-1, 4)
+    half = 0.5 * p[:, 3]
+    cols = (p[:, 0].tolist(), p[:, 1].tolist(), p[:, 2].tolist(), np.sin(half).tolist(),
+            np.cos(half).tolist())
+    poses = []
+    for x, y, z, qz, qw in zip(*cols):
+        pose = Pose()
+        pose.position.x, pose.position.y, pose.position.z = x, y, z
+        pose.orientation.z, pose.orientation.w = qz, qw
+        poses.append(pose)
+    msg = PoseArray(header=Header(stamp=ns_to_stamp(stamp_ns), frame_id=frame_id))
+    msg.poses = poses
+    return msg
+
+
+def posearray_to_particles(msg: PoseArray) -> np.ndarray:
+    """PoseArray -> (N, 4) particles (east, north, up, yaw)."""
+    out = np.empty((len(msg.poses), 4))
+    for i, pose in enumerate(msg.poses):
+        q = pose.orientation
+        out[i] = (pose.position.x, pose.position.y, pose.position.z,
+                  np.arctan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z)))
+    return out
+
+
+# ---------------------------------------------------------------------------- NavSatFix
+@dataclass(frozen=True)
+class GeodeticFix:
+    """A WGS84 position fix.
+
+    Attributes:
+        stamp_ns: Stamp [ns].
+        lat_deg: Latitude [deg].
+        lon_deg: Longitude [deg].
+        alt_m: Ellipsoidal height [m].
+        covariance_enu_m2: (3, 3) covariance in east, north, up [m^2], or None if unknown.
+        status: ``NavSatStatus`` status (-1 no fix, 0 fix, ...).
+        service: ``NavSatStatus`` service bits (1 GPS, 2 GLONASS, 4 COMPASS, 8 GALILEO).
+        frame_id: Frame of the antenna.
+    """
+
+    stamp_ns: int
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+    covariance_enu_m2: np.ndarray | None = None
+    status: int = NavSatStatus.STATUS_FIX
+    service: int = NavSatStatus.SERVICE_GPS
+    frame_id: str = 'gnss'
+
+
+# `system` field codes of the GNSS cloud -> NavSatStatus service bits.
+_SERVICE_OF_SYSTEM = {1: NavSatStatus.SERVICE_GPS, 4: NavSatStatus.SERVICE_GLONASS,
+                      8: NavSatStatus.SERVICE_GALILEO, 32: NavSatStatus.SERVICE_COMPASS}
+
+
+def service_bits(systems) -> int:
+    """NavSatStatus service bits of a set of ``system`` codes (SBAS/QZSS: no bit)."""
+    bits = 0
+    for s in set(int(v) for v in systems):
+        bits |= _SERVICE_OF_SYSTEM.get(s, 0)
+    return bits
+
+
+def fix_to_navsatfix(fix: GeodeticFix) -> NavSatFix:
+    """:class:`GeodeticFix` -> NavSatFix (covariance type KNOWN when given, else UNKNOWN).
+
+    Raises:
+        MessageError: Non-finite coordinates or covariance.
+    """
+    values = [fix.lat_deg, fix.lon_deg, fix.alt_m]
+    if not np.all(np.isfinite(values)):
+        raise MessageError(f'non-finite fix {values}', 'non_finite')
+    msg = NavSatFix(header=Header(stamp=ns_to_stamp(fix.stamp_ns), frame_id=fix.frame_id),
+                    status=NavSatStatus(status=int(fix.status), service=int(fix.service)),
+                    latitude=float(fix.lat_deg), longitude=float(fix.lon_deg),
+                    altitude=float(fix.alt_m))
+    if fix.covariance_enu_m2 is None:
+        msg.position_covariance_type = NavSatFix.COVARIANCE_TYPE_UNKNOWN
+    else:
+        cov = np.asarray(fix.covariance_enu_m2, dtype=float).reshape(3, 3)
+        if not np.all(np.isfinite(cov)):
+            raise MessageError('non-finite fix covariance', 'non_finite')
+        msg.position_covariance = cov.reshape(-1).tolist()
+        msg.position_covariance_type = NavSatFix.COVARIANCE_TYPE_KNOWN
+    return msg
+
+
+def navsatfix_to_fix(msg: NavSatFix, what: str = 'fix') -> GeodeticFix:
+    """NavSatFix -> :class:`GeodeticFix`.
+
+    Raises:
+        MessageError: Non-finite or out-of-range latitude/longitude, non-finite altitude.
+    """
+    lat, lon, alt = float(msg.latitude), float(msg.longitude), float(msg.altitude)
+    if not np.all(np.isfinite([lat, lon, alt])):
+        raise MessageError(f'{what}: non-finite position', 'non_finite')
+    if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 360.0):
+        raise MessageError(f'{what}: latitude/longitude out of range ({lat}, {lon})', 'value')
+    cov = None
+    if msg.position_covariance_type != NavSatFix.COVARIANCE_TYPE_UNKNOWN:
+        cov = np.array(msg.position_covariance, dtype=float).reshape(3, 3)
+    return GeodeticFix(stamp_ns=stamp_to_ns(msg.header.stamp), lat_deg=lat, lon_deg=lon,
+                       alt_m=alt, covariance_enu_m2=cov, status=int(msg.status.status),
+                       service=int(msg.status.service), frame_id=msg.header.frame_id)

@@ -1,0 +1,171 @@
+"""``integrity_risk`` and ``diagnostics`` (``diagnostic_msgs/DiagnosticArray``) <-> dataclasses.
+
+``integrity_risk`` carries one status (design.md §3):
+
+* level ``OK`` (0): integrity sufficient, the risk bound is at most the target risk;
+  ``ERROR`` (2): insufficient (alarm); ``STALE`` (3): no valid solution (no GNSS for too
+  long, an epoch without a GNSS update, or before the first fix). A consumer must treat
+  anything but OK as "do not trust the position".
+* values ``risk_bound``, ``empirical_risk``, ``divergence_risk``, ``alert_limit_m``,
+  ``target_risk``, ``epoch_stamp`` (integer ns of the GNSS epoch), optionally
+  ``protection_level_m``, plus informational extras (``status``, ``n_satellites``, ...).
+  Floats are written with ``repr`` so they parse back exactly; unknown values are ``nan``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from std_msgs.msg import Header
+
+from .errors import MessageError
+from .stamps import ns_to_stamp, stamp_to_ns
+
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
+LEVEL_NAMES = {OK: 'OK', WARN: 'WARN', ERROR: 'ERROR', STALE: 'STALE'}
+INTEGRITY_STATUS_NAME = 'gnsscam_ros: integrity risk'
+_FLOAT_KEYS = ('risk_bound', 'empirical_risk', 'divergence_risk', 'alert_limit_m',
+               'target_risk')
+
+
+def level_to_int(level) -> int:
+    """A DiagnosticStatus level (``bytes`` of length 1 in rclpy, or int) -> int."""
+    if isinstance(level, (bytes, bytearray)):
+        if len(level) != 1:
+            raise MessageError(f'diagnostic level {level!r} is not one byte', 'value')
+        return level[0]
+    return int(level)
+
+
+def format_value(value) -> str:
+    """A KeyValue value: floats with ``repr`` (exact round trip), others with ``str``."""
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    return str(value)
+
+
+def make_status(name: str, level: int, message: str, values: dict,
+                hardware_id: str = '') -> DiagnosticStatus:
+    """One DiagnosticStatus from a ``{key: value}`` dict (values formatted by
+    :func:`format_value`)."""
+    return DiagnosticStatus(level=bytes([int(level)]), name=name, message=message,
+                            hardware_id=hardware_id,
+                            values=[KeyValue(key=str(k), value=format_value(v))
+                                    for k, v in values.items()])
+
+
+def make_diagnostic_array(stamp_ns: int, statuses: list[DiagnosticStatus]) -> DiagnosticArray:
+    """A DiagnosticArray of ``statuses`` stamped ``stamp_ns``."""
+    return DiagnosticArray(header=Header(stamp=ns_to_stamp(stamp_ns)), status=statuses)
+
+
+def status_values(status: DiagnosticStatus) -> dict[str, str]:
+    """``{key: value}`` of a DiagnosticStatus."""
+    return {kv.key: kv.value for kv in status.values}
+
+
+@dataclass(frozen=True)
+class IntegrityRisk:
+    """The integrity verdict of one GNSS epoch (or a stale report), for consumers.
+
+    Attributes:
+        stamp_ns: Header stamp of the message [ns] (the epoch for an epoch result, the
+            report time for a stale report).
+        level: OK (0), ERROR (2) or STALE (3).
+        message: Human-readable explanation.
+        risk_bound: Upper bound on P(horizontal error > alert limit) (nan when stale).
+        empirical_risk: R_M, mean mass of the M posteriors beyond the alert limit.
+        divergence_risk: D_Ber^-1(R_M, eps), the PAC-Bayes slack.
+        alert_limit_m: Alert limit [m].
+        target_risk: Integrity is sufficient when ``risk_bound <= target_risk``.
+        epoch_stamp_ns: Stamp of the GNSS epoch the values refer to [ns] (None before
+            the first epoch).
+        protection_level_m: Protection level [m], None when not computed.
+        name: Status name.
+        extra: Other values, as strings.
+    """
+
+    stamp_ns: int
+    level: int
+    message: str
+    risk_bound: float
+    empirical_risk: float
+    divergence_risk: float
+    alert_limit_m: float
+    target_risk: float
+    epoch_stamp_ns: int | None = None
+    protection_level_m: float | None = None
+    name: str = INTEGRITY_STATUS_NAME
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def integrity_ok(self) -> bool:
+        """True only for level OK: ERROR and STALE both mean "do not trust"."""
+        return self.level == OK
+
+    @property
+    def stale(self) -> bool:
+        return self.level == STALE
+
+    @property
+    def level_name(self) -> str:
+        return LEVEL_NAMES.get(self.level, str(self.level))
+
+
+def integrity_risk_to_msg(risk: IntegrityRisk) -> DiagnosticArray:
+    """:class:`IntegrityRisk` -> the ``integrity_risk`` DiagnosticArray.
+
+    Raises:
+        MessageError: A level other than OK, ERROR and STALE, or OK with a non-finite
+            bound (an OK verdict must be backed by a number).
+    """
+    if risk.level not in (OK, ERROR, STALE):
+        raise MessageError(f'integrity level {risk.level} is not OK, ERROR or STALE',
+                           'value')
+    if risk.level == OK and not (math.isfinite(risk.risk_bound)
+                                 and risk.risk_bound <= risk.target_risk):
+        raise MessageError(f'level OK needs a finite bound <= target, got {risk.risk_bound}',
+                           'value')
+    values = {k: float(getattr(risk, k)) for k in _FLOAT_KEYS}
+    values['epoch_stamp'] = '' if risk.epoch_stamp_ns is None else int(risk.epoch_stamp_ns)
+    if risk.protection_level_m is not None:
+        values['protection_level_m'] = float(risk.protection_level_m)
+    values.update(risk.extra)
+    status = make_status(risk.name, risk.level, risk.message, values)
+    return make_diagnostic_array(risk.stamp_ns, [status])
+
+
+def parse_integrity_risk(msg: DiagnosticArray, what: str = 'integrity_risk'
+                         ) -> IntegrityRisk:
+    """The ``integrity_risk`` DiagnosticArray -> :class:`IntegrityRisk`.
+
+    The status is the first one carrying a ``risk_bound`` value.
+
+    Raises:
+        MessageError: No such status, a missing or unparsable value, or an unknown level.
+    """
+    for status in msg.status:
+        values = status_values(status)
+        if 'risk_bound' in values:
+            break
+    else:
+        raise MessageError(f'{what}: no status with a risk_bound value', 'fields')
+    level = level_to_int(status.level)
+    if level not in (OK, ERROR, STALE):
+        raise MessageError(f'{what}: level {level} is not OK, ERROR or STALE', 'value')
+    try:
+        floats = {k: float(values.pop(k)) for k in _FLOAT_KEYS}
+        epoch = values.pop('epoch_stamp')
+        epoch_ns = int(epoch) if epoch else None
+        pl = values.pop('protection_level_m', None)
+        pl = float(pl) if pl is not None else None
+    except KeyError as err:
+        raise MessageError(f'{what}: value {err.args[0]!r} missing', 'fields') from err
+    except ValueError as err:
+        raise MessageError(f'{what}: unparsable value ({err})', 'value') from err
+    return IntegrityRisk(stamp_ns=stamp_to_ns(msg.header.stamp), level=level,
+                         message=status.message, epoch_stamp_ns=epoch_ns,
+                         protection_level_m=pl, name=status.name, extra=values, **floats)

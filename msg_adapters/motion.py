@@ -1,0 +1,174 @@
+"""IMU, odometry twist and dead-reckoning messages <-> the core's samples and states.
+
+* ``imu/data`` (``sensor_msgs/Imu``): body x forward, z up; the dead reckoning uses the
+  forward acceleration and the yaw rate (gyro z).
+* ``odom/twist`` (``geometry_msgs/TwistWithCovarianceStamped``): forward speed
+  ``linear.x`` [m/s] and yaw rate ``angular.z`` [rad/s]; variances at covariance indices 0
+  and 35.
+* ``odometry/dead_reckoning`` (``nav_msgs/Odometry``, frame ``odom``, child ``base_link``):
+  the planar dead-reckoned pose; pose covariance x and y carry the accumulated
+  travelled-distance variance, yaw the accumulated heading variance; twist is the current
+  speed and yaw rate with their variances. Consecutive messages give the motion between
+  them (:func:`gnsscam_ros.core.motion.motion_between`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from geometry_msgs.msg import TwistWithCovarianceStamped
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import Imu
+from std_msgs.msg import Header
+
+from gnsscam_ros.core.motion import DeadReckoningState
+
+from .errors import MessageError
+from .geometry import UNESTIMATED_VAR, quaternion_to_yaw, yaw_to_quaternion
+from .stamps import ns_to_stamp, stamp_to_ns
+
+ODOM_FRAME = 'odom'
+BASE_FRAME = 'base_link'
+
+
+@dataclass(frozen=True)
+class ImuSample:
+    """One IMU sample.
+
+    Attributes:
+        stamp_ns: Stamp [ns].
+        accel_mps2: (3,) specific force, body frame [m/s^2].
+        gyro_rps: (3,) angular rate, body frame [rad/s].
+    """
+
+    stamp_ns: int
+    accel_mps2: np.ndarray
+    gyro_rps: np.ndarray
+
+
+@dataclass(frozen=True)
+class TwistSample:
+    """One odometry speed and yaw-rate sample.
+
+    Attributes:
+        stamp_ns: Stamp [ns].
+        speed_mps: Forward speed [m/s].
+        yaw_rate_rps: Yaw rate [rad/s].
+        speed_var: Speed variance [(m/s)^2] (<= 0: not reported).
+        yaw_rate_var: Yaw-rate variance [(rad/s)^2] (<= 0: not reported).
+    """
+
+    stamp_ns: int
+    speed_mps: float
+    yaw_rate_rps: float
+    speed_var: float = 0.0
+    yaw_rate_var: float = 0.0
+
+
+def imu_to_sample(msg: Imu, what: str = 'imu/data') -> ImuSample:
+    """Imu -> :class:`ImuSample`.
+
+    Raises:
+        MessageError: Non-finite rates or accelerations, or a message declaring its angular
+            velocity unavailable (covariance[0] == -1, REP 145).
+    """
+    if msg.angular_velocity_covariance[0] == -1.0:
+        raise MessageError(f'{what}: angular velocity marked unavailable', 'value')
+    a, g = msg.linear_acceleration, msg.angular_velocity
+    accel = np.array([a.x, a.y, a.z], dtype=float)
+    gyro = np.array([g.x, g.y, g.z], dtype=float)
+    if not (np.all(np.isfinite(accel)) and np.all(np.isfinite(gyro))):
+        raise MessageError(f'{what}: non-finite acceleration or angular velocity',
+                           'non_finite')
+    return ImuSample(stamp_to_ns(msg.header.stamp), accel, gyro)
+
+
+def sample_to_imu(sample: ImuSample, frame_id: str = 'imu') -> Imu:
+    """:class:`ImuSample` -> Imu (orientation marked unavailable)."""
+    msg = Imu(header=Header(stamp=ns_to_stamp(sample.stamp_ns), frame_id=frame_id))
+    msg.orientation_covariance[0] = -1.0
+    a = np.asarray(sample.accel_mps2, dtype=float)
+    g = np.asarray(sample.gyro_rps, dtype=float)
+    msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z = (
+        float(a[0]), float(a[1]), float(a[2]))
+    msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z = (
+        float(g[0]), float(g[1]), float(g[2]))
+    return msg
+
+
+def twist_to_sample(msg: TwistWithCovarianceStamped, what: str = 'odom/twist'
+                    ) -> TwistSample:
+    """TwistWithCovarianceStamped -> :class:`TwistSample`.
+
+    Raises:
+        MessageError: Non-finite speed, yaw rate or variances.
+    """
+    t = msg.twist.twist
+    cov = msg.twist.covariance
+    values = [t.linear.x, t.angular.z, cov[0], cov[35]]
+    if not np.all(np.isfinite(values)):
+        raise MessageError(f'{what}: non-finite speed, yaw rate or covariance', 'non_finite')
+    return TwistSample(stamp_to_ns(msg.header.stamp), float(t.linear.x), float(t.angular.z),
+                       float(cov[0]), float(cov[35]))
+
+
+def sample_to_twist(sample: TwistSample, frame_id: str = BASE_FRAME
+                    ) -> TwistWithCovarianceStamped:
+    """:class:`TwistSample` -> TwistWithCovarianceStamped."""
+    msg = TwistWithCovarianceStamped(
+        header=Header(stamp=ns_to_stamp(sample.stamp_ns), frame_id=frame_id))
+    msg.twist.twist.linear.x = float(sample.speed_mps)
+    msg.twist.twist.angular.z = float(sample.yaw_rate_rps)
+    cov = np.zeros(36)
+    cov[0], cov[35] = sample.speed_var, sample.yaw_rate_var
+    msg.twist.covariance = cov.tolist()
+    return msg
+
+
+def dead_reckoning_to_odometry(state: DeadReckoningState, frame_id: str = ODOM_FRAME,
+                               child_frame_id: str = BASE_FRAME) -> Odometry:
+    """:class:`DeadReckoningState` -> the ``odometry/dead_reckoning`` message.
+
+    Raises:
+        MessageError: Non-finite pose.
+    """
+    if not np.all(np.isfinite([state.x_m, state.y_m, state.yaw_rad])):
+        raise MessageError('dead-reckoning pose must be finite', 'non_finite')
+    msg = Odometry(header=Header(stamp=ns_to_stamp(state.stamp_ns), frame_id=frame_id),
+                   child_frame_id=child_frame_id)
+    msg.pose.pose.position.x = float(state.x_m)
+    msg.pose.pose.position.y = float(state.y_m)
+    msg.pose.pose.orientation = yaw_to_quaternion(state.yaw_rad)
+    pose_cov = np.zeros(36)
+    pose_cov[0] = pose_cov[7] = state.distance_var_m2
+    pose_cov[21] = pose_cov[28] = UNESTIMATED_VAR
+    pose_cov[35] = state.yaw_var_rad2
+    msg.pose.covariance = pose_cov.tolist()
+    msg.twist.twist.linear.x = float(state.speed_mps)
+    msg.twist.twist.angular.z = float(state.yaw_rate_rps)
+    twist_cov = np.zeros(36)
+    twist_cov[0], twist_cov[35] = state.speed_var, state.yaw_rate_var
+    msg.twist.covariance = twist_cov.tolist()
+    return msg
+
+
+def odometry_to_dead_reckoning(msg: Odometry, what: str = 'odometry/dead_reckoning'
+                               ) -> DeadReckoningState:
+    """The ``odometry/dead_reckoning`` message -> :class:`DeadReckoningState`.
+
+    The heading comes back wrapped to [-pi, pi]; :func:`motion_between` wraps differences.
+
+    Raises:
+        MessageError: Non-finite values.
+    """
+    p = msg.pose.pose.position
+    pc, tc = msg.pose.covariance, msg.twist.covariance
+    t = msg.twist.twist
+    values = [p.x, p.y, t.linear.x, t.angular.z, pc[0], pc[35], tc[0], tc[35]]
+    if not np.all(np.isfinite(values)):
+        raise MessageError(f'{what}: non-finite pose, twist or covariance', 'non_finite')
+    return DeadReckoningState(
+        stamp_ns=stamp_to_ns(msg.header.stamp), x_m=float(p.x), y_m=float(p.y),
+        yaw_rad=quaternion_to_yaw(msg.pose.pose.orientation), speed_mps=float(t.linear.x),
+        yaw_rate_rps=float(t.angular.z), speed_var=float(tc[0]), yaw_rate_var=float(tc[35]),
+        distance_var_m2=float(pc[0]), yaw_var_rad2=float(pc[35]))
