@@ -106,7 +106,10 @@ def measurements_at_epoch(matches: list[CameraMeasurement], odometry: OdometrySe
 
 def camera_log_q(positions_m: np.ndarray, match_enu_m: np.ndarray, temperature_m: float,
                  gate_m: float | None = None) -> np.ndarray:
-    """Per-set log softmax of ``-horizontal distance / T`` over the particles.
+    """Per-set log softmax of ``-distance / T`` over the particles.
+
+    The distance is Euclidean in 3D as in the paper: a geotagged database image carries
+    its height, which GNSS in a street canyon observes poorly.
 
     Args:
         positions_m: (M, N, 3) particle positions [m].
@@ -119,7 +122,7 @@ def camera_log_q(positions_m: np.ndarray, match_enu_m: np.ndarray, temperature_m
         row sums to one in probability. The cell weighs as much as N particles at the gate
         distance (logit ``-R / T + log N``), so the test does not depend on N.
     """
-    diff = positions_m[..., :2] - match_enu_m[:2]
+    diff = positions_m[..., :3] - match_enu_m[:3]
     logits = -np.sqrt((diff * diff).sum(-1)) / temperature_m
     if gate_m is not None:
         logits = np.concatenate(

@@ -1,0 +1,197 @@
+"""The paper's evaluation campaign on the emulated drive (paper §7-8, Tables 2-4).
+
+For every seed (a different drive, satellite faults and camera faults), every GNSS case
+(NLOS only; 2, 4, 6, 9 faulty satellites of 12 with 100 m and 200 m bias) and both methods
+(Particle RAIM: GNSS only with the paper's mixture likelihood; fused: GNSS + camera with
+the KL mixture of experts), run the filter and score it. Camera matching does not depend
+on the GNSS case, so each seed's images are rendered and matched once, in parallel, and
+the matches are reused by every case. Runs are spread over all cores.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from ..core.filter import PARTICLE_RAIM, FilterConfig
+from ..datasets.emulated import make_emulated_drive
+from .report import format_table
+from .runner import run_filter, summarize
+
+GNSS_CASES = [(0, 0.0)] + [(f, b) for b in (100.0, 200.0) for f in (2, 4, 6, 9)]
+METHODS = ('particle_raim', 'fused')
+ALERT_LIMITS_M = (8.0, 16.0)
+FAULT_NAMES = {0: 'clean', 1: 'blur', 2: 'occlusion'}
+
+
+def method_config(method: str, base: FilterConfig) -> FilterConfig:
+    """The filter configuration of a method.
+
+    particle_raim: the paper's GNSS mixture, epochs as independent evidence, no camera.
+    fused: the package default (robust GNSS likelihood, tempered) plus the camera.
+    gnss_robust: the fused method's GNSS part alone (isolates the camera's contribution).
+    """
+    if method == 'particle_raim':
+        return replace(base, likelihood=PARTICLE_RAIM, error_correlation_time_s=0.0,
+                       use_camera=False)
+    if method == 'fused':
+        return replace(base, use_camera=True)
+    if method == 'gnss_robust':
+        return replace(base, use_camera=False)
+    raise ValueError(f'unknown method {method!r}')
+
+
+def camera_matches_for_seed(seed: int, cache_dir: Path) -> tuple[list, dict]:
+    """Render and match every camera frame of a seed's drive (cached on disk).
+
+    Returns:
+        ``(matches, faults)``: the best database match of every frame (position at the
+        image time) and ``{frame_id: fault code}`` (0 clean, 1 blur, 2 occlusion).
+    """
+    from ..datasets.camera import camera_matches
+    return camera_matches(seed, cache_dir=cache_dir)
+
+
+def run_case(seed: int, faults: int, bias_m: float, method: str, base: FilterConfig,
+             matches: list | None, frame_faults: dict | None) -> dict:
+    """One (seed, GNSS case, method) run; returns metrics plus the series for plots."""
+    drive = make_emulated_drive(seed, faults=faults, bias_m=bias_m)
+    config = method_config(method, base)
+    record = run_filter(drive, config, seed=seed,
+                        camera_matches=matches if config.use_camera else None)
+    metrics = summarize(record, config)
+    out = {'faults': faults, 'bias_m': bias_m, 'method': method, 'seed': seed,
+           'rmse_3d_m': metrics['rmse_3d_m'], 'rmse_2d_m': metrics['rmse_2d_m'],
+           'epochs': metrics['epochs'], 'integrity': metrics['integrity'],
+           'integrity_by_inverse_bernoulli': metrics['integrity_by_inverse_bernoulli'],
+           'filter_seconds': metrics['filter_seconds']}
+    if config.use_camera and frame_faults:
+        by_fault: dict[str, list[float]] = {}
+        for frame_id, alpha in record.camera_alpha.items():
+            by_fault.setdefault(FAULT_NAMES[frame_faults.get(frame_id, 0)], []).append(alpha)
+        out['camera'] = {
+            'epochs_with_camera': record.camera_epochs,
+            'epochs_camera_excluded': record.camera_excluded_epochs,
+            'mean_alpha': {k: float(np.mean(v)) for k, v in by_fault.items()},
+            'frames': {k: len(v) for k, v in by_fault.items()}}
+    series = {'t_s': (record.stamp_ns - record.stamp_ns[0]) * 1e-9 if len(record.stamp_ns)
+              else record.stamp_ns, 'estimate': record.estimate_enu_m,
+              'truth': record.truth_enu_m,
+              'bound': record.risk_bound[config.inverse_bernoulli],
+              'reference': record.reference_risk}
+    return {'metrics': out, 'series': series}
+
+
+def _mean(values):
+    values = [v for v in values if v is not None]
+    return float(np.mean(values)) if values else None
+
+
+def campaign_tables(cases: list[dict]) -> str:
+    """Table 2 (RMSE, both methods) and Tables 3-4 (integrity of the fused method)."""
+    def select(**kw):
+        return [c for c in cases if all(c[k] == v for k, v in kw.items())]
+
+    rows = []
+    for faults, bias in GNSS_CASES:
+        pr = select(faults=faults, bias_m=bias, method='particle_raim')
+        fu = select(faults=faults, bias_m=bias, method='fused')
+        pr3, fu3 = _mean([c['rmse_3d_m'] for c in pr]), _mean([c['rmse_3d_m'] for c in fu])
+        rows.append([f'{bias:g}' if faults else 'NLOS only', faults, pr3,
+                     _mean([c['rmse_2d_m'] for c in pr]), fu3,
+                     _mean([c['rmse_2d_m'] for c in fu]),
+                     fu3 / pr3 if fu3 is not None and pr3 else None])
+    text = ['Table 2: RMSE (mean over seeds)',
+            format_table(['bias [m]', 'faults', 'PRAIM 3D', 'PRAIM 2D', 'fused 3D',
+                          'fused 2D', 'fused/PRAIM 3D'], rows)]
+    for limit in ('8', '16'):
+        rows = []
+        for faults, bias in GNSS_CASES:
+            fu = select(faults=faults, bias_m=bias, method='fused')
+            ints = [c['integrity'][limit] for c in fu]
+            rows.append([f'{bias:g}' if faults else 'NLOS only', faults] + [
+                _mean([m[k] for m in ints]) for k in
+                ('p_fa', 'p_mi', 'failure_ratio', 'failure_error_m', 'bound_gap')])
+        text += ['', f'Table {3 if limit == "8" else 4}: integrity of the fused filter, '
+                     f'alert limit {limit} m (mean over seeds)',
+                 format_table(['bias [m]', 'faults', 'P_FA', 'P_MI', 'fail ratio',
+                               'fail err [m]', 'bound gap'], rows)]
+    return '\n'.join(text)
+
+
+def run_campaign(seeds=(1, 2, 3), base: FilterConfig | None = None,
+                 methods=METHODS, cases=GNSS_CASES, workers: int | None = None,
+                 cache_dir: Path = Path('.cache/gnsscam'), plots_dir: Path | None = None,
+                 progress: bool = True) -> dict:
+    """Run the whole campaign; returns ``{'cases': [...], 'camera': {...}, ...}``."""
+    base = base or FilterConfig(alert_limit_m=ALERT_LIMITS_M[0],
+                                extra_alert_limits_m=ALERT_LIMITS_M[1:])
+    workers = workers or os.cpu_count() or 1
+    start = time.monotonic()
+    need_camera = any(method_config(m, base).use_camera for m in methods)
+    camera: dict[int, tuple] = {}
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        if need_camera:
+            futures = {s: pool.submit(camera_matches_for_seed, s, cache_dir) for s in seeds}
+            for s, fut in futures.items():
+                camera[s] = fut.result()
+                if progress:
+                    print(f'[campaign] seed {s}: {len(camera[s][0])} camera frames matched '
+                          f'({time.monotonic() - start:.0f} s)', file=sys.stderr)
+        jobs = []
+        for s in seeds:
+            matches, frame_faults = camera.get(s, (None, None))
+            for faults, bias in cases:
+                for method in methods:
+                    jobs.append(pool.submit(run_case, s, faults, bias, method, base,
+                                            matches, frame_faults))
+        results = []
+        for i, job in enumerate(jobs):
+            results.append(job.result())
+            if progress:
+                m = results[-1]['metrics']
+                print(f'[campaign] {i + 1}/{len(jobs)} seed {m["seed"]} faults {m["faults"]} '
+                      f'bias {m["bias_m"]:g} {m["method"]}: 3D RMSE {m["rmse_3d_m"]:.1f} m '
+                      f'({time.monotonic() - start:.0f} s)', file=sys.stderr)
+    cases_out = [r['metrics'] for r in results]
+    alphas = {}
+    for c in cases_out:
+        for k, v in c.get('camera', {}).get('mean_alpha', {}).items():
+            alphas.setdefault(k, []).append(v)
+    out = {'cases': cases_out, 'seeds': list(seeds),
+           'camera_mean_alpha': {k: float(np.mean(v)) for k, v in alphas.items()},
+           'seconds': time.monotonic() - start, 'workers': workers}
+    if plots_dir is not None:
+        out['plots'] = [str(p) for p in make_plots(results, Path(plots_dir), base)]
+    return out
+
+
+def make_plots(results: list[dict], plots_dir: Path, base: FilterConfig) -> list[Path]:
+    """Trajectory and risk figures for the first seed of every faulty case."""
+    from .plots import risk_plot, trajectory_plot
+    paths = []
+    first_seed = min(r['metrics']['seed'] for r in results)
+    by_case: dict[tuple, dict] = {}
+    for r in results:
+        m = r['metrics']
+        if m['seed'] == first_seed:
+            by_case.setdefault((m['faults'], m['bias_m']), {})[m['method']] = r['series']
+    for (faults, bias), series in sorted(by_case.items()):
+        tag = f'f{faults}_b{bias:g}' if faults else 'nlos'
+        name = f'{faults} faults, {bias:g} m bias' if faults else 'NLOS only'
+        any_series = next(iter(series.values()))
+        paths.append(trajectory_plot(plots_dir / f'trajectory_{tag}.png',
+                                     f'{name} (seed {first_seed})', any_series['truth'],
+                                     {k: v['estimate'] for k, v in series.items()}))
+        for method, s in series.items():
+            for a, limit in enumerate(base.alert_limits_m):
+                paths.append(risk_plot(
+                    plots_dir / f'risk_{tag}_{method}_al{limit:g}.png',
+                    f'{method}, {name}', s['t_s'], s['bound'][:, a], s['reference'][:, a],
+                    limit, base.target_risk))
+    return paths
