@@ -157,6 +157,8 @@ class GeodeticFix:
         status: ``NavSatStatus`` status (-1 no fix, 0 fix, ...).
         service: ``NavSatStatus`` service bits (1 GPS, 2 GLONASS, 4 COMPASS, 8 GALILEO).
         frame_id: Frame of the antenna.
+        covariance_type: ``NavSatFix.COVARIANCE_TYPE_*``; None: KNOWN when a covariance
+            is given, else UNKNOWN.
     """
 
     stamp_ns: int
@@ -167,6 +169,7 @@ class GeodeticFix:
     status: int = NavSatStatus.STATUS_FIX
     service: int = NavSatStatus.SERVICE_GPS
     frame_id: str = 'gnss'
+    covariance_type: int | None = None
 
 
 # `system` field codes of the GNSS cloud -> NavSatStatus service bits.
@@ -183,7 +186,7 @@ def service_bits(systems) -> int:
 
 
 def fix_to_navsatfix(fix: GeodeticFix) -> NavSatFix:
-    """:class:`GeodeticFix` -> NavSatFix (covariance type KNOWN when given, else UNKNOWN).
+    """:class:`GeodeticFix` -> NavSatFix.
 
     Raises:
         MessageError: Non-finite coordinates or covariance.
@@ -202,7 +205,9 @@ def fix_to_navsatfix(fix: GeodeticFix) -> NavSatFix:
         if not np.all(np.isfinite(cov)):
             raise MessageError('non-finite fix covariance', 'non_finite')
         msg.position_covariance = cov.reshape(-1).tolist()
-        msg.position_covariance_type = NavSatFix.COVARIANCE_TYPE_KNOWN
+        msg.position_covariance_type = (NavSatFix.COVARIANCE_TYPE_KNOWN
+                                        if fix.covariance_type is None
+                                        else int(fix.covariance_type))
     return msg
 
 
@@ -222,4 +227,5 @@ def navsatfix_to_fix(msg: NavSatFix, what: str = 'fix') -> GeodeticFix:
         cov = np.array(msg.position_covariance, dtype=float).reshape(3, 3)
     return GeodeticFix(stamp_ns=stamp_to_ns(msg.header.stamp), lat_deg=lat, lon_deg=lon,
                        alt_m=alt, covariance_enu_m2=cov, status=int(msg.status.status),
-                       service=int(msg.status.service), frame_id=msg.header.frame_id)
+                       service=int(msg.status.service), frame_id=msg.header.frame_id,
+                       covariance_type=int(msg.position_covariance_type))

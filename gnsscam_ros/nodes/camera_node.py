@@ -1,0 +1,207 @@
+"""camera_node: match camera images against the geotagged map database.
+
+Subscribes ``camera/image_raw`` (sensor_msgs/Image, mono8/bgr8/rgb8); publishes
+``camera/matches`` (PointCloud2, frame ``map``: the top-k database images, best first, with
+``x y z`` position, ``score`` and ``image_id``; stamp = image stamp).
+
+Matching (ORB + vocabulary tree, ``gnsscam_ros.vision``) runs on a worker thread fed by a
+bounded queue of ``queue_size`` frames: when images arrive faster than they can be matched
+the *oldest* waiting frame is dropped and counted, so the node always works on recent
+images and never builds an unbounded backlog. Empty images, unsupported encodings, wrong
+buffer sizes and stamps older than the last matched image are refused and counted.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+
+import cv2
+import numpy as np
+from sensor_msgs.msg import Image, PointCloud2
+
+from gnsscam_ros.core.frames import LocalFrame
+from gnsscam_ros.vision.database import MapDatabase
+from gnsscam_ros.vision.errors import VisionError
+from msg_adapters import (ERROR, OK, WARN, CameraMatches, MessageError, image_to_array,
+                          matches_to_pointcloud2, stamp_to_ns)
+
+from .common import GnssCamNode, reliable_qos, run_node, sensor_qos
+
+# Code defaults; config/camera_node.yaml documents the same values (a test checks).
+DEFAULTS = {
+    'database_path': '',
+    'top_k': 5,
+    'queue_size': 2,
+    'use_map_origin': False,
+    'map_origin_llh': [0.0, 0.0, 0.0],
+    'map_frame_id': 'map',
+    'opencv_threads': 1,
+    'input_queue_depth': 5,
+    'stale_timeout_s': 2.0,
+    'diagnostics_period_s': 1.0,
+}
+
+
+def _origin_ok(value) -> str | None:
+    values = list(value)
+    if len(values) != 3 or not np.all(np.isfinite(values)) or not -90 <= values[0] <= 90:
+        return 'map_origin_llh must be [lat_deg, lon_deg, alt_m] with |lat| <= 90'
+    return None
+
+
+class CameraNode(GnssCamNode):
+    """Camera map-matching node.
+
+    Args:
+        node_name: Node name.
+        database: An already loaded database (tests, pipelines); overrides
+            ``database_path``.
+        **kwargs: Forwarded to ``rclpy.node.Node``.
+
+    Raises:
+        gnsscam_ros.vision.errors.MapDatabaseError: ``database_path`` names a file that is
+            not a readable map database.
+    """
+
+    def __init__(self, node_name: str = 'camera_node', database: MapDatabase | None = None,
+                 **kwargs):
+        super().__init__(node_name, **kwargs)
+        d = DEFAULTS
+        self.declare('database_path', d['database_path'],
+                     "Map database file (.npz from gnsscam_mapdb build); '' = none (every "
+                     'frame is refused as no_database).', read_only=True)
+        self.declare('top_k', d['top_k'], 'Matches published per image.', (1, 1000))
+        self.declare('queue_size', d['queue_size'],
+                     'Frames waiting for the matcher; when full the oldest is dropped.',
+                     (1, 1000), read_only=True)
+        self.declare('use_map_origin', d['use_map_origin'],
+                     'Convert WGS84 database positions to the map frame at map_origin_llh '
+                     '(set the same origin as fusion_node); false = database frame.',
+                     read_only=True)
+        self.declare('map_origin_llh', d['map_origin_llh'],
+                     'Map frame origin [lat deg, lon deg, alt m].', read_only=True,
+                     validator=_origin_ok)
+        self.declare('map_frame_id', d['map_frame_id'], 'Frame of camera/matches.')
+        self.declare('opencv_threads', d['opencv_threads'],
+                     'OpenCV worker threads (1 = match on one core).', (0, 256),
+                     read_only=True)
+        self.declare('input_queue_depth', d['input_queue_depth'],
+                     'Subscription queue depth of camera/image_raw [messages].', (1, 100000),
+                     read_only=True)
+        self.declare('stale_timeout_s', d['stale_timeout_s'],
+                     'No image for this long is reported as a stale input [s].',
+                     (0.01, 1e12))
+        cv2.setNumThreads(int(self.param('opencv_threads')))
+        self.database = database
+        if self.database is None and self.param('database_path'):
+            self.database = MapDatabase.load(self.param('database_path'))
+        self._positions = None
+        if self.database is not None:
+            if self.param('use_map_origin'):
+                frame = LocalFrame(*self.param('map_origin_llh'))
+                self._positions = self.database.positions_in(frame)
+            else:
+                self._positions = self.database.positions.enu_m.copy()
+        self._queue: deque = deque()
+        self._cond = threading.Condition()
+        self._stop = False
+        self._last_stamp_ns: int | None = None
+        self._last_receipt: float | None = None
+        self._started = time.monotonic()
+        self.pub = self.create_publisher(PointCloud2, 'camera/matches', reliable_qos())
+        self.sub = self.create_subscription(Image, 'camera/image_raw', self.on_image,
+                                            sensor_qos(self.param('input_queue_depth')))
+        self._worker = threading.Thread(target=self._work, name=f'{node_name}_matcher',
+                                        daemon=True)
+        self._worker.start()
+        self.parameters_declared()
+
+    # ------------------------------------------------------------------- callbacks
+    def on_image(self, msg: Image) -> None:
+        """Queue a frame for the matcher (cheap: the executor thread never matches)."""
+        self.stats.count('received_images')
+        self._last_receipt = time.monotonic()
+        with self._cond:
+            if len(self._queue) >= self.param('queue_size'):
+                self._queue.popleft()
+                self.stats.count('dropped_frames')
+            self._queue.append(msg)
+            self._cond.notify()
+
+    def _work(self) -> None:
+        while True:
+            with self._cond:
+                while not self._queue and not self._stop:
+                    self._cond.wait(timeout=0.5)
+                if self._stop:
+                    return
+                msg = self._queue.popleft()
+            try:
+                self.process(msg)
+            except Exception as err:     # keep matching: one bad frame must not stop it
+                self.warn_rejected('camera/image_raw', 'error', repr(err))
+
+    def process(self, msg: Image) -> CameraMatches | None:
+        """Match one frame and publish its top-k (None when refused)."""
+        with self.stats.timed():
+            if self.database is None:
+                self.warn_rejected('camera/image_raw', 'no_database',
+                                   'no map database loaded (database_path)')
+                return None
+            stamp_ns = stamp_to_ns(msg.header.stamp)
+            if self._last_stamp_ns is not None and stamp_ns < self._last_stamp_ns:
+                self.warn_rejected('camera/image_raw', 'out_of_order',
+                                   f'stamp {stamp_ns} ns before {self._last_stamp_ns}')
+                return None
+            try:
+                image, encoding = image_to_array(msg)
+                found = self.database.query(image, top_k=int(self.param('top_k')),
+                                            encoding='rgb8' if encoding == 'rgb8' else 'bgr8')
+            except MessageError as err:
+                self.warn_rejected('camera/image_raw', err.reason, str(err))
+                return None
+            except VisionError as err:
+                self.warn_rejected('camera/image_raw', 'vision', str(err))
+                return None
+            self._last_stamp_ns = stamp_ns
+            idx = np.array([m.index for m in found], dtype=np.int64)
+            matches = CameraMatches(
+                stamp_ns=stamp_ns, position_m=self._positions[idx].reshape(-1, 3),
+                score=np.array([m.score for m in found], dtype=float), image_id=idx,
+                frame_id=self.param('map_frame_id'))
+            self.pub.publish(matches_to_pointcloud2(matches))
+            self.stats.count('published_matches')
+            if not len(matches):
+                self.stats.count('frames_without_match')
+            return matches
+
+    # ---------------------------------------------------------------- housekeeping
+    def diagnostic_summary(self):
+        with self._cond:
+            waiting = len(self._queue)
+        values = {'queue_length': waiting, 'database_images':
+                  0 if self.database is None else len(self.database)}
+        if self.database is None:
+            return ERROR, 'no map database loaded', values
+        since = time.monotonic() - (self._last_receipt or self._started)
+        if since > self.param('stale_timeout_s'):
+            return WARN, f'no camera/image_raw for {since:.1f} s', values
+        return OK, 'matching', values
+
+    def destroy_node(self):
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        if self._worker.is_alive():
+            self._worker.join(timeout=5.0)
+        return super().destroy_node()
+
+
+def main(args=None) -> None:
+    """``ros2 run gnsscam_ros camera_node``."""
+    run_node(CameraNode, args)
+
+
+if __name__ == '__main__':
+    main()

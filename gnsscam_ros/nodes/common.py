@@ -1,0 +1,246 @@
+"""What every gnsscam_ros node shares: parameter declaration with descriptors and
+validation, rejection/drop counters, processing-time statistics and the ``diagnostics``
+report, QoS profiles, and the Jazzy ``main()``."""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from contextlib import contextmanager
+from typing import Callable
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                SetParametersResult)
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from diagnostic_msgs.msg import DiagnosticArray
+from msg_adapters import OK, WARN, make_diagnostic_array, make_status
+
+# Float ranges need finite ends; this stands for "no upper limit".
+BIG = 1e12
+
+
+def sensor_qos(depth: int) -> QoSProfile:
+    """Inputs from sensors: best effort, keep the newest ``depth`` (a late sample is
+    worth less than the next one)."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(depth),
+                      reliability=ReliabilityPolicy.BEST_EFFORT,
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+def reliable_qos(depth: int = 10) -> QoSProfile:
+    """Outputs and node-to-node streams: reliable, keep the newest ``depth``."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(depth),
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+class NodeStats:
+    """Counters and processing times of one node (thread-safe).
+
+    ``counters`` holds ``received_<topic>``, ``published_<topic>``, ``dropped`` and the
+    like; ``rejected`` holds ``{reason: count}`` of input messages refused.
+    """
+
+    def __init__(self, window: int = 500):
+        self._lock = threading.Lock()
+        self.counters: dict[str, int] = {}
+        self.rejected: dict[str, int] = {}
+        self._times_s: deque = deque(maxlen=window)
+
+    def count(self, key: str, n: int = 1) -> None:
+        with self._lock:
+            self.counters[key] = self.counters.get(key, 0) + n
+
+    def reject(self, reason: str, n: int = 1) -> None:
+        with self._lock:
+            self.rejected[reason] = self.rejected.get(reason, 0) + n
+
+    @property
+    def rejected_total(self) -> int:
+        with self._lock:
+            return sum(self.rejected.values())
+
+    def get(self, key: str) -> int:
+        with self._lock:
+            return self.counters.get(key, 0)
+
+    @contextmanager
+    def timed(self):
+        """Record the wall time of the enclosed processing."""
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._times_s.append(time.perf_counter() - start)
+
+    def add_time(self, seconds: float) -> None:
+        with self._lock:
+            self._times_s.append(seconds)
+
+    def values(self) -> dict:
+        """Counters, rejections (``rejected_<reason>``) and processing-time statistics."""
+        with self._lock:
+            out: dict = dict(sorted(self.counters.items()))
+            out['rejected_total'] = sum(self.rejected.values())
+            out.update({f'rejected_{k}': v for k, v in sorted(self.rejected.items())})
+            times = np.array(self._times_s) * 1e3
+        out['processing_count'] = int(times.size)
+        out['processing_mean_ms'] = float(times.mean()) if times.size else math.nan
+        out['processing_p50_ms'] = float(np.median(times)) if times.size else math.nan
+        out['processing_max_ms'] = float(times.max()) if times.size else math.nan
+        return out
+
+
+class GnssCamNode(Node):
+    """Base of the gnsscam_ros nodes.
+
+    Declares ``diagnostics_period_s``, publishes ``diagnostics`` periodically with the
+    node's counters (subclasses add their own state through :meth:`diagnostic_summary`),
+    and validates parameter updates: each declared parameter may carry a validator and a
+    read-only flag; :meth:`validate_parameters` sees the whole update and may refuse it with
+    a reason (the old values stay); :meth:`apply_parameters` applies accepted ones.
+
+    Args:
+        node_name: Node name.
+        **kwargs: Forwarded to ``rclpy.node.Node`` (``context``, ``parameter_overrides``,
+            ``namespace``, ...).
+    """
+
+    def __init__(self, node_name: str, **kwargs):
+        super().__init__(node_name, **kwargs)
+        self.stats = NodeStats()
+        self._validators: dict[str, Callable] = {}
+        self._all_declared = False
+        self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', reliable_qos())
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_post_set_parameters_callback(self._post_set_parameters)
+        self.declare('diagnostics_period_s', 1.0, 'Period of the diagnostics report [s].',
+                     (0.05, 3600.0), read_only=True)
+        self._diag_timer = self.create_timer(self.param('diagnostics_period_s'),
+                                             self.publish_diagnostics)
+
+    # ------------------------------------------------------------------ parameters
+    def declare(self, name: str, default, description: str, value_range=None,
+                read_only: bool = False, validator: Callable | None = None):
+        """Declare a parameter with a descriptor (description, range, read-only).
+
+        Args:
+            name: Parameter name.
+            default: Default value (its type is the parameter's type).
+            description: Meaning and unit.
+            value_range: ``(low, high)`` inclusive, for int and float parameters.
+            read_only: Refuse changes after start-up.
+            validator: ``f(value) -> str | None``; a string refuses the value with that
+                reason (checked at start-up too).
+
+        Returns:
+            The value in force (default or override).
+
+        Raises:
+            ValueError: The start-up value is refused by ``validator``.
+        """
+        desc = ParameterDescriptor(name=name, description=description, read_only=read_only)
+        if value_range is not None:
+            low, high = value_range
+            if isinstance(default, bool):
+                pass
+            elif isinstance(default, int):
+                desc.integer_range = [IntegerRange(from_value=int(low), to_value=int(high),
+                                                   step=0)]
+            elif isinstance(default, float):
+                desc.floating_point_range = [FloatingPointRange(
+                    from_value=float(low), to_value=float(high), step=0.0)]
+        self.declare_parameter(name, default, desc)
+        if validator is not None:
+            self._validators[name] = validator
+            reason = validator(self.param(name))
+            if reason:
+                raise ValueError(f'{self.get_name()}: parameter {name}: {reason}')
+        return self.param(name)
+
+    def param(self, name: str):
+        """Current value of a declared parameter."""
+        return self.get_parameter(name).value
+
+    def validate_parameters(self, changes: dict) -> str | None:
+        """Whole-update check (override); return a reason to refuse."""
+        return None
+
+    def apply_parameters(self, changes: dict) -> None:
+        """Apply an accepted update (override)."""
+
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        changes = {p.name: p.value for p in params}
+        for name, value in changes.items():
+            check = self._validators.get(name)
+            reason = check(value) if check is not None else None
+            if reason:
+                return SetParametersResult(successful=False, reason=f'{name}: {reason}')
+        # declare_parameter() runs these callbacks too; whole-update checks wait until
+        # every parameter is declared (the constructor then validates the whole set).
+        reason = self.validate_parameters(changes) if self._all_declared else None
+        if reason:
+            return SetParametersResult(successful=False, reason=reason)
+        return SetParametersResult(successful=True)
+
+    def _post_set_parameters(self, params) -> None:
+        if self._all_declared:
+            self.apply_parameters({p.name: p.value for p in params})
+
+    def parameters_declared(self) -> None:
+        """Subclasses call this at the end of their constructor: from then on updates
+        are checked and applied as a whole."""
+        self._all_declared = True
+
+    # ----------------------------------------------------------------- diagnostics
+    def diagnostic_summary(self) -> tuple[int, str, dict]:
+        """``(level, message, extra values)`` of the node's own state (override)."""
+        return OK, 'running', {}
+
+    def publish_diagnostics(self) -> None:
+        level, message, extra = self.diagnostic_summary()
+        values = {**self.stats.values(), **extra}
+        status = make_status(f'{self.get_name()}: status', level, message, values,
+                             hardware_id='gnsscam_ros')
+        self._diag_pub.publish(make_diagnostic_array(self.now_ns(), [status]))
+
+    def now_ns(self) -> int:
+        """Node clock time [ns] (ROS time; simulated time when ``use_sim_time``)."""
+        return int(self.get_clock().now().nanoseconds)
+
+    def warn_rejected(self, topic: str, reason: str, detail: str) -> None:
+        """Count a refused input message and log it (throttled)."""
+        self.stats.reject(reason)
+        self.get_logger().warning(f'{topic}: rejected ({reason}): {detail}',
+                                  throttle_duration_sec=5.0)
+
+
+def level_worst(*levels: int) -> int:
+    """The most severe of diagnostic levels (OK < WARN < ERROR < STALE)."""
+    return max(levels) if levels else OK
+
+
+__all__ = ['BIG', 'GnssCamNode', 'NodeStats', 'OK', 'WARN', 'level_worst', 'reliable_qos',
+           'run_node', 'sensor_qos']
+
+
+def run_node(node_class, args=None) -> None:
+    """The Jazzy ``main()`` of a single-node executable (ros2/demos talker pattern)."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = node_class()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()

@@ -1,0 +1,458 @@
+"""fusion_node: the particle filter with integrity risk, one run per GNSS epoch.
+
+Subscribes ``gnss/measurements`` (from gnss_node), ``odometry/dead_reckoning`` (from
+imu_node) and ``camera/matches`` (from camera_node). Each GNSS epoch waits until the dead
+reckoning has reached its stamp (at most ``odometry_wait_s``), then
+``ParticleFilter.step(epoch, motion, camera)`` runs with the motion of the interval since
+the previous epoch (``core.motion.MotionAccumulator``, the same code as an offline run) and
+the camera matches of that interval moved to the epoch (``core.fusion``).
+
+Publishes, in this order, ``integrity_risk`` (DiagnosticArray: OK = integrity sufficient,
+ERROR = alarm, STALE = no valid solution), ``pose`` (PoseWithCovarianceStamped, map),
+``fix`` (NavSatFix, WGS84) and ``particles`` (PoseArray, map). Without GNSS for
+``gnss_timeout_s`` it publishes ``integrity_risk`` STALE every ``stale_report_period_s``:
+a consumer never sees a stale OK.
+
+Every FilterConfig field except ``extra_alert_limits_m`` is a parameter of the same name;
+all of them can be changed while running (validated as a whole FilterConfig; a refused
+update keeps the old values), e.g. ``alert_limit_m`` and ``target_risk``.
+"""
+from __future__ import annotations
+
+import math
+import re
+import time
+from collections import deque
+from dataclasses import fields, replace
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import NavSatFix, NavSatStatus, PointCloud2
+
+from gnsscam_ros.core.filter import (PROPAGATED, REJECTED, UPDATED, EpochResult, FilterConfig,
+                                     ParticleFilter)
+from gnsscam_ros.core.frames import LocalFrame
+from gnsscam_ros.core.fusion import CameraMeasurement, measurements_at_epoch
+from gnsscam_ros.core.motion import MotionAccumulator
+from gnsscam_ros.core.types import GnssEpoch
+from msg_adapters import (ERROR, OK, STALE, WARN, CameraMatches, GeodeticFix, IntegrityRisk,
+                          MessageError, PoseEstimate, fix_to_navsatfix, integrity_risk_to_msg,
+                          odometry_to_dead_reckoning, particles_to_posearray,
+                          pointcloud2_to_gnss_epoch, pointcloud2_to_matches, pose_covariance,
+                          pose_to_msg, service_bits)
+
+from .common import BIG, GnssCamNode, reliable_qos, run_node
+
+_FILTER_DEFAULTS = FilterConfig()
+# FilterConfig fields that are not node parameters (evaluation only).
+NOT_PARAMETERS = ('extra_alert_limits_m',)
+FILTER_PARAMETERS = tuple(f.name for f in fields(FilterConfig) if f.name not in NOT_PARAMETERS)
+
+# Code defaults; config/fusion_node.yaml documents the same values (a test checks). The
+# filter ones are FilterConfig's.
+DEFAULTS = {
+    **{name: getattr(_FILTER_DEFAULTS, name) for name in FILTER_PARAMETERS},
+    'seed': -1,
+    'use_map_origin': False,
+    'map_origin_llh': [0.0, 0.0, 0.0],
+    'map_frame_id': 'map',
+    'fix_frame_id': 'gnss',
+    'gnss_timeout_s': 2.0,
+    'stale_report_period_s': 1.0,
+    'odometry_wait_s': 0.2,
+    'odometry_timeout_s': 1.0,
+    'odometry_buffer_s': 60.0,
+    'camera_buffer_s': 10.0,
+    'max_published_particles': 1000,
+    'gnss_queue_size': 10,
+    'odometry_queue_depth': 1000,
+    'input_queue_depth': 10,
+    'diagnostics_period_s': 1.0,
+}
+
+# Ranges of the filter parameters (FilterConfig.__post_init__ has the final word).
+_PROBABILITY = (0.0, 1.0)
+_FILTER_RANGES = {
+    'n_particles': (2, 10_000_000), 'n_posteriors': (1, 10_000),
+    'acquisition_particle_factor': (1, 1000), 'min_satellites': (4, 1000),
+    'outlier_prob': _PROBABILITY, 'target_risk': _PROBABILITY, 'risk_delta': _PROBABILITY,
+    'resample_ess_fraction': _PROBABILITY, 'camera_elsewhere_prob': _PROBABILITY,
+    'elevation_mask_deg': (-90.0, 90.0), 'cn0_mask_dbhz': (0.0, 100.0),
+    'dirichlet_alpha': (1.0, BIG),
+}
+
+
+def _attribute_docs(cls) -> dict[str, str]:
+    """``{attribute: description}`` from a Google-style ``Attributes:`` docstring."""
+    doc = cls.__doc__ or ''
+    body = doc.split('Attributes:', 1)[-1]
+    out, name = {}, None
+    for line in body.splitlines():
+        m = re.match(r'^\s{8}(\w+): (.*)$', line)
+        if m:
+            name = m.group(1)
+            out[name] = m.group(2).strip()
+        elif name and line.strip():
+            out[name] += ' ' + line.strip()
+    return out
+
+
+def yaw_variance(yaw_rad: np.ndarray, log_w: np.ndarray) -> float:
+    """Circular variance of weighted headings as an angle variance ``-2 ln R`` [rad^2]."""
+    w = np.exp(log_w - np.max(log_w))
+    w /= w.sum()
+    r = float(np.hypot(w @ np.cos(yaw_rad), w @ np.sin(yaw_rad)))
+    return float(-2.0 * np.log(max(r, 1e-12)))
+
+
+def published_particles(particles: np.ndarray, log_w: np.ndarray, max_count: int
+                        ) -> np.ndarray:
+    """The particle cloud to publish: all of it, or a weighted deterministic subsample of
+    ``max_count`` (systematic pointers at (k + 1/2) / K; never the filter's random
+    generator, so publishing cannot change the filter's run)."""
+    n = particles.shape[0]
+    if max_count <= 0 or n <= max_count:
+        return particles
+    cdf = np.cumsum(np.exp(log_w - np.max(log_w)))
+    cdf /= cdf[-1]
+    idx = np.searchsorted(cdf, (np.arange(max_count) + 0.5) / max_count, side='right')
+    return particles[np.minimum(idx, n - 1)]
+
+
+def camera_measurement(matches: CameraMatches, frame_id: int) -> CameraMeasurement | None:
+    """The best match of an image as the filter's camera measurement (None: no match)."""
+    if not len(matches):
+        return None
+    return CameraMeasurement(stamp_ns=matches.stamp_ns,
+                             position_enu_m=np.asarray(matches.position_m[0], dtype=float),
+                             score=float(matches.score[0]), frame_id=int(frame_id))
+
+
+def motion_for_epoch(accumulator: MotionAccumulator, filt: ParticleFilter, stamp_ns: int):
+    """The motion argument of ``filt.step`` for an epoch at ``stamp_ns`` (None: none)."""
+    t0 = filt.last_stamp_ns
+    if t0 is None or stamp_ns <= t0 or not accumulator.states:
+        return None
+    return accumulator.increment(t0, stamp_ns)
+
+
+def camera_for_epoch(buffer: list[CameraMeasurement], accumulator: MotionAccumulator,
+                     filt: ParticleFilter, stamp_ns: int):
+    """The camera argument of ``filt.step``: matches since the previous epoch, moved to
+    this one with the dead-reckoned speed and yaw rate (None: none)."""
+    t0 = filt.last_stamp_ns
+    if (not buffer or t0 is None or stamp_ns <= t0 or filt.last_result is None
+            or not np.isfinite(filt.last_result.yaw_rad)):
+        return None
+    odometry = accumulator.odometry_series(t0, stamp_ns) if accumulator.states else None
+    moved = measurements_at_epoch(buffer, odometry, t0, stamp_ns, filt.last_result.yaw_rad)
+    return moved or None
+
+
+class FusionNode(GnssCamNode):
+    """Particle filter node.
+
+    Args:
+        node_name: Node name.
+        **kwargs: Forwarded to ``rclpy.node.Node``.
+    """
+
+    def __init__(self, node_name: str = 'fusion_node', **kwargs):
+        super().__init__(node_name, **kwargs)
+        docs = _attribute_docs(FilterConfig)
+        for name in FILTER_PARAMETERS:
+            self.declare(name, DEFAULTS[name], docs.get(name, name) + ' (FilterConfig)',
+                         _FILTER_RANGES.get(name, (0.0, BIG) if isinstance(
+                             DEFAULTS[name], float) else None))
+        self.declare('seed', DEFAULTS['seed'],
+                     'Seed of the filter random generator; -1 = fresh entropy.',
+                     (-1, 2 ** 62), read_only=True)
+        self.declare('use_map_origin', DEFAULTS['use_map_origin'],
+                     'Anchor the map frame at map_origin_llh; false = at the first robust '
+                     'fix.', read_only=True)
+        self.declare('map_origin_llh', DEFAULTS['map_origin_llh'],
+                     'Map frame origin [lat deg, lon deg, alt m].', read_only=True,
+                     validator=lambda v: None if len(v) == 3 and np.all(np.isfinite(v))
+                     else 'map_origin_llh must be 3 finite numbers')
+        self.declare('map_frame_id', DEFAULTS['map_frame_id'], 'Frame of pose and particles.')
+        self.declare('fix_frame_id', DEFAULTS['fix_frame_id'], 'Frame of fix.')
+        self.declare('gnss_timeout_s', DEFAULTS['gnss_timeout_s'],
+                     'No GNSS epoch for this long: integrity_risk STALE [s].', (0.01, BIG))
+        self.declare('stale_report_period_s', DEFAULTS['stale_report_period_s'],
+                     'Period of the STALE integrity_risk reports while stale [s].',
+                     (0.01, BIG))
+        self.declare('odometry_wait_s', DEFAULTS['odometry_wait_s'],
+                     'Longest wait for the dead reckoning to reach a GNSS epoch [s] '
+                     '(wall time).', (0.0, BIG))
+        self.declare('odometry_timeout_s', DEFAULTS['odometry_timeout_s'],
+                     'Dead reckoning silent this long is not waited for [s] (wall time).',
+                     (0.0, BIG))
+        self.declare('odometry_buffer_s', DEFAULTS['odometry_buffer_s'],
+                     'Dead-reckoning history kept [s] (stamp time).', (1.0, BIG),
+                     read_only=True)
+        self.declare('camera_buffer_s', DEFAULTS['camera_buffer_s'],
+                     'Camera matches kept behind the newest [s] (stamp time).', (0.0, BIG))
+        self.declare('max_published_particles', DEFAULTS['max_published_particles'],
+                     'Particles published on particles (weighted subsample); 0 = all.',
+                     (0, 100_000_000))
+        self.declare('gnss_queue_size', DEFAULTS['gnss_queue_size'],
+                     'GNSS epochs waiting for the dead reckoning; when full the oldest is '
+                     'dropped.', (1, 10000), read_only=True)
+        self.declare('odometry_queue_depth', DEFAULTS['odometry_queue_depth'],
+                     'Subscription queue depth of odometry/dead_reckoning [messages] (covers '
+                     'a filter epoch at the IMU rate).', (1, 1_000_000), read_only=True)
+        self.declare('input_queue_depth', DEFAULTS['input_queue_depth'],
+                     'Subscription queue depth of gnss/measurements and camera/matches.',
+                     (1, 100000), read_only=True)
+        seed = self.param('seed')
+        rng = np.random.default_rng(None if seed < 0 else seed)
+        frame = LocalFrame(*self.param('map_origin_llh')) if self.param(
+            'use_map_origin') else None
+        self.filter = ParticleFilter(self._filter_config({}), frame=frame, rng=rng)
+        self.accumulator = MotionAccumulator(self.param('odometry_buffer_s'))
+        self.camera_buffer: list[CameraMeasurement] = []
+        self._camera_count = 0
+        self._queue: deque = deque()
+        self._started = time.monotonic()
+        self._last_gnss_receipt: float | None = None
+        self._last_dr_receipt: float | None = None
+        self._last_stale_report = -math.inf
+        self._last_epoch_ns: int | None = None
+        self.last_result: EpochResult | None = None
+
+        self.pub_integrity = self.create_publisher(DiagnosticArray, 'integrity_risk',
+                                                   reliable_qos())
+        self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'pose', reliable_qos())
+        self.pub_fix = self.create_publisher(NavSatFix, 'fix', reliable_qos())
+        self.pub_particles = self.create_publisher(PoseArray, 'particles', reliable_qos(2))
+        depth = self.param('input_queue_depth')
+        self.sub_gnss = self.create_subscription(PointCloud2, 'gnss/measurements',
+                                                 self.on_gnss, reliable_qos(depth))
+        self.sub_dr = self.create_subscription(
+            Odometry, 'odometry/dead_reckoning', self.on_dead_reckoning,
+            reliable_qos(self.param('odometry_queue_depth')))
+        self.sub_camera = self.create_subscription(PointCloud2, 'camera/matches',
+                                                   self.on_matches, reliable_qos(depth))
+        self._timer = self.create_timer(0.02, self.on_timer)
+        self.parameters_declared()
+
+    # ------------------------------------------------------------------ parameters
+    def _filter_config(self, changes: dict) -> FilterConfig:
+        values = {name: changes.get(name, self.param(name)) for name in FILTER_PARAMETERS}
+        return FilterConfig(**values)
+
+    def validate_parameters(self, changes: dict) -> str | None:
+        if any(name in FILTER_PARAMETERS for name in changes):
+            try:
+                replace(self.filter.config, **{k: v for k, v in changes.items()
+                                               if k in FILTER_PARAMETERS})
+            except (ValueError, TypeError) as err:
+                return str(err)
+        return None
+
+    def apply_parameters(self, changes: dict) -> None:
+        filter_changes = {k: v for k, v in changes.items() if k in FILTER_PARAMETERS}
+        if filter_changes:
+            self.filter.set_parameters(**filter_changes)
+            self.get_logger().info(f'filter parameters changed: {filter_changes}')
+
+    # ------------------------------------------------------------------- callbacks
+    def on_gnss(self, msg: PointCloud2) -> None:
+        """Queue a GNSS epoch and process what is ready."""
+        self.stats.count('received_measurements')
+        try:
+            epoch = pointcloud2_to_gnss_epoch(msg, None, 'gnss/measurements')
+        except MessageError as err:
+            self.warn_rejected('gnss/measurements', err.reason, str(err))
+            return
+        self._last_gnss_receipt = time.monotonic()
+        if self._queue and epoch.stamp_ns <= self._queue[-1][0].stamp_ns:
+            self.warn_rejected('gnss/measurements', 'out_of_order',
+                               f'stamp {epoch.stamp_ns} ns not after the queued epoch')
+            return
+        if len(self._queue) >= self.param('gnss_queue_size'):
+            self._queue.popleft()
+            self.stats.count('dropped_epochs')
+        self._queue.append((epoch, time.monotonic()))
+        self.process_ready()
+
+    def on_dead_reckoning(self, msg: Odometry) -> None:
+        """Buffer a dead-reckoning state; an epoch waiting for it may now run."""
+        self.stats.count('received_dead_reckoning')
+        try:
+            state = odometry_to_dead_reckoning(msg)
+        except MessageError as err:
+            self.warn_rejected('odometry/dead_reckoning', err.reason, str(err))
+            return
+        if not self.accumulator.add(state):
+            self.warn_rejected('odometry/dead_reckoning', 'out_of_order',
+                               f'stamp {state.stamp_ns} ns not after the previous state')
+            return
+        self._last_dr_receipt = time.monotonic()
+        if self._queue:
+            self.process_ready()
+
+    def on_matches(self, msg: PointCloud2) -> None:
+        """Buffer the best match of a camera image for the next epoch."""
+        self.stats.count('received_matches')
+        try:
+            matches = pointcloud2_to_matches(msg, None)
+        except MessageError as err:
+            self.warn_rejected('camera/matches', err.reason, str(err))
+            return
+        if self.camera_buffer and matches.stamp_ns < self.camera_buffer[-1].stamp_ns:
+            self.warn_rejected('camera/matches', 'out_of_order',
+                               f'stamp {matches.stamp_ns} ns before the previous image')
+            return
+        measurement = camera_measurement(matches, self._camera_count)
+        self._camera_count += 1
+        if measurement is None:
+            self.stats.count('camera_without_match')
+            return
+        self.camera_buffer.append(measurement)
+        horizon = matches.stamp_ns - int(self.param('camera_buffer_s') * 1e9)
+        self.camera_buffer = [m for m in self.camera_buffer if m.stamp_ns >= horizon]
+
+    def on_timer(self) -> None:
+        """Run epochs whose wait for odometry is over; report STALE without GNSS."""
+        if self._queue:
+            self.process_ready()
+        now = time.monotonic()
+        since = now - (self._last_gnss_receipt or self._started)
+        if (since > self.param('gnss_timeout_s')
+                and now - self._last_stale_report >= self.param('stale_report_period_s')):
+            self._last_stale_report = now
+            self.stats.count('stale_reports')
+            self.publish_integrity(self._stale_risk(
+                self.now_ns(), f'stale: no GNSS measurements for {since:.1f} s'))
+
+    # --------------------------------------------------------------------- epochs
+    def _ready(self, stamp_ns: int, queued_at: float) -> bool:
+        newest = self.accumulator.newest_stamp_ns
+        if newest is not None and newest >= stamp_ns:
+            return True
+        now = time.monotonic()
+        if self._last_dr_receipt is None or (
+                now - self._last_dr_receipt > self.param('odometry_timeout_s')):
+            return True          # no dead reckoning running: nothing to wait for
+        if now - queued_at >= self.param('odometry_wait_s'):
+            self.stats.count('odometry_late')
+            return True
+        return False
+
+    def process_ready(self) -> None:
+        """Run every queued epoch that is ready, oldest first."""
+        while self._queue and self._ready(self._queue[0][0].stamp_ns, self._queue[0][1]):
+            epoch, queued_at = self._queue.popleft()
+            self.process_epoch(epoch)
+
+    def process_epoch(self, epoch: GnssEpoch) -> EpochResult:
+        """One filter step and its outputs."""
+        start = time.perf_counter()
+        motion = motion_for_epoch(self.accumulator, self.filter, epoch.stamp_ns)
+        camera = camera_for_epoch(self.camera_buffer, self.accumulator, self.filter,
+                                  epoch.stamp_ns)
+        result = self.filter.step(epoch, motion, camera)
+        self.last_result = result
+        self.stats.count(f'epochs_{result.status}')
+        if result.status == REJECTED:
+            self.warn_rejected('gnss/measurements', 'filter_rejected', result.reason)
+            self.stats.add_time(time.perf_counter() - start)
+            return result
+        self._last_epoch_ns = epoch.stamp_ns
+        self.publish_integrity(self.integrity_of(result))
+        self.stats.add_time(time.perf_counter() - start)
+        if result.status in (UPDATED, PROPAGATED):
+            self._publish_estimate(result, epoch)
+        return result
+
+    def integrity_of(self, result: EpochResult) -> IntegrityRisk:
+        """The integrity_risk content of an epoch result."""
+        cfg = self.filter.config
+        if result.status != UPDATED or result.risk is None:
+            return self._stale_risk(result.stamp_ns, f'no valid solution ({result.status}): '
+                                    f'{result.reason}', result)
+        risk = result.risk
+        bound = float(risk.risk_bound[0])
+        ok = bool(result.integrity_ok)
+        extra = {'status': result.status, 'n_satellites': result.n_satellites,
+                 'kl_nats': float(risk.kl_nats), 'epsilon': float(risk.epsilon),
+                 'inverse_bernoulli': cfg.inverse_bernoulli}
+        for a in range(1, len(risk.alert_limits_m)):
+            extra[f'risk_bound_{risk.alert_limits_m[a]:g}m'] = float(risk.risk_bound[a])
+        if result.camera_alpha is not None:
+            extra['camera_images'] = len(result.camera_frame_ids)
+            extra['camera_excluded'] = bool(result.camera_excluded)
+        verdict = 'sufficient' if ok else 'insufficient'
+        return IntegrityRisk(
+            stamp_ns=result.stamp_ns, level=OK if ok else ERROR,
+            message=f'integrity {verdict}: risk bound {bound:.3g} '
+                    f'{"<=" if ok else ">"} target {cfg.target_risk:g} at '
+                    f'{float(risk.alert_limits_m[0]):g} m',
+            risk_bound=bound, empirical_risk=float(risk.empirical_risk[0]),
+            divergence_risk=float(risk.divergence_risk[0]),
+            alert_limit_m=float(risk.alert_limits_m[0]), target_risk=float(cfg.target_risk),
+            epoch_stamp_ns=int(result.stamp_ns), extra=extra)
+
+    def _stale_risk(self, stamp_ns: int, message: str,
+                    result: EpochResult | None = None) -> IntegrityRisk:
+        cfg = self.filter.config
+        extra = {'status': result.status if result is not None else 'no_gnss'}
+        epoch = result.stamp_ns if result is not None else self._last_epoch_ns
+        return IntegrityRisk(stamp_ns=stamp_ns, level=STALE, message=message,
+                             risk_bound=math.nan, empirical_risk=math.nan,
+                             divergence_risk=math.nan, alert_limit_m=float(cfg.alert_limit_m),
+                             target_risk=float(cfg.target_risk), epoch_stamp_ns=epoch,
+                             extra=extra)
+
+    def publish_integrity(self, risk: IntegrityRisk) -> None:
+        self.pub_integrity.publish(integrity_risk_to_msg(risk))
+        self.stats.count('published_integrity_risk')
+
+    def _publish_estimate(self, result: EpochResult, epoch: GnssEpoch) -> None:
+        filt = self.filter
+        map_frame = self.param('map_frame_id')
+        yaw_var = yaw_variance(filt.particles[:, 3], filt.log_w)
+        cov = np.asarray(result.covariance_m2, dtype=float)
+        self.pub_pose.publish(pose_to_msg(PoseEstimate(
+            stamp_ns=result.stamp_ns, position_m=result.position_enu_m, yaw_rad=result.yaw_rad,
+            covariance=pose_covariance(cov, yaw_var), frame_id=map_frame)))
+        if result.status == UPDATED:
+            lat, lon, alt = filt.frame.enu_to_geodetic(result.position_enu_m)
+            self.pub_fix.publish(fix_to_navsatfix(GeodeticFix(
+                stamp_ns=result.stamp_ns, lat_deg=float(lat), lon_deg=float(lon),
+                alt_m=float(alt), covariance_enu_m2=cov, status=NavSatStatus.STATUS_FIX,
+                service=service_bits(epoch.system), frame_id=self.param('fix_frame_id'))))
+        cloud = published_particles(filt.particles, filt.log_w,
+                                    self.param('max_published_particles'))
+        self.pub_particles.publish(particles_to_posearray(cloud, result.stamp_ns, map_frame))
+
+    def diagnostic_summary(self):
+        now = time.monotonic()
+        since_gnss = now - (self._last_gnss_receipt or self._started)
+        since_dr = (math.inf if self._last_dr_receipt is None
+                    else now - self._last_dr_receipt)
+        values = {'seconds_since_gnss': since_gnss, 'seconds_since_dead_reckoning': since_dr,
+                  'gnss_queue_length': len(self._queue),
+                  'camera_buffer_length': len(self.camera_buffer),
+                  'n_particles': self.filter.config.n_particles,
+                  'alert_limit_m': self.filter.config.alert_limit_m,
+                  'target_risk': self.filter.config.target_risk}
+        if self.last_result is not None:
+            values['last_status'] = self.last_result.status
+        if since_gnss > self.param('gnss_timeout_s'):
+            return WARN, f'stale input: no GNSS for {since_gnss:.1f} s', values
+        if since_dr > self.param('odometry_timeout_s'):
+            return WARN, 'no dead reckoning: propagating without motion', values
+        return OK, 'running', values
+
+
+def main(args=None) -> None:
+    """``ros2 run gnsscam_ros fusion_node``."""
+    run_node(FusionNode, args)
+
+
+if __name__ == '__main__':
+    main()

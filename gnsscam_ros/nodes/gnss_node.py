@@ -1,0 +1,183 @@
+"""gnss_node: validate pseudorange epochs, forward the usable satellites, snapshot fix.
+
+Subscribes ``gnss/pseudoranges`` (PointCloud2, frame ``earth``); publishes
+``gnss/measurements`` (the satellites that passed the checks, same layout, every epoch even
+when too few remain, so that fusion_node can report the epoch as STALE at once) and
+``gnss/fix`` (robust snapshot least-squares fix, NavSatFix, only for usable epochs).
+
+Checks (``core.gnss.check_epoch``): non-finite values, non-positive range or variance,
+duplicated satellites, unknown system code, elevation and C/N0 masks, minimum satellite
+count; whole messages with wrong fields or frame, or stamps not after the previous epoch,
+are refused. Everything refused is counted and reported on ``diagnostics``.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from sensor_msgs.msg import NavSatFix, NavSatStatus, PointCloud2
+
+from gnsscam_ros.core.frames import LocalFrame, sagnac_corrected
+from gnsscam_ros.core.gnss import check_epoch
+from gnsscam_ros.core.snapshot import solve_snapshot
+from gnsscam_ros.core.types import GnssEpoch
+from msg_adapters import (OK, WARN, GeodeticFix, MessageError, fix_to_navsatfix,
+                          gnss_epoch_to_pointcloud2, pointcloud2_to_gnss_epoch, service_bits)
+from msg_adapters.pointcloud import KNOWN_SYSTEMS
+
+from .common import BIG, GnssCamNode, reliable_qos, run_node, sensor_qos
+
+# Code defaults; config/gnss_node.yaml documents the same values (a test checks).
+DEFAULTS = {
+    'elevation_mask_deg': 0.0,
+    'cn0_mask_dbhz': 0.0,
+    'min_satellites': 4,
+    'measurement_var_m2': 10.0,
+    'input_frame_id': 'earth',
+    'fix_frame_id': 'gnss',
+    'input_queue_depth': 10,
+    'stale_timeout_s': 2.0,
+    'diagnostics_period_s': 1.0,
+}
+
+
+def fix_covariance_enu(epoch: GnssEpoch, ecef_m: np.ndarray, var_floor_m2: float
+                       ) -> np.ndarray:
+    """Geometry covariance of a snapshot fix in east, north, up [m^2].
+
+    ``sigma^2 (H^T W H)^-1`` of the position-and-clocks least squares, H = line-of-sight
+    unit vectors and one clock column per constellation, W = 1 / max(var, floor). The
+    robust loss down-weights outliers, so this is an approximation (NavSatFix
+    COVARIANCE_TYPE_APPROXIMATED).
+    """
+    frame = LocalFrame.from_ecef(ecef_m)
+    los = frame.ecef_to_enu(sagnac_corrected(epoch.sv_pos_ecef_m, ecef_m))
+    unit = los / np.linalg.norm(los, axis=1, keepdims=True)
+    systems, sys_index = np.unique(epoch.system, return_inverse=True)
+    h = np.zeros((epoch.n_sv, 3 + systems.size))
+    h[:, :3] = -unit
+    h[np.arange(epoch.n_sv), 3 + sys_index] = 1.0
+    w = 1.0 / np.maximum(epoch.var_m2, var_floor_m2)
+    info = h.T @ (h * w[:, None])
+    return np.linalg.pinv(info)[:3, :3]
+
+
+class GnssNode(GnssCamNode):
+    """Validates GNSS epochs and publishes the usable satellites and a snapshot fix.
+
+    Args:
+        node_name: Node name.
+        **kwargs: Forwarded to ``rclpy.node.Node``.
+    """
+
+    def __init__(self, node_name: str = 'gnss_node', **kwargs):
+        super().__init__(node_name, **kwargs)
+        d = DEFAULTS
+        self.declare('elevation_mask_deg', d['elevation_mask_deg'],
+                     'Satellites below this elevation are dropped [deg]; NaN elevations '
+                     'are kept.', (-90.0, 90.0))
+        self.declare('cn0_mask_dbhz', d['cn0_mask_dbhz'],
+                     'Satellites below this C/N0 are dropped [dB-Hz]; NaN C/N0 is kept.',
+                     (0.0, 100.0))
+        self.declare('min_satellites', d['min_satellites'],
+                     'Fewest satellites for a usable epoch (position + clock: >= 4).',
+                     (4, 1000))
+        self.declare('measurement_var_m2', d['measurement_var_m2'],
+                     'Floor of the pseudorange variance in the snapshot fix [m^2].',
+                     (1e-6, BIG))
+        self.declare('input_frame_id', d['input_frame_id'],
+                     'Required frame of gnss/pseudoranges (ECEF); others are refused.',
+                     read_only=True)
+        self.declare('fix_frame_id', d['fix_frame_id'], 'Frame of gnss/fix (antenna).')
+        self.declare('input_queue_depth', d['input_queue_depth'],
+                     'Subscription queue depth of gnss/pseudoranges [messages].',
+                     (1, 100000), read_only=True)
+        self.declare('stale_timeout_s', d['stale_timeout_s'],
+                     'No pseudoranges for this long is reported as a stale input [s].',
+                     (0.01, BIG))
+        self._last_stamp_ns: int | None = None
+        self._last_receipt: float | None = None
+        self._last_fix_ecef: np.ndarray | None = None
+        self._started = time.monotonic()
+        self.pub_measurements = self.create_publisher(PointCloud2, 'gnss/measurements',
+                                                      reliable_qos())
+        self.pub_fix = self.create_publisher(NavSatFix, 'gnss/fix', reliable_qos())
+        self.sub = self.create_subscription(PointCloud2, 'gnss/pseudoranges', self.on_epoch,
+                                            sensor_qos(self.param('input_queue_depth')))
+        self.parameters_declared()
+
+    def on_epoch(self, msg: PointCloud2) -> None:
+        """Validate one epoch and publish what passes."""
+        with self.stats.timed():
+            self.stats.count('received_pseudoranges')
+            self._last_receipt = time.monotonic()
+            try:
+                epoch = pointcloud2_to_gnss_epoch(msg, self.param('input_frame_id'))
+            except MessageError as err:
+                self.warn_rejected('gnss/pseudoranges', err.reason, str(err))
+                return
+            if self._last_stamp_ns is not None and epoch.stamp_ns <= self._last_stamp_ns:
+                self.warn_rejected('gnss/pseudoranges', 'out_of_order',
+                                   f'stamp {epoch.stamp_ns} ns not after {self._last_stamp_ns}')
+                return
+            self._last_stamp_ns = epoch.stamp_ns
+            known = np.isin(epoch.system, KNOWN_SYSTEMS)
+            if not known.all():
+                self.stats.count('satellites_rejected_unknown_system', int((~known).sum()))
+                epoch = epoch.subset(known)
+            check = check_epoch(epoch, self.param('min_satellites'),
+                                self.param('elevation_mask_deg'), self.param('cn0_mask_dbhz'))
+            for reason, n in check.rejected.items():
+                self.stats.count(f'satellites_rejected_{reason}', n)
+            usable = epoch.subset(check.keep)
+            self.pub_measurements.publish(gnss_epoch_to_pointcloud2(usable))
+            self.stats.count('published_measurements')
+            if not check.usable:
+                self.stats.count('epochs_unusable')
+                self.get_logger().warning(f'epoch {epoch.stamp_ns}: {check.reason}',
+                                          throttle_duration_sec=5.0)
+                return
+            self._publish_fix(usable)
+
+    def _publish_fix(self, epoch: GnssEpoch) -> None:
+        var_floor = self.param('measurement_var_m2')
+        try:
+            fix = solve_snapshot(epoch, self._last_fix_ecef, measurement_var_m2=var_floor)
+        except ValueError as err:
+            self.stats.count('fix_failed')
+            self.get_logger().warning(f'snapshot fix: {err}', throttle_duration_sec=5.0)
+            return
+        if not fix.converged or not np.all(np.isfinite(fix.ecef_m)):
+            self.stats.count('fix_failed')
+            return
+        self._last_fix_ecef = fix.ecef_m
+        frame = LocalFrame.from_ecef(fix.ecef_m)
+        lat, lon, alt = frame.origin_llh
+        cov = fix_covariance_enu(epoch, fix.ecef_m, var_floor)
+        self.pub_fix.publish(fix_to_navsatfix(GeodeticFix(
+            stamp_ns=epoch.stamp_ns, lat_deg=lat, lon_deg=lon, alt_m=alt,
+            covariance_enu_m2=cov, status=NavSatStatus.STATUS_FIX,
+            service=service_bits(epoch.system), frame_id=self.param('fix_frame_id'),
+            covariance_type=NavSatFix.COVARIANCE_TYPE_APPROXIMATED)))
+        self.stats.count('published_fix')
+
+    def validate_parameters(self, changes: dict) -> str | None:
+        if 'min_satellites' in changes and changes['min_satellites'] < 4:
+            return 'min_satellites must be >= 4 (position and clock)'
+        return None
+
+    def diagnostic_summary(self):
+        since = time.monotonic() - (self._last_receipt or self._started)
+        values = {'seconds_since_pseudoranges': since}
+        if since > self.param('stale_timeout_s'):
+            return WARN, f'no gnss/pseudoranges for {since:.1f} s', values
+        return OK, 'receiving', values
+
+
+def main(args=None) -> None:
+    """``ros2 run gnsscam_ros gnss_node``."""
+    run_node(GnssNode, args)
+
+
+if __name__ == '__main__':
+    main()

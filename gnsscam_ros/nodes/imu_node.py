@@ -1,0 +1,172 @@
+"""imu_node: dead reckoning from the IMU and (when present) the vehicle odometry.
+
+Subscribes ``imu/data`` (sensor_msgs/Imu) and ``odom/twist``
+(geometry_msgs/TwistWithCovarianceStamped, optional); publishes
+``odometry/dead_reckoning`` (nav_msgs/Odometry, frame ``odom``): one planar pose per input
+sample stamp, integrated by :class:`gnsscam_ros.core.motion.DeadReckoner` (the same code an
+offline run uses). Speed comes from the odometry while it is received, else from the
+integrated forward acceleration; yaw rate from ``yaw_rate_source`` while it is received,
+else the other source.
+
+A source is *active* while its messages keep arriving (``source_timeout_s``, wall time);
+states are emitted up to the newest stamp every active source has reached, so the output
+does not depend on how the two streams interleave. Messages with non-finite values or
+stamps not after their stream's previous one are refused and counted.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import fields
+
+from geometry_msgs.msg import TwistWithCovarianceStamped
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import Imu
+
+from gnsscam_ros.core.motion import IMU, ODOMETRY, DeadReckoner, DeadReckoningConfig
+from msg_adapters import (OK, WARN, MessageError, dead_reckoning_to_odometry, imu_to_sample,
+                          twist_to_sample)
+
+from .common import BIG, GnssCamNode, reliable_qos, run_node, sensor_qos
+
+_DR = DeadReckoningConfig()
+# Code defaults; config/imu_node.yaml documents the same values (a test checks). The
+# dead-reckoning ones are DeadReckoningConfig's.
+DEFAULTS = {
+    **{f.name: getattr(_DR, f.name) for f in fields(DeadReckoningConfig)},
+    'source_timeout_s': 0.5,
+    'odom_frame_id': 'odom',
+    'base_frame_id': 'base_link',
+    'input_queue_depth': 100,
+    'output_queue_depth': 100,
+    'diagnostics_period_s': 1.0,
+}
+
+_DR_DESCRIPTIONS = {
+    'yaw_rate_source': ("Yaw-rate source while both are received: 'odometry' (vehicle yaw "
+                        "rate) or 'imu' (gyro z).", None),
+    'gyro_yaw_rate_var': ('Variance of one gyro yaw-rate sample [(rad/s)^2].', (0.0, BIG)),
+    'accel_var': ('Variance of one forward-acceleration sample [(m/s^2)^2].', (0.0, BIG)),
+    'default_speed_var': ('Speed variance used when odom/twist reports none [(m/s)^2].',
+                          (0.0, BIG)),
+    'default_yaw_rate_var': ('Yaw-rate variance used when odom/twist reports none '
+                             '[(rad/s)^2].', (0.0, BIG)),
+    'speed_error_correlation_s': ('Without odometry, how long an error of the integrated '
+                                  'speed persists, for the distance variance [s].',
+                                  (0.0, BIG)),
+}
+
+
+class ImuNode(GnssCamNode):
+    """Dead reckoning node.
+
+    Args:
+        node_name: Node name.
+        **kwargs: Forwarded to ``rclpy.node.Node``.
+    """
+
+    def __init__(self, node_name: str = 'imu_node', **kwargs):
+        super().__init__(node_name, **kwargs)
+        for name, (text, value_range) in _DR_DESCRIPTIONS.items():
+            self.declare(name, DEFAULTS[name], text, value_range)
+        self.declare('source_timeout_s', DEFAULTS['source_timeout_s'],
+                     'A source without messages for this long is inactive [s] (wall time).',
+                     (0.001, BIG))
+        self.declare('odom_frame_id', DEFAULTS['odom_frame_id'],
+                     'Frame of odometry/dead_reckoning.')
+        self.declare('base_frame_id', DEFAULTS['base_frame_id'],
+                     'Child frame of odometry/dead_reckoning.')
+        self.declare('input_queue_depth', DEFAULTS['input_queue_depth'],
+                     'Subscription queue depth of imu/data and odom/twist [messages].',
+                     (1, 100000), read_only=True)
+        self.declare('output_queue_depth', DEFAULTS['output_queue_depth'],
+                     'Publisher queue depth of odometry/dead_reckoning [messages].',
+                     (1, 100000), read_only=True)
+        self.dead_reckoner = DeadReckoner(self._dr_config({}))
+        self._receipt: dict[str, float] = {}
+        self._started = time.monotonic()
+        self.pub = self.create_publisher(Odometry, 'odometry/dead_reckoning',
+                                         reliable_qos(self.param('output_queue_depth')))
+        depth = self.param('input_queue_depth')
+        self.sub_imu = self.create_subscription(Imu, 'imu/data', self.on_imu, sensor_qos(depth))
+        self.sub_twist = self.create_subscription(TwistWithCovarianceStamped, 'odom/twist',
+                                                  self.on_twist, sensor_qos(depth))
+        self.parameters_declared()
+
+    def _dr_config(self, changes: dict) -> DeadReckoningConfig:
+        values = {name: changes.get(name, self.param(name)) for name in _DR_DESCRIPTIONS}
+        return DeadReckoningConfig(**values)
+
+    def on_imu(self, msg: Imu) -> None:
+        """Buffer an IMU sample and publish the states it releases."""
+        with self.stats.timed():
+            self.stats.count('received_imu')
+            try:
+                sample = imu_to_sample(msg)
+                self.dead_reckoner.add_imu(sample.stamp_ns, sample.accel_mps2[0],
+                                           sample.gyro_rps[2])
+            except MessageError as err:
+                self.warn_rejected('imu/data', err.reason, str(err))
+                return
+            except ValueError as err:       # stamp not after the previous one
+                self.warn_rejected('imu/data', 'out_of_order', str(err))
+                return
+            self._receipt[IMU] = time.monotonic()
+            self._advance()
+
+    def on_twist(self, msg: TwistWithCovarianceStamped) -> None:
+        """Buffer an odometry sample and publish the states it releases."""
+        with self.stats.timed():
+            self.stats.count('received_odom_twist')
+            try:
+                s = twist_to_sample(msg)
+                self.dead_reckoner.add_odometry(s.stamp_ns, s.speed_mps, s.yaw_rate_rps,
+                                                s.speed_var, s.yaw_rate_var)
+            except MessageError as err:
+                self.warn_rejected('odom/twist', err.reason, str(err))
+                return
+            except ValueError as err:
+                self.warn_rejected('odom/twist', 'out_of_order', str(err))
+                return
+            self._receipt[ODOMETRY] = time.monotonic()
+            self._advance()
+
+    def active_sources(self) -> set[str]:
+        """Sources whose messages arrived within ``source_timeout_s`` (wall time)."""
+        now, timeout = time.monotonic(), self.param('source_timeout_s')
+        return {s for s, t in self._receipt.items() if now - t <= timeout}
+
+    def _advance(self) -> None:
+        odom_frame, base_frame = self.param('odom_frame_id'), self.param('base_frame_id')
+        for state in self.dead_reckoner.advance(self.active_sources()):
+            self.pub.publish(dead_reckoning_to_odometry(state, odom_frame, base_frame))
+            self.stats.count('published_dead_reckoning')
+
+    def validate_parameters(self, changes: dict) -> str | None:
+        if any(name in _DR_DESCRIPTIONS for name in changes):
+            try:
+                self._dr_config(changes)
+            except ValueError as err:
+                return str(err)
+        return None
+
+    def apply_parameters(self, changes: dict) -> None:
+        if any(name in _DR_DESCRIPTIONS for name in changes):
+            self.dead_reckoner.config = self._dr_config({})
+
+    def diagnostic_summary(self):
+        active = self.active_sources()
+        values = {'imu_active': IMU in active, 'odometry_active': ODOMETRY in active}
+        if IMU not in active and ODOMETRY not in active:
+            return WARN, 'no imu/data or odom/twist (stale inputs)', values
+        if IMU not in active:
+            return WARN, 'odometry only: no imu/data', values
+        return OK, 'imu + odometry' if ODOMETRY in active else 'imu only', values
+
+
+def main(args=None) -> None:
+    """``ros2 run gnsscam_ros imu_node``."""
+    run_node(ImuNode, args)
+
+
+if __name__ == '__main__':
+    main()
