@@ -431,11 +431,15 @@ class MotionAccumulator:
                                distance_var_m2=distance_var, dyaw_var_rad2=dyaw_var)
 
     def odometry_series(self, t0_ns: int, t1_ns: int) -> OdometrySeries:
-        """Speed and yaw-rate samples of the states in ``[t0_ns, t1_ns]`` plus one on each
-        side (for interpolation), as an :class:`OdometrySeries`."""
+        """Speed and yaw-rate samples of the states in ``[t0_ns, t1_ns]`` and the last one
+        before ``t0_ns``, as an :class:`OdometrySeries`.
+
+        States after ``t1_ns`` are left out on purpose: whether they have arrived yet
+        depends on timing, and the answer must not.
+        """
         stamps = np.array([s.stamp_ns for s in self.states], dtype=np.int64)
         lo = max(int(np.searchsorted(stamps, t0_ns, side='right')) - 1, 0)
-        hi = min(int(np.searchsorted(stamps, t1_ns, side='left')) + 1, len(stamps))
+        hi = int(np.searchsorted(stamps, t1_ns, side='right'))
         sel = self.states[lo:hi]
         return OdometrySeries(
             stamp_ns=np.array([s.stamp_ns for s in sel], dtype=np.int64),
