@@ -1,0 +1,248 @@
+"""The bag layout in one place: topics, message types, frames, field layouts, QoS.
+
+A converted dataset bag holds (design.md §3 for the input topics), by topic, type, frame:
+
+* ``dataset/info``: ``std_msgs/msg/String``, JSON (below); once.
+* ``map/origin``: ``sensor_msgs/msg/NavSatFix``, frame ``map``; once (when known).
+* ``gnss/pseudoranges``: ``sensor_msgs/msg/PointCloud2``, frame ``earth``; 1-5 Hz.
+* ``camera/image_raw``: ``sensor_msgs/msg/Image`` (bgr8, 640x480), frame ``camera``; 10 Hz.
+* ``imu/data``: ``sensor_msgs/msg/Imu``, frame ``base_link``; 100 Hz.
+* ``odom/twist``: ``geometry_msgs/msg/TwistWithCovarianceStamped``, frame ``base_link``.
+* ``ground_truth/pose``: ``geometry_msgs/msg/PoseStamped``, frame ``earth``; truth rate.
+
+Conventions:
+
+* Names are written fully qualified under a namespace (default ``/``: ``/imu/data``), as
+  ``ros2 bag record`` stores them; readers accept the relative and the qualified form.
+* Bag time stamps (log times) equal the header stamps: the dataset's true times.
+* ``dataset/info`` and ``map/origin`` come first, stamped with the first data stamp, and
+  are offered ``transient_local`` so that ``ros2 bag play`` hands them to late subscribers.
+  ``dataset/info`` is a JSON object: ``format`` (:data:`FORMAT`), ``name``,
+  ``origin_llh`` (or null), ``info`` (the dataset's provenance, JSON-able parts), ``topics``
+  (the table above) and ``converter``. ``map/origin`` is written only when the dataset
+  fixes the ``map`` frame origin (the emulated drive); without it (smartLoc) the nodes
+  anchor ``map`` at the first robust fix. Its latitude/longitude/altitude are the origin
+  of the local ENU ``map`` frame (``Drive.origin_llh``), status FIX, covariance unknown.
+* ``ground_truth/pose`` is for evaluation only (no node subscribes to it): position = truth
+  ECEF [m]; orientation = the vehicle attitude in ECEF, level with heading ``yaw`` about
+  the up axis of the ENU frame at the map origin (the first truth point when the dataset
+  has no origin); the all-zero quaternion means "heading unknown" (smartLoc truth).
+* ``imu/data``: orientation unavailable (``orientation_covariance[0] = -1``, REP 145);
+  rate and acceleration covariances all zero, i.e. unknown (sensor_msgs/Imu convention).
+* ``odom/twist``: forward speed on ``linear.x`` [m/s], yaw rate on ``angular.z`` [rad/s],
+  their variances at covariance indices 0 and 35, everything else 0 (as ``msg_adapters``).
+* ``gnss/pseudoranges``: one point per satellite, :data:`GNSS_DTYPE` (the layout of
+  ``msg_adapters.pointcloud.GNSS_DTYPE``: naturally aligned, 48-byte points).
+
+A result bag (recorded from the nodes) holds ``pose``, ``integrity_risk`` and optionally
+``fix``, ``particles``; :data:`RESULT_TOPICS` names them.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
+                                QosReliability, QosTime)
+from rosbags.typesys import Stores, get_typestore
+
+#: The typestore every bag of this package is written and read with.
+STORE = Stores.ROS2_JAZZY
+#: ``dataset/info`` format tag; bump when the layout changes incompatibly.
+FORMAT = 'gnsscam_ros.dataset_bag/1'
+
+EARTH_FRAME = 'earth'
+MAP_FRAME = 'map'
+BASE_FRAME = 'base_link'
+CAMERA_FRAME = 'camera'
+
+INFO = 'dataset/info'
+ORIGIN = 'map/origin'
+GNSS = 'gnss/pseudoranges'
+IMAGE = 'camera/image_raw'
+IMU = 'imu/data'
+TWIST = 'odom/twist'
+TRUTH = 'ground_truth/pose'
+POSE = 'pose'
+FIX = 'fix'
+PARTICLES = 'particles'
+INTEGRITY = 'integrity_risk'
+
+STRING = 'std_msgs/msg/String'
+NAVSATFIX = 'sensor_msgs/msg/NavSatFix'
+POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
+IMAGE_TYPE = 'sensor_msgs/msg/Image'
+IMU_TYPE = 'sensor_msgs/msg/Imu'
+TWIST_TYPE = 'geometry_msgs/msg/TwistWithCovarianceStamped'
+POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+POSE_COV_STAMPED = 'geometry_msgs/msg/PoseWithCovarianceStamped'
+POSE_ARRAY = 'geometry_msgs/msg/PoseArray'
+DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
+
+
+@dataclass(frozen=True)
+class TopicSpec:
+    """One topic of the layout.
+
+    Attributes:
+        name: Relative topic name.
+        msgtype: rosbags message type name (``pkg/msg/Type``).
+        frame_id: Header frame (None: no header or not fixed).
+        latched: Offered ``transient_local`` (sent once, kept for late subscribers).
+        description: What the topic carries.
+    """
+
+    name: str
+    msgtype: str
+    frame_id: str | None
+    latched: bool
+    description: str
+
+
+#: Topics of a dataset bag, in the order they are registered.
+DATASET_TOPICS: dict[str, TopicSpec] = {t.name: t for t in (
+    TopicSpec(INFO, STRING, None, True, 'dataset description (JSON)'),
+    TopicSpec(ORIGIN, NAVSATFIX, MAP_FRAME, True, 'origin of the local ENU map frame'),
+    TopicSpec(GNSS, POINTCLOUD2, EARTH_FRAME, False, 'pseudoranges, one point per satellite'),
+    TopicSpec(IMAGE, IMAGE_TYPE, CAMERA_FRAME, False, 'forward camera'),
+    TopicSpec(IMU, IMU_TYPE, BASE_FRAME, False, 'angular rate, specific force'),
+    TopicSpec(TWIST, TWIST_TYPE, BASE_FRAME, False, 'wheel speed and yaw rate'),
+    TopicSpec(TRUTH, POSE_STAMPED, EARTH_FRAME, False, 'ground truth (evaluation only)'),
+)}
+
+#: Output topics of the nodes that the bag evaluation reads.
+RESULT_TOPICS: dict[str, TopicSpec] = {t.name: t for t in (
+    TopicSpec(POSE, POSE_COV_STAMPED, MAP_FRAME, False, 'estimate and covariance'),
+    TopicSpec(FIX, NAVSATFIX, None, False, 'the estimate in WGS84'),
+    TopicSpec(PARTICLES, POSE_ARRAY, MAP_FRAME, False, 'particle cloud after resampling'),
+    TopicSpec(INTEGRITY, DIAGNOSTIC_ARRAY, None, False, 'integrity verdict and risk bound'),
+)}
+
+# GNSS cloud layout: the same offsets and itemsize as msg_adapters.pointcloud.GNSS_DTYPE
+# (test_bags checks they agree), little endian, naturally aligned (1 pad byte at 47).
+GNSS_DTYPE = np.dtype({
+    'names': ['x', 'y', 'z', 'pseudorange', 'variance', 'cn0', 'elevation', 'sv_id', 'system'],
+    'formats': ['<f8', '<f8', '<f8', '<f8', '<f4', '<f4', '<f4', '<u2', 'u1'],
+    'offsets': [0, 8, 16, 24, 32, 36, 40, 44, 46], 'itemsize': 48})
+
+# sensor_msgs/PointField datatype codes <-> numpy scalar types.
+POINTFIELD_TYPES = {1: np.int8, 2: np.uint8, 3: np.int16, 4: np.uint16, 5: np.int32,
+                    6: np.uint32, 7: np.float32, 8: np.float64}
+POINTFIELD_CODE = {np.dtype(v): k for k, v in POINTFIELD_TYPES.items()}
+
+NS_PER_S = 1_000_000_000
+
+
+@lru_cache(maxsize=1)
+def typestore():
+    """The shared ROS 2 Jazzy typestore (built once; building costs ~50 ms)."""
+    return get_typestore(STORE)
+
+
+def qos(latched: bool) -> Qos:
+    """Offered QoS recorded for a topic: reliable (a replay must not drop data), volatile,
+    or transient_local for the once-only topics."""
+    zero = QosTime(sec=0, nsec=0)
+    return Qos(history=QosHistory.KEEP_LAST, depth=1 if latched else 100,
+               reliability=QosReliability.RELIABLE,
+               durability=(QosDurability.TRANSIENT_LOCAL if latched
+                           else QosDurability.VOLATILE),
+               deadline=zero, lifespan=zero, liveliness=QosLiveliness.AUTOMATIC,
+               liveliness_lease_duration=zero, avoid_ros_namespace_conventions=False)
+
+
+def qualified(name: str, namespace: str = '/') -> str:
+    """``name`` under ``namespace`` as a fully qualified topic (``/ns/name``)."""
+    ns = '/' + namespace.strip('/') if namespace.strip('/') else ''
+    return f'{ns}/{name.lstrip("/")}'
+
+
+def relative(topic: str, namespace: str = '/') -> str | None:
+    """The relative name of a bag topic under ``namespace``, or None when it is outside.
+
+    Both ``/ns/name`` and a bare ``name`` (written by tools that do not qualify) match.
+    """
+    if not topic.startswith('/'):
+        return topic
+    prefix = qualified('', namespace)
+    return topic[len(prefix):] if topic.startswith(prefix) else None
+
+
+def split_ns(stamp_ns: int) -> tuple[int, int]:
+    """Integer ns -> ``(sec, nanosec)`` of ``builtin_interfaces/Time``.
+
+    Raises:
+        ValueError: Negative or beyond the int32 seconds of the message.
+    """
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
+    if not 0 <= sec < 2 ** 31:
+        raise ValueError(f'stamp {stamp_ns} ns does not fit builtin_interfaces/Time')
+    return sec, nanosec
+
+
+# ---------------------------------------------------------------- ground-truth attitude
+def _matrix_to_quaternion(rot: np.ndarray) -> np.ndarray:
+    """Rotation matrix -> unit quaternion ``(x, y, z, w)`` (Shepperd's method: pick the
+    largest of the four squared components so the division is well conditioned)."""
+    m = np.asarray(rot, dtype=float)
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    cands = (trace, m[0, 0], m[1, 1], m[2, 2])
+    k = int(np.argmax(cands))
+    if k == 0:
+        s = 2.0 * math.sqrt(1.0 + trace)
+        q = ((m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s,
+             0.25 * s)
+    elif k == 1:
+        s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = (0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s,
+             (m[2, 1] - m[1, 2]) / s)
+    elif k == 2:
+        s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = ((m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s,
+             (m[0, 2] - m[2, 0]) / s)
+    else:
+        s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = ((m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s,
+             (m[1, 0] - m[0, 1]) / s)
+    q = np.array(q)
+    return q / np.linalg.norm(q)
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product of (..., 4) quaternions ``(x, y, z, w)``."""
+    ax, ay, az, aw = np.moveaxis(np.asarray(a, dtype=float), -1, 0)
+    bx, by, bz, bw = np.moveaxis(np.asarray(b, dtype=float), -1, 0)
+    return np.stack([aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw,
+                     aw * bw - ax * bx - ay * by - az * bz], axis=-1)
+
+
+def enu_quaternion(rot_ecef_to_enu: np.ndarray) -> np.ndarray:
+    """Orientation ``(x, y, z, w)`` of an ENU frame in ECEF, from its ``rot_ecef_to_enu``
+    (rows = east, north, up unit vectors in ECEF, as :class:`..core.frames.LocalFrame`)."""
+    # The ENU axes expressed in ECEF are the columns of the transpose.
+    return _matrix_to_quaternion(np.asarray(rot_ecef_to_enu, dtype=float).T)
+
+
+def yaw_to_ecef_quaternion(yaw_rad: np.ndarray, q_enu: np.ndarray) -> np.ndarray:
+    """(n,) ENU headings [rad] -> (n, 4) ECEF orientations of a level vehicle.
+
+    ``q = q_enu * q_z(yaw)``: first the heading about the local up axis, then the ENU frame
+    into ECEF.
+    """
+    half = 0.5 * np.asarray(yaw_rad, dtype=float)
+    qz = np.stack([np.zeros_like(half), np.zeros_like(half), np.sin(half), np.cos(half)],
+                  axis=-1)
+    return _quat_mul(np.broadcast_to(q_enu, qz.shape), qz)
+
+
+def ecef_quaternion_to_yaw(q: np.ndarray, q_enu: np.ndarray) -> np.ndarray:
+    """(n, 4) ECEF orientations -> (n,) ENU headings in [-pi, pi] [rad] (ZYX yaw of
+    ``conj(q_enu) * q``)."""
+    conj = np.asarray(q_enu, dtype=float) * np.array([-1.0, -1.0, -1.0, 1.0])
+    local = _quat_mul(np.broadcast_to(conj, np.shape(q)), q)
+    x, y, z, w = np.moveaxis(local, -1, 0)
+    return np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
