@@ -90,10 +90,43 @@ def build_parser() -> argparse.ArgumentParser:
     emu.add_argument('--no-nlos', action='store_true', help='no NLOS errors')
     for p in (smart, emu):
         add_filter_arguments(p)
+    camp = sub.add_parser('campaign', help="the paper's campaign on the emulated drive "
+                          '(Tables 2-4, Figures 4-11)')
+    camp.add_argument('--seeds', type=int, nargs='+', default=[1, 2, 3],
+                      help='drive seeds (default %(default)s)')
+    camp.add_argument('--particles', type=int, default=FilterConfig().n_particles)
+    camp.add_argument('--plots', type=Path, help='folder for the PNG figures')
+    camp.add_argument('--workers', type=int, default=None, help='processes (default: cores)')
+    camp.add_argument('--cache', type=Path, default=Path('.cache/gnsscam'),
+                      help='cache of map databases and camera matches')
+    camp.add_argument('--methods', nargs='+', default=['particle_raim', 'gnss_robust', 'fused'],
+                      choices=['particle_raim', 'fused', 'gnss_robust'])
+    for p in (smart, emu, camp):
         p.add_argument('--json', type=Path, help='write the metrics as JSON')
         p.add_argument('--force', action='store_true', help='replace an existing --json')
         p.add_argument('--quiet', action='store_true', help='no progress output')
     return parser
+
+
+def run_campaign_command(args: argparse.Namespace) -> int:
+    """``gnsscam_eval campaign``: run, print Tables 2-4, write JSON and plots."""
+    from .campaign import campaign_config, campaign_tables, run_campaign
+    result = run_campaign(seeds=tuple(args.seeds),
+                          base=campaign_config(n_particles=args.particles),
+                          methods=tuple(args.methods), workers=args.workers,
+                          cache_dir=args.cache, plots_dir=args.plots,
+                          progress=not args.quiet)
+    print(campaign_tables(result['cases']))
+    alpha = result['camera_mean_alpha']
+    if alpha:
+        print('\nmean camera mixture weight by frame fault: '
+              + ', '.join(f'{k} {v:.4f}' for k, v in sorted(alpha.items())))
+    print(f"\ncampaign: {len(result['cases'])} runs in {result['seconds']:.0f} s "
+          f"on {result['workers']} processes")
+    if args.json is not None:
+        write_json_atomic(args.json, result, force=args.force)
+        print(f'wrote {args.json}')
+    return EXIT_OK
 
 
 def load_drive(args: argparse.Namespace):
@@ -115,13 +148,15 @@ def load_drive(args: argparse.Namespace):
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.json is not None and args.json.exists() and not args.force:
+        print(f'gnsscam_eval: {args.json} exists; pass --force to replace it', file=sys.stderr)
+        return EXIT_OUTPUT
+    if args.command == 'campaign':
+        return run_campaign_command(args)
     try:
         config = config_from_args(args)
     except ValueError as err:
         parser.error(str(err))
-    if args.json is not None and args.json.exists() and not args.force:
-        print(f'gnsscam_eval: {args.json} exists; pass --force to replace it', file=sys.stderr)
-        return EXIT_OUTPUT
     try:
         drive = load_drive(args)
         result = evaluate_drive(drive, config, seed=args.seed, progress=not args.quiet)
