@@ -260,36 +260,50 @@ def _noise_field(rng: np.random.Generator, h: int, w: int, cell_px: int) -> np.n
     return cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)
 
 
+@lru_cache(maxsize=1)
+def _grain_tile() -> np.ndarray:
+    """(128, 128) float32 fine grain (std 2.5 grey levels), tiled over every wall."""
+    return np.random.default_rng(0x6A1A).normal(0.0, 2.5, (128, 128)).astype(np.float32)
+
+
+def _masonry(rng: np.random.Generator, h: int, w: int, course: int, unit: int,
+             jitter: float, joint: float) -> np.ndarray:
+    """(h, w) float32 brightness offsets of a running-bond masonry wall.
+
+    Each unit (``unit`` x ``course`` px) gets its own offset in ``[-jitter, jitter]``,
+    odd courses are shifted by half a unit, joints get ``joint``. Built from repeats and
+    tiles (no per-pixel index arithmetic), which keeps a facade texture at a few ms.
+    """
+    unit += unit % 2
+    half = unit // 2
+    n_r, n_c = h // course + 1, w // unit + 2
+    cells = np.repeat(rng.uniform(-jitter, jitter, (n_r, n_c)).astype(np.float32), 2, axis=1)
+    cells[1::2] = np.roll(cells[1::2], 1, axis=1)
+    field = np.repeat(np.repeat(cells, course, axis=0), half, axis=1)[:h, :w]
+    mask = np.zeros((2 * course, unit), bool)
+    mask[0, :] = mask[course, :] = True
+    mask[:course, 0] = mask[course:, half] = True
+    field[np.tile(mask, (h // (2 * course) + 1, w // unit + 1))[:h, :w]] = joint
+    return field
+
+
 def _wall_material(st: _Style, rng: np.random.Generator, h: int, w: int,
                    ppm: float) -> np.ndarray:
     """(h, w, 3) uint8 bare wall of the style's material."""
-    base = np.empty((h, w, 3), np.float32)
-    base[:] = st.wall
-    # Low-frequency weathering stains (low contrast: colour, not corners).
-    stain = _noise_field(rng, h, w, max(4, int(3 * ppm)))[..., None] * 14.0
+    # Low-frequency weathering stains (low contrast: colour, not corners) and grain.
+    off = _noise_field(rng, h, w, max(4, int(3 * ppm))) * 14.0
+    grain = _grain_tile()
+    off += np.tile(grain, (h // grain.shape[0] + 1, w // grain.shape[1] + 1))[:h, :w]
     if st.material == 'brick':
-        course = max(2, int(round(0.16 * ppm)))
-        brick = max(4, int(round(0.45 * ppm)))
-        yy, xx = np.mgrid[0:h, 0:w]
-        row = yy // course
-        col = (xx + (row % 2) * (brick // 2)) // brick
-        per = rng.uniform(-18, 18, (row.max() + 1, col.max() + 2)).astype(np.float32)
-        base += per[row, col][..., None]
-        mortar = ((yy % course) == 0) | (((xx + (row % 2) * (brick // 2)) % brick) == 0)
-        base[mortar] = _shade(st.wall, 1.45)
+        off += _masonry(rng, h, w, max(2, int(round(0.16 * ppm))),
+                        max(4, int(round(0.45 * ppm))), 18.0, 0.0)
+        mortar = 0.45 * float(np.mean(st.wall))     # mortar: lighter than the bricks
+        off[_masonry(rng, h, w, max(2, int(round(0.16 * ppm))),
+                     max(4, int(round(0.45 * ppm))), 0.0, 1.0) > 0.5] += mortar
     elif st.material == 'stone':
-        course = max(4, int(round(0.55 * ppm)))
-        block = max(8, int(round(1.1 * ppm)))
-        yy, xx = np.mgrid[0:h, 0:w]
-        row = yy // course
-        col = (xx + (row % 2) * (block // 2)) // block
-        per = rng.uniform(-12, 12, (row.max() + 1, col.max() + 2)).astype(np.float32)
-        base += per[row, col][..., None]
-        joint = ((yy % course) == 0) | (((xx + (row % 2) * (block // 2)) % block) == 0)
-        base[joint] = _shade(st.wall, 0.72)
-    base += stain
-    base += rng.normal(0.0, 2.5, (h, w, 1)).astype(np.float32)
-    return np.clip(base, 0, 255).astype(np.uint8)
+        off += _masonry(rng, h, w, max(4, int(round(0.55 * ppm))),
+                        max(8, int(round(1.1 * ppm))), 12.0, -0.28 * float(np.mean(st.wall)))
+    return cv2.merge([np.clip(off + c, 0, 255).astype(np.uint8) for c in st.wall])
 
 
 def _px(v_m: float, ppm: float) -> int:
@@ -727,7 +741,11 @@ def visibility_order(seg_xz: np.ndarray, dist: np.ndarray) -> np.ndarray:
 class StreetRenderer:
     """Renders views of one city under one lighting (textures cached per instance).
 
-    Not thread-safe: use one instance per thread.
+    The lighting's response (gain, colour cast, gamma) is baked into the cached textures,
+    sky and ground, so a frame costs only the warps; a per-frame exposure ``gain`` is one
+    saturating multiply. The texture cache is guarded by a lock, but one instance should
+    still not render from two threads at once (OpenCV output buffers are per call, the
+    numbers are fine, the cache churn is not): use one renderer per thread.
 
     Args:
         city: The city (``datasets.city.City``).
@@ -753,13 +771,13 @@ class StreetRenderer:
         self._cache: OrderedDict[int, list[np.ndarray]] = OrderedDict()
         self._cache_size = int(cache_size)
         self._lock = threading.Lock()
-        cam = self.intrinsics
-        self._K = cam.matrix
+        self._lut = self.lighting.lut()
+        self._K = self.intrinsics.matrix
         heights = city.blocks[:, 4] if len(city.blocks) else np.array([20.0])
         self._caster_m = float(min(self.lighting.shadow_caster_m, np.median(heights)))
         self._background = self._make_background()
-        tile = _ground_tile(float(city.pitch_m), float(city.street_width_m),
-                            GROUND_PX_PER_M)
+        tile = cv2.LUT(_ground_tile(float(city.pitch_m), float(city.street_width_m),
+                                    GROUND_PX_PER_M), self._lut)
         self._ground_ppm = tile.shape[0] / float(city.pitch_m)
         self._ground = _pyramid(cv2.cvtColor(np.tile(tile, (3, 3, 1)), cv2.COLOR_BGR2BGRA),
                                 min_side=16)
@@ -770,16 +788,15 @@ class StreetRenderer:
         """(H, W, 4) sky gradient above the horizon, far-ground colour below."""
         cam = self.intrinsics
         h, w = cam.height, cam.width
-        bg = np.empty((h, w, 4), np.uint8)
+        bgr = np.empty((h, w, 3), np.uint8)
         horizon = int(math.floor(cam.cy)) + 1
         top = np.asarray(self.lighting.sky_zenith_bgr, np.float64)
         bot = np.asarray(self.lighting.sky_horizon_bgr, np.float64)
         k = (np.arange(horizon) / max(horizon - 1, 1))[:, None] ** 0.7
         sky = top * (1 - k) + bot * k
-        bg[:horizon, :, :3] = np.rint(sky).astype(np.uint8)[:, None, :]
-        bg[horizon:, :, :3] = (112, 114, 116)
-        bg[..., 3] = 255
-        return bg
+        bgr[:horizon] = np.rint(sky).astype(np.uint8)[:, None, :]
+        bgr[horizon:] = (112, 114, 116)
+        return cv2.cvtColor(cv2.LUT(bgr, self._lut), cv2.COLOR_BGR2BGRA)
 
     def _make_noise(self, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
         """A small bank of sensor noise frames (positive and negative parts, uint8)."""
@@ -806,7 +823,7 @@ class StreetRenderer:
         width_m = float(np.linalg.norm(f.p1_m[i] - f.p0_m[i]))
         height_m = float(f.height_m[i])
         tex = facade_texture(int(f.style_id[i]), width_m, height_m)
-        lit = self._light_facade(tex, f.normal[i], height_m)
+        lit = cv2.LUT(self._light_facade(tex, f.normal[i], height_m), self._lut)
         levels = _pyramid(cv2.cvtColor(lit, cv2.COLOR_BGR2BGRA))
         with self._lock:
             self._cache[i] = levels
@@ -838,7 +855,8 @@ class StreetRenderer:
         return out
 
     # ------------------------------------------------------------------ geometry
-    def _rotation(self, yaw: float) -> np.ndarray:
+    @staticmethod
+    def _rotation(yaw: float) -> np.ndarray:
         """World (ENU) -> camera (x right, y down, z forward) for a level camera."""
         c, s = math.cos(yaw), math.sin(yaw)
         return np.array([[s, -c, 0.0], [0.0, 0.0, -1.0], [c, s, 0.0]])
@@ -862,6 +880,7 @@ class StreetRenderer:
         bounds_m = (1e9, 120.0, 64.0, 36.0, 20.0, 11.0, 0.0)
         levels = (None, 4, 3, 2, 1, 0)
         KR = self._K @ R
+        off = 0.5 / self._ground_ppm
         for (d_far, d_near), lvl in zip(zip(bounds_m[:-1], bounds_m[1:]), levels):
             if lvl is None:
                 continue
@@ -872,8 +891,7 @@ class StreetRenderer:
             if y1 <= y0:
                 continue
             s = (2 ** lvl) / self._ground_ppm
-            # Tile pixel (c, r) of level lvl -> world (e0 + (2^l c + 0.5)/ppm, ..., 0).
-            off = 0.5 / self._ground_ppm
+            # Tile pixel (c, r) of level lvl -> world (e0 + 2^l c / ppm + off, ..., 0).
             M = np.array([[s, 0.0, e0 + off - centre[0]], [0.0, s, n0 + off - centre[1]],
                           [0.0, 0.0, -h_cam]])
             H = _translation(0.0, y0) @ KR @ M
@@ -882,6 +900,7 @@ class StreetRenderer:
                                 borderMode=cv2.BORDER_TRANSPARENT)
 
     def _draw_facades(self, canvas: np.ndarray, centre: np.ndarray, R: np.ndarray) -> int:
+        """Draw the facades in view far to near; returns how many were drawn."""
         cam = self.intrinsics
         f = self.city.facades
         idx = self.city.facades_near(centre, self.max_range_m, facing=True)
@@ -889,105 +908,105 @@ class StreetRenderer:
             return 0
         # Ground segments in camera coordinates (x right, z forward); level camera, so
         # depth z does not depend on height and the near plane cuts walls vertically.
-        p0 = np.column_stack([f.p0_m[idx] - centre[:2], np.zeros(len(idx))]) @ R.T
-        p1 = np.column_stack([f.p1_m[idx] - centre[:2], np.zeros(len(idx))]) @ R.T
-        x0, z0, x1, z1 = p0[:, 0], p0[:, 2], p1[:, 0], p1[:, 2]
+        cz, sz = R[2, 0], R[2, 1]
+        r0, r1 = f.p0_m[idx] - centre[:2], f.p1_m[idx] - centre[:2]
+        x0, z0 = sz * r0[:, 0] - cz * r0[:, 1], cz * r0[:, 0] + sz * r0[:, 1]
+        x1, z1 = sz * r1[:, 0] - cz * r1[:, 1], cz * r1[:, 0] + sz * r1[:, 1]
         near = self.near_m
         dz = z1 - z0
         with np.errstate(divide='ignore', invalid='ignore'):
             t_near = np.where(np.abs(dz) > 1e-12, (near - z0) / dz, np.nan)
         # Visible parameter range [ta, tb] along p0 -> p1 (z >= near).
-        ta = np.where(z0 >= near, 0.0, np.where(dz > 0, t_near, 2.0))
-        tb = np.where(z1 >= near, 1.0, np.where(dz < 0, t_near, -1.0))
-        ta, tb = np.clip(ta, 0.0, 1.0), np.clip(tb, 0.0, 1.0)
-        # Horizontal frustum cull with the image-column interval of the visible part.
+        ta = np.clip(np.where(z0 >= near, 0.0, np.where(dz > 0, t_near, 2.0)), 0.0, 1.0)
+        tb = np.clip(np.where(z1 >= near, 1.0, np.where(dz < 0, t_near, -1.0)), 0.0, 1.0)
         xa, za = x0 + ta * (x1 - x0), z0 + ta * dz
         xb, zb = x0 + tb * (x1 - x0), z0 + tb * dz
         ok = (tb - ta) > 1e-6
         with np.errstate(divide='ignore', invalid='ignore'):
             ua = cam.fx * xa / za + cam.cx
             ub = cam.fx * xb / zb + cam.cx
+        # Horizontal frustum cull with the image-column interval of the visible part.
         ok &= (np.maximum(ua, ub) >= -1) & (np.minimum(ua, ub) <= cam.width)
         if not ok.any():
             return 0
         sel = np.flatnonzero(ok)
         seg = np.stack([np.column_stack([xa[sel], za[sel]]),
                         np.column_stack([xb[sel], zb[sel]])], axis=1)
-        dist = np.minimum(za[sel], zb[sel])
-        order = sel[visibility_order(seg, dist)]
-        KR = self._K @ R
-        h_cam = float(centre[2])
+        o = sel[visibility_order(seg, np.minimum(za[sel], zb[sel]))]
+        gi = idx[o]
+        m = len(gi)
+        # Per wall, vectorised: texture size, texture -> image homography, and at 9
+        # columns of its visible part the mip level and the screen extent.
+        d01 = f.p1_m[gi] - f.p0_m[gi]
+        width = np.hypot(d01[:, 0], d01[:, 1])
+        height = f.height_m[gi]
+        w_px = np.maximum(8, np.rint(width * PX_PER_M)).astype(int)
+        h_px = np.maximum(8, np.rint(height * PX_PER_M)).astype(int)
+        # Texture (c, r) of level 0 -> world: top-left + (c + .5) a + (r + .5) b.
+        a = np.zeros((m, 3))
+        a[:, :2] = d01 / w_px[:, None]
+        b = np.zeros((m, 3))
+        b[:, 2] = -height / h_px
+        tl = np.column_stack([f.p0_m[gi] - centre[:2], height - centre[2]]) + 0.5 * (a + b)
+        H0 = np.einsum('ij,mjk->mik', self._K @ R, np.stack([a, b, tl], axis=2))
+        t = ta[o][:, None] + (tb - ta)[o][:, None] * np.linspace(0.0, 1.0, 9)[None, :]
+        x = x0[o][:, None] + t * (x1 - x0)[o][:, None]
+        z = z0[o][:, None] + t * dz[o][:, None]
+        ax, az = ((x1 - x0)[o] / width)[:, None], (dz[o] / width)[:, None]
+        # Minification ~ ppm / sqrt(vertical * horizontal image px per metre) at depth z:
+        # vertical fy / z, horizontal fx |ax z - x az| / z^2 along the wall (ax, az).
+        h_pxm = cam.fx * np.abs(ax * z - x * az) / (z * z)
+        ratio = (w_px / width)[:, None] / np.sqrt((cam.fy / z) * np.maximum(h_pxm, 1e-6))
+        lvl = np.clip(np.floor(np.log2(np.maximum(ratio, 1e-9)) + 0.25), 0, 15).astype(int)
+        u = cam.fx * x / z + cam.cx
+        y_top = cam.cy + cam.fy * (centre[2] - height)[:, None] / z
+        y_bot = cam.cy + cam.fy * centre[2] / z
+        col = t * w_px[:, None]                                    # level-0 columns
         drawn = 0
-        for k in order:
-            drawn += self._draw_facade(canvas, int(idx[k]), centre, KR, h_cam,
-                                       float(ta[k]), float(tb[k]),
-                                       (x0[k], z0[k], x1[k], z1[k]))
+        for k in range(m):
+            drawn += self._draw_wall(canvas, int(gi[k]), H0[k], lvl[k].tolist(),
+                                     col[k].tolist(), u[k].tolist(), y_top[k].tolist(),
+                                     y_bot[k].tolist(), bool(ta[o[k]] > 0),
+                                     bool(tb[o[k]] < 1))
         return drawn
 
-    def _draw_facade(self, canvas, i, centre, KR, h_cam, ta, tb, seg) -> int:
+    def _draw_wall(self, canvas, i, H0, lvl, col, u, y_top, y_bot, cut_lo, cut_hi) -> int:
+        """Warp one wall, strip by strip of constant mip level, into the canvas.
+
+        ``lvl``, ``col``, ``u``, ``y_top``, ``y_bot`` are sampled at the same 9 columns of
+        the visible part; strips run between samples where the level changes.
+        """
         cam = self.intrinsics
-        f = self.city.facades
         levels = self._facade_levels(i)
-        h_px, w_px = levels[0].shape[:2]
-        height = float(f.height_m[i])
-        p0, p1 = f.p0_m[i], f.p1_m[i]
-        width = float(np.linalg.norm(p1 - p0))
-        # Texture (c, r) of level 0 -> world: top-left + (c + .5) a + (r + .5) b.
-        a = np.array([*(p1 - p0) / w_px, 0.0])
-        b = np.array([0.0, 0.0, -height / h_px])
-        tl = np.array([p0[0], p0[1], height]) + 0.5 * a + 0.5 * b - centre
-        H0 = KR @ np.column_stack([a, b, tl])
-        x0, z0, x1, z1 = seg
-        c_lo, c_hi = ta * w_px, tb * w_px
-        # Mip level per depth strip: minification ~ ppm / sqrt(vertical * horizontal image
-        # px per metre) at depth z (horizontal = fx |ax z - x az| / z^2 for the wall
-        # direction (ax, az) in camera coordinates).
-        ax, az = (x1 - x0) / width, (z1 - z0) / width
-        cs = np.linspace(c_lo, c_hi, 9)
-        t = cs / w_px
-        x, z = x0 + t * (x1 - x0), z0 + t * (z1 - z0)
-        v_px = cam.fy / z
-        h_pxm = cam.fx * np.abs(ax * z - x * az) / (z * z)
-        ratio = (w_px / width) / np.sqrt(v_px * np.maximum(h_pxm, 1e-6))
-        lvl = np.clip(np.floor(np.log2(np.maximum(ratio, 1e-9)) + 0.25), 0,
-                      len(levels) - 1).astype(int)
-        # Strips of constant level (boundaries midway between samples).
-        cuts = [c_lo]
-        strip_lvls = [lvl[0]]
-        for k in range(1, len(cs)):
-            if lvl[k] != strip_lvls[-1]:
-                cuts.append(0.5 * (cs[k - 1] + cs[k]))
-                strip_lvls.append(lvl[k])
-        cuts.append(c_hi)
+        bounds = [0] + [k for k in range(1, len(lvl)) if lvl[k] != lvl[k - 1]] + [len(lvl) - 1]
         drawn = 0
-        for (s0, s1), L in zip(zip(cuts[:-1], cuts[1:]), strip_lvls):
-            # Screen bounding box of the strip (4 corners, all in front of the camera).
-            ts = np.array([s0, s1]) / w_px
-            xs, zs = x0 + ts * (x1 - x0), z0 + ts * (z1 - z0)
-            us = cam.fx * xs / zs + cam.cx
-            ys_top = cam.cy + cam.fy * (h_cam - height) / zs
-            ys_bot = cam.cy + cam.fy * h_cam / zs
-            bx0 = max(0, int(math.floor(us.min())) - 1)
-            bx1 = min(cam.width, int(math.ceil(us.max())) + 2)
-            by0 = max(0, int(math.floor(ys_top.min())) - 1)
-            by1 = min(cam.height, int(math.ceil(ys_bot.max())) + 2)
+        for k0, k1 in zip(bounds[:-1], bounds[1:]):
+            L = min(lvl[k0], len(levels) - 1)
+            bx0 = max(0, int(math.floor(min(u[k0], u[k1]))) - 1)
+            bx1 = min(cam.width, int(math.ceil(max(u[k0], u[k1]))) + 2)
+            by0 = max(0, int(math.floor(min(y_top[k0], y_top[k1]))) - 1)
+            by1 = min(cam.height, int(math.ceil(max(y_bot[k0], y_bot[k1]))) + 2)
             if bx1 <= bx0 or by1 <= by0:
                 continue
-            scale = 2 ** int(L)
-            tex = levels[int(L)]
-            # Crop the texture to the strip's columns (one column of overlap each side):
-            # pixels whose rays meet the wall plane behind the near plane then fall outside
-            # the crop and BORDER_TRANSPARENT leaves them alone.
-            c0 = max(0, int(math.floor(s0 / scale)) - 1)
-            c1 = min(tex.shape[1], int(math.ceil(s1 / scale)) + 1)
-            if ta > 0.0:
-                c0 = max(c0, int(math.ceil(c_lo / scale)))
-            if tb < 1.0:
-                c1 = min(c1, int(math.floor(c_hi / scale)) + 1)
+            tex = levels[L]
+            sc = 1 << L
+            # Crop the texture to the strip's columns (one column of overlap with the
+            # next strip): where the wall is cut by the near plane, pixels whose rays meet
+            # the wall's plane behind the camera then map outside the crop, and
+            # BORDER_TRANSPARENT leaves them alone.
+            c0 = max(0, int(math.floor(col[k0] / sc)) - 1)
+            c1 = min(tex.shape[1], int(math.ceil(col[k1] / sc)) + 1)
+            if cut_lo:
+                c0 = max(c0, int(math.ceil(col[0] / sc)))
+            if cut_hi:
+                c1 = min(c1, int(math.floor(col[-1] / sc)) + 1)
             if c1 - c0 < 2:
                 continue
-            S = np.array([[scale, 0.0, scale * c0], [0.0, scale, 0.0], [0.0, 0.0, 1.0]])
-            H = _translation(bx0, by0) @ H0 @ S
+            # H = T(-bx0, -by0) H0 S, S: crop (c, r) of level L -> level-0 (sc (c + c0), sc r).
+            H = H0 * np.array([sc, sc, 1.0])
+            H[:, 2] += H0[:, 0] * (sc * c0)
+            H[0] -= bx0 * H[2]
+            H[1] -= by0 * H[2]
             cv2.warpPerspective(tex[:, c0:c1], H, (bx1 - bx0, by1 - by0),
                                 dst=canvas[by0:by1, bx0:bx1], flags=cv2.INTER_LINEAR,
                                 borderMode=cv2.BORDER_TRANSPARENT)
@@ -1008,17 +1027,21 @@ class StreetRenderer:
 
         Returns:
             (H, W, 3) uint8 BGR image.
+
+        Raises:
+            ValueError: for a non-finite pose or gain.
         """
         e, n, u, yaw = (float(v) for v in pose)
-        if not all(math.isfinite(v) for v in (e, n, u, yaw)):
-            raise ValueError(f'pose must be finite, got {pose}')
+        if not all(math.isfinite(v) for v in (e, n, u, yaw, gain)):
+            raise ValueError(f'pose and gain must be finite, got {pose}, {gain}')
         centre = np.array([e, n, u])
         R = self._rotation(yaw)
         canvas = self._background.copy()
         self._draw_ground(canvas, centre, R)
         drawn = self._draw_facades(canvas, centre, R)
         out = cv2.cvtColor(canvas, cv2.COLOR_BGRA2BGR)
-        out = cv2.LUT(out, self.lighting.lut(gain))
+        if abs(gain - 1.0) > 1e-4:
+            out = cv2.convertScaleAbs(out, alpha=gain)
         if noise_index is not None and self._noise:
             pos, neg = self._noise[int(noise_index) % len(self._noise)]
             cv2.add(out, pos, dst=out)
