@@ -348,7 +348,8 @@ class DatabasePass:
 def database_poses(scenario: Scenario, spacing_m: float = 3.0, margin_m: float = 120.0,
                    lateral_m: float = 1.5, heading_deg: float = 5.0, turns: bool = True,
                    region: str = 'route', seed: int | None = None,
-                   lighting: Lighting | None = None) -> DatabasePass:
+                   lighting: Lighting | None = None,
+                   route_range_m: tuple[float, float] | None = None) -> DatabasePass:
     """Poses of the database pass: lane centres of both directions plus turn arcs.
 
     Streets are cut into edges between neighbouring intersections. Along each edge and
@@ -371,6 +372,8 @@ def database_poses(scenario: Scenario, spacing_m: float = 3.0, margin_m: float =
         seed: Seed of the pass (default: the scenario's seed); the pass uses its own
             random stream, independent of the query pass.
         lighting: Lighting (default: an overcast lighting drawn from the seed).
+        route_range_m: ``(s0, s1)`` arc lengths [m]: only this part of the route counts
+            for ``region='route'`` (e.g. a drive cut short); None: the whole route.
 
     Returns:
         The poses.
@@ -440,14 +443,16 @@ def database_poses(scenario: Scenario, spacing_m: float = 3.0, margin_m: float =
     pose[:, 3] = (pose[:, 3] + np.pi) % (2 * np.pi) - np.pi
     kind = np.concatenate(kinds) if kinds else np.zeros(0, np.int8)
     if region == 'route':
-        route_pts = scenario.route.evaluate(
-            np.arange(0.0, scenario.route.length_m + 2.0, 2.0))[0]
+        s0, s1 = route_range_m or (0.0, scenario.route.length_m)
+        route_pts = scenario.route.evaluate(np.append(np.arange(s0, s1, 2.0), s1))[0]
         keep = cKDTree(route_pts).query(pose[:, :2], k=1)[0] <= margin_m
         pose, kind = pose[keep], kind[keep]
     names = [f'db{k:06d}_{"turn" if kind[k] else "street"}.png' for k in range(len(pose))]
     params = {'seed': seed, 'spacing_m': float(spacing_m), 'margin_m': float(margin_m),
               'lateral_m': float(lateral_m), 'heading_deg': float(heading_deg),
-              'turns': bool(turns), 'region': region, 'lighting': lighting.as_dict()}
+              'turns': bool(turns), 'region': region, 'lighting': lighting.as_dict(),
+              'route_range_m': None if route_range_m is None else [float(v) for v in
+                                                                   route_range_m]}
     return DatabasePass(names=names, pose=pose, kind=kind, lighting=lighting, params=params)
 
 
