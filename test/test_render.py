@@ -264,3 +264,12 @@ def test_intrinsics_and_lighting_validation():
     lut = Lighting(gain=1.0, gamma=1.0).lut()
     assert lut.shape == (1, 256, 3) and np.array_equal(lut[0, :, 0], np.arange(256))
     assert dataclasses.replace(Lighting(), gain=1.1) != Lighting()
+
+
+def test_stream_pickles_without_its_caches(stream):
+    import pickle
+    stream.clean_image(3)                       # renderer and caches exist now
+    blob = pickle.dumps(stream)
+    assert len(blob) < 2_000_000                # no textures inside
+    copy = pickle.loads(blob)
+    assert np.array_equal(copy.image(3), stream.image(3))

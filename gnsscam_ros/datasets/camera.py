@@ -116,6 +116,18 @@ class CameraStream:
     def __len__(self) -> int:
         return int(self.stamp_ns.shape[0])
 
+    def __getstate__(self) -> dict:
+        # Picklable for worker processes: the renderer (texture caches) and the lock are
+        # rebuilt on demand in the receiving process.
+        state = self.__dict__.copy()
+        state['_renderer'] = None
+        del state['_lock']
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.Lock()
+
     @property
     def renderer(self) -> StreetRenderer:
         """The (lazily created) renderer of this stream."""
@@ -603,7 +615,9 @@ def evaluate_retrieval(stream: CameraStream, db: MapDatabase, frames=None,
     """Top-1 (and top-k) retrieval accuracy of a camera stream against a database.
 
     A frame counts as correct when its best match lies within ``radius_m`` (horizontal
-    distance) of the true camera position; frames without any match count as wrong.
+    distance) of the true camera position; frames without any match count as wrong. A
+    frame is *ambiguous* when another of its top-k matches, more than ``2 radius_m`` away
+    from the best one, scores at least 80 % of the best score (another place looks alike).
 
     Args:
         stream: The camera stream (faults applied as recorded).
@@ -615,12 +629,13 @@ def evaluate_retrieval(stream: CameraStream, db: MapDatabase, frames=None,
 
     Returns:
         ``{'frames', 'error_m' (per frame, inf when no match), 'top1_ok', 'topk_ok',
-        'fault', 'by_kind': {name: {'n', 'top1', 'topk', 'median_error_m'}}, 'render_ms',
-        'query_ms'}`` with fractions in [0, 1].
+        'ambiguous', 'fault', 'by_kind': {name: {'n', 'top1', 'topk', 'ambiguous',
+        'median_error_m'}}, 'top1', 'render_ms', 'query_ms'}`` with fractions in [0, 1].
     """
     idx = np.arange(len(stream)) if frames is None else np.asarray(frames, dtype=int)
     err = np.full(len(idx), np.inf)
     ok_k = np.zeros(len(idx), bool)
+    ambiguous = np.zeros(len(idx), bool)
     render_s = query_s = 0.0
     for j, i in enumerate(idx):
         t0 = time.perf_counter()
@@ -633,6 +648,11 @@ def evaluate_retrieval(stream: CameraStream, db: MapDatabase, frames=None,
             d = [float(np.hypot(*(m.position_enu_m[:2] - stream.pose[i, :2]))) for m in matches]
             err[j] = d[0]
             ok_k[j] = min(d) <= radius_m
+            best = matches[0]
+            ambiguous[j] = any(
+                m.score >= 0.8 * best.score
+                and np.hypot(*(m.position_enu_m[:2] - best.position_enu_m[:2])) > 2 * radius_m
+                for m in matches[1:])
         if progress and ((j + 1) % 250 == 0 or j + 1 == len(idx)):
             progress('query', j + 1, len(idx))
     ok1 = err <= radius_m
@@ -643,9 +663,11 @@ def evaluate_retrieval(stream: CameraStream, db: MapDatabase, frames=None,
         by_kind[name] = {'n': int(m.sum()),
                          'top1': float(ok1[m].mean()) if m.any() else float('nan'),
                          'topk': float(ok_k[m].mean()) if m.any() else float('nan'),
+                         'ambiguous': float(ambiguous[m].mean()) if m.any() else float('nan'),
                          'median_error_m': float(np.median(err[m])) if m.any() else float('nan')}
     n = max(len(idx), 1)
-    return {'frames': idx, 'error_m': err, 'top1_ok': ok1, 'topk_ok': ok_k, 'fault': fault,
+    return {'frames': idx, 'error_m': err, 'top1_ok': ok1, 'topk_ok': ok_k,
+            'ambiguous': ambiguous, 'fault': fault,
             'by_kind': by_kind, 'top1': float(ok1.mean()) if len(idx) else float('nan'),
             'radius_m': float(radius_m), 'top_k': int(top_k),
             'render_ms': 1e3 * render_s / n, 'query_ms': 1e3 * query_s / n}
@@ -716,7 +738,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f'top-1 within {args.radius:g} m:')
     for name, r in res['by_kind'].items():
         print(f'  {name:10s} n={r["n"]:5d}  top-1 {100 * r["top1"]:5.1f} %  '
-              f'top-5 {100 * r["topk"]:5.1f} %  median error {r["median_error_m"]:.1f} m')
+              f'top-5 {100 * r["topk"]:5.1f} %  ambiguous {100 * r["ambiguous"]:5.1f} %  '
+              f'median error {r["median_error_m"]:.1f} m')
     print(f'  {"all":10s} n={len(res["frames"]):5d}  top-1 {100 * res["top1"]:5.1f} %')
     if args.json:
         out = {'seed': args.seed, 'n_db': len(db), 'db_meta': {k: v for k, v in meta.items()

@@ -760,7 +760,7 @@ class StreetRenderer:
 
     def __init__(self, city, intrinsics: CameraIntrinsics | None = None,
                  lighting: Lighting | None = None, max_range_m: float = 150.0,
-                 near_m: float = 0.3, noise_std: float = 2.0, cache_size: int = 192,
+                 near_m: float = 0.3, noise_std: float = 2.0, cache_size: int = 96,
                  seed: int = 0):
         self.city = city
         self.intrinsics = intrinsics or CameraIntrinsics()
