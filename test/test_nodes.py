@@ -20,6 +20,7 @@ import rclpy
 import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped, TwistWithCovarianceStamped
+from nav_msgs.msg import Odometry
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
@@ -444,3 +445,210 @@ def test_nodes_equal_offline_core_run(graph, drive, tmp_path):
         assert (fix.lat_deg, fix.lon_deg) == pytest.approx((lat, lon), abs=1e-12)
     values = fusion.stats.values()
     assert values['processing_count'] == len(epochs) and values['rejected_total'] == 0
+
+
+# ================================================================ malformed messages
+def _bad_cloud(epoch):
+    msg = ma.gnss_epoch_to_pointcloud2(epoch)
+    msg.fields[4].datatype = 8                       # variance as FLOAT64: wrong type
+    return msg
+
+
+def test_malformed_messages_are_refused_and_counted(graph, drive):
+    g = graph
+    images = [synthetic_scene(i, seed=9) for i in range(3)]
+    db = small_database(images, [[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [20.0, 0.0, 0.0]])
+    gnss = g.add(GnssNode(context=g.ctx))
+    imu = g.add(ImuNode(context=g.ctx))
+    cam = g.add(CameraNode(context=g.ctx, database=db))
+    fusion = g.add(FusionNode(context=g.ctx, parameter_overrides=overrides(
+        n_particles=100, odometry_wait_s=0.0)))
+    pub_gnss = g.publisher(PointCloud2, 'gnss/pseudoranges')
+    pub_imu = g.publisher(Imu, 'imu/data')
+    pub_odo = g.publisher(TwistWithCovarianceStamped, 'odom/twist')
+    pub_cam = g.publisher(Image, 'camera/image_raw')
+    pub_dr = g.publisher(Odometry, 'odometry/dead_reckoning')
+    pub_matches = g.publisher(PointCloud2, 'camera/matches')
+    diagnostics = g.collect(DiagnosticArray, 'diagnostics')
+    g.connect(pub_gnss, pub_imu, pub_odo, pub_cam, pub_dr, pub_matches)
+    e0, e1 = drive.gnss[0], drive.gnss[1]
+
+    def send(pub, msg, node, key):
+        n = node.stats.get(key)
+        pub.publish(msg)
+        g.spin_until(lambda: node.stats.get(key) > n, what=key)
+
+    # GNSS: wrong field type, wrong frame, NaN satellite, out-of-order stamp.
+    send(pub_gnss, _bad_cloud(e1), gnss, 'received_pseudoranges')
+    wrong_frame = ma.gnss_epoch_to_pointcloud2(e1, frame_id='map')
+    send(pub_gnss, wrong_frame, gnss, 'received_pseudoranges')
+    pr = e1.pr_m.copy()
+    pr[0] = np.nan
+    send(pub_gnss, ma.gnss_epoch_to_pointcloud2(GnssEpoch(**{**e1.__dict__, 'pr_m': pr})),
+         gnss, 'received_pseudoranges')
+    send(pub_gnss, ma.gnss_epoch_to_pointcloud2(e0), gnss, 'received_pseudoranges')
+    assert gnss.stats.rejected == {'fields': 1, 'frame': 1, 'out_of_order': 1}
+    assert gnss.stats.get('satellites_rejected_non_finite') == 1
+    g.spin_until(lambda: fusion.last_result is not None, what='the NaN epoch reaching fusion')
+    assert fusion.last_result.n_satellites in (0, e1.n_sv - 1)
+
+    # IMU and odometry: NaN, out of order; then a good sample is still used.
+    bad_imu = ma.sample_to_imu(ma.ImuSample(e1.stamp_ns, np.array([np.nan, 0, 9.8]),
+                                            np.zeros(3)))
+    send(pub_imu, bad_imu, imu, 'received_imu')
+    send(pub_imu, ma.sample_to_imu(ma.ImuSample(e1.stamp_ns, np.zeros(3), np.zeros(3))), imu,
+         'received_imu')
+    send(pub_imu, ma.sample_to_imu(ma.ImuSample(e0.stamp_ns, np.zeros(3), np.zeros(3))), imu,
+         'received_imu')
+    send(pub_odo, ma.sample_to_twist(ma.TwistSample(e1.stamp_ns, math.inf, 0.0)), imu,
+         'received_odom_twist')
+    assert imu.stats.rejected == {'non_finite': 2, 'out_of_order': 1}
+    assert imu.stats.get('published_dead_reckoning') == 1
+
+    # Camera: empty image, wrong encoding, wrong size, out-of-order stamp; good frames match.
+    good = ma.array_to_image(images[1], e1.stamp_ns)
+    empty = Image(height=0, width=0, encoding='bgr8', step=0)
+    empty.header.stamp = ma.ns_to_stamp(e1.stamp_ns + 1)
+    wrong_enc = ma.array_to_image(images[1], e1.stamp_ns + 2)
+    wrong_enc.encoding = '32FC1'
+    short = ma.array_to_image(images[1], e1.stamp_ns + 3)
+    short.data = bytes(short.data)[:-10]
+    older = ma.array_to_image(images[2], e0.stamp_ns)
+    for msg in (good, empty, wrong_enc, short, older, good):
+        send(pub_cam, msg, cam, 'received_images')
+        g.spin_until(lambda: cam.stats.get('published_matches') + cam.stats.rejected_total
+                     + cam.stats.get('dropped_frames') >= cam.stats.get('received_images'),
+                     what='the matcher')
+    assert cam.stats.rejected == {'empty': 1, 'encoding': 1, 'size': 1, 'out_of_order': 1}
+    assert cam.stats.get('published_matches') == 2
+
+    # fusion: malformed internal streams.
+    bad_dr = ma.dead_reckoning_to_odometry(DeadReckoningState(e1.stamp_ns + 5, 0, 0, 0, 0, 0,
+                                                              0, 0, 0, 0))
+    bad_dr.pose.pose.orientation.w = math.nan
+    send(pub_dr, bad_dr, fusion, 'received_dead_reckoning')
+    bad_matches = ma.gnss_epoch_to_pointcloud2(e1)       # not a match cloud
+    pub_matches.publish(bad_matches)   # camera_node publishes here too: wait for the refusal
+    g.spin_until(lambda: fusion.stats.rejected.get('fields') == 1, what='the refusal')
+    assert fusion.stats.rejected.get('non_finite') == 1
+
+    # Everyone is still running and reports the refusals on diagnostics.
+    send(pub_gnss, ma.gnss_epoch_to_pointcloud2(drive.gnss[2]), gnss,
+         'received_pseudoranges')
+    assert gnss.stats.get('published_measurements') == 2     # the NaN epoch and this one
+    for node in (gnss, imu, cam, fusion):
+        node.publish_diagnostics()
+    g.spin_until(lambda: {s.name for m in diagnostics for s in m.status} >= {
+        f'{n}: status' for n in ('gnss_node', 'imu_node', 'camera_node', 'fusion_node')},
+        what='diagnostics')
+    latest = {s.name: ma.status_values(s) for m in diagnostics for s in m.status}
+    assert latest['gnss_node: status']['rejected_total'] == '3'
+    assert latest['camera_node: status']['rejected_out_of_order'] == '1'
+    assert 'processing_p50_ms' in latest['imu_node: status']
+
+
+# ====================================================================== parameters
+def test_parameters_update_at_run_time_or_are_refused_with_a_reason(graph, drive):
+    g = graph
+    fusion = g.add(FusionNode(context=g.ctx, parameter_overrides=overrides(n_particles=100)))
+    risks = g.collect(DiagnosticArray, 'integrity_risk')
+    pub = g.publisher(PointCloud2, 'gnss/measurements')
+    g.connect(pub)
+
+    def epoch(k):
+        n = len(risks)
+        pub.publish(ma.gnss_epoch_to_pointcloud2(drive.gnss[k]))
+        g.spin_until(lambda: len(risks) > n, what='integrity_risk')
+        return ma.parse_integrity_risk(risks[-1])
+
+    first = epoch(0)
+    assert first.alert_limit_m == 8.0 and first.target_risk == 0.1
+    ok = fusion.set_parameters([Parameter('alert_limit_m', value=16.0),
+                                Parameter('target_risk', value=0.3)])
+    assert all(r.successful for r in ok)
+    assert fusion.filter.config.alert_limit_m == 16.0
+    second = epoch(1)
+    assert (second.alert_limit_m, second.target_risk) == (16.0, 0.3)
+
+    for name, value, text in (('target_risk', 1.5, 'target_risk'),
+                              ('n_posteriors', 0, 'n_posteriors'),
+                              ('likelihood', 'gaussian', 'likelihood must be one of'),
+                              ('camera_gate_m', -1.0, 'camera_gate_m'),
+                              ('seed', 3, 'read-only')):
+        result = fusion.set_parameters([Parameter(name, value=value)])[0]
+        assert not result.successful and text in result.reason, (name, result.reason)
+    result = fusion.set_parameters([Parameter('alert_limit_m', value='far')])[0]
+    assert not result.successful                 # wrong type
+    assert fusion.filter.config.alert_limit_m == 16.0 and fusion.filter.config.target_risk == 0.3
+
+    # The same refusal through the parameter service, as `ros2 param set` would see it.
+    from rcl_interfaces.srv import SetParameters
+    client = g.probe.create_client(SetParameters, '/fusion_node/set_parameters')
+    g.spin_until(client.service_is_ready, what='the parameter service')
+    future = client.call_async(SetParameters.Request(parameters=[
+        Parameter('measurement_var_m2', value=0.0).to_parameter_msg()]))
+    g.spin_until(future.done, what='the service answer')
+    answer = future.result().results[0]
+    assert not answer.successful and 'measurement_var_m2' in answer.reason
+    future = client.call_async(SetParameters.Request(parameters=[
+        Parameter('alert_limit_m', value=4.0).to_parameter_msg()]))
+    g.spin_until(future.done, what='the service answer')
+    assert future.result().results[0].successful
+    assert epoch(2).alert_limit_m == 4.0
+
+
+# =================================================================== stale reports
+def test_integrity_is_stale_without_gnss_and_never_a_stale_ok(graph, drive):
+    g = graph
+    g.add(FusionNode(context=g.ctx, parameter_overrides=overrides(
+        n_particles=100, gnss_timeout_s=0.3, stale_report_period_s=0.1,
+        inverse_bernoulli='approx', target_risk=0.5)))
+    risks = g.collect(DiagnosticArray, 'integrity_risk')
+    pub = g.publisher(PointCloud2, 'gnss/measurements')
+    g.connect(pub)
+    g.spin_until(lambda: len(risks) >= 2, what='stale reports before any GNSS')
+    before = [ma.parse_integrity_risk(m) for m in risks]
+    assert all(r.stale and r.epoch_stamp_ns is None for r in before)
+    n_before = len(risks)
+    for epoch in drive.gnss[:6]:
+        pub.publish(ma.gnss_epoch_to_pointcloud2(epoch))
+        g.spin_for(0.05)
+    g.spin_until(lambda: any(ma.parse_integrity_risk(m).epoch_stamp_ns == drive.gnss[5].stamp_ns
+                             for m in risks), what='the last epoch')
+    during = [ma.parse_integrity_risk(m) for m in risks[n_before:]]
+    assert any(r.level in (ma.OK, ma.ERROR) for r in during)
+    assert any(r.integrity_ok for r in during), [r.level for r in during]
+    t_stop = time.monotonic()
+    n_stop = len(risks)
+    g.spin_until(lambda: len(risks) >= n_stop + 3, what='stale reports after GNSS stopped')
+    after = [ma.parse_integrity_risk(m) for m in risks[n_stop:]]
+    assert time.monotonic() - t_stop >= 0.3
+    assert all(r.stale and not r.integrity_ok for r in after)
+    assert after[-1].epoch_stamp_ns == drive.gnss[5].stamp_ns
+    assert all(math.isnan(r.risk_bound) for r in after)
+
+
+# =============================================================== camera keeps up
+def test_camera_drops_the_oldest_frames_and_counts_them(graph):
+    g = graph
+    images = [synthetic_scene(i, seed=4) for i in range(4)]
+    db = small_database(images, np.zeros((4, 3)))
+    cam = g.add(CameraNode(context=g.ctx, database=db, parameter_overrides=overrides(
+        queue_size=1, input_queue_depth=200)))
+    pub = g.publisher(Image, 'camera/image_raw')
+    matches = g.collect(PointCloud2, 'camera/matches')
+    g.connect(pub)
+    frames = [ma.array_to_image(images[k % 4], (k + 1) * S // 100) for k in range(40)]
+    for msg in frames:                                  # 40 frames in a burst
+        pub.publish(msg)
+    g.spin_until(lambda: cam.stats.get('received_images') == 40, what='all frames received')
+    g.spin_until(lambda: cam.stats.get('published_matches') + cam.stats.get('dropped_frames')
+                 == 40, what='the matcher to finish')
+    g.spin_until(lambda: len(matches) == cam.stats.get('published_matches'), what='matches')
+    dropped = cam.stats.get('dropped_frames')
+    assert dropped > 0 and not cam.stats.rejected
+    stamps = [ma.stamp_to_ns(m.header.stamp) for m in matches]
+    assert stamps == sorted(stamps) and stamps[-1] == frames[-1].header.stamp.nanosec + (
+        frames[-1].header.stamp.sec * S)              # the newest frame is never dropped
+    values = cam.stats.values()
+    assert values['dropped_frames'] == dropped and values['processing_count'] == len(matches)

@@ -1,0 +1,251 @@
+"""The nodes as separate OS processes.
+
+* two processes: pipeline_node in one, this test (publishing sensor data, subscribing to
+  /integrity_risk) in the other; localhost discovery, bounded waits;
+* colcon build: every executable lands in ``lib/gnsscam_ros/`` of the install and is found
+  through the ament index (AMENT_PREFIX_PATH) the way ``ros2 run`` finds it; each starts
+  and exits with status 0 on SIGINT.
+"""
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TwistWithCovarianceStamped
+from rclpy.context import Context
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Imu, PointCloud2
+
+import msg_adapters as ma
+from gnsscam_ros.datasets.emulated import make_emulated_drive
+
+ROOT = Path(__file__).resolve().parents[1]
+EXECUTABLES = ('gnss_node', 'camera_node', 'imu_node', 'fusion_node', 'pipeline_node')
+NODE_NAMES = {'gnss_node': ['gnss_node'], 'camera_node': ['camera_node'],
+              'imu_node': ['imu_node'], 'fusion_node': ['fusion_node'],
+              'pipeline_node': ['gnss_node', 'camera_node', 'imu_node', 'fusion_node']}
+
+
+def domain_id(offset: int) -> int:
+    """Domain ids apart from test_nodes.py's (120-219) and from parallel workers."""
+    return 10 + (os.getpid() * 11 + offset) % 100
+
+
+def ros_env(tmp_path, domain: int, base=None) -> dict:
+    env = dict(os.environ if base is None else base)
+    env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+               ROS_LOG_DIR=str(tmp_path / 'ros_log'), OPENBLAS_NUM_THREADS='1',
+               PYTHONUNBUFFERED='1')
+    return env
+
+
+class Probe:
+    """A node in this process, on the same domain as the child processes."""
+
+    def __init__(self, domain: int):
+        self.ctx = Context()
+        rclpy.init(context=self.ctx, domain_id=domain)
+        self.node = rclpy.create_node('process_probe', context=self.ctx)
+        self.executor = rclpy.executors.SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self.qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
+                              reliability=ReliabilityPolicy.RELIABLE)
+
+    def spin_until(self, condition, timeout_s, what):
+        deadline = time.monotonic() + timeout_s
+        while not condition():
+            assert time.monotonic() < deadline, f'timed out after {timeout_s} s: {what}'
+            self.executor.spin_once(timeout_sec=0.02)
+
+    def node_names(self) -> set:
+        return set(self.node.get_node_names())
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.ctx)
+
+
+def stop(proc: subprocess.Popen, timeout_s: float = 20.0) -> int:
+    """SIGINT (Ctrl-C, as ros2 run forwards it) and the exit status."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        return proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+        raise
+
+
+# ======================================================================= two processes
+def test_pipeline_process_and_integrity_subscriber_process(tmp_path):
+    override = tmp_path / 'override.yaml'
+    override.write_text(
+        'fusion_node:\n  ros__parameters:\n    n_particles: 200\n    gnss_timeout_s: 1.5\n'
+        '    stale_report_period_s: 0.5\n'
+        'imu_node:\n  ros__parameters:\n    input_queue_depth: 1000\n'
+        '    source_timeout_s: 5.0\n')
+    args = ['--ros-args'] + [a for n in ('gnss_node', 'camera_node', 'imu_node', 'fusion_node')
+                             for a in ('--params-file', str(ROOT / 'config' / f'{n}.yaml'))]
+    args += ['--params-file', str(override)]
+    domain = domain_id(0)
+    log = open(tmp_path / 'pipeline.log', 'w')
+    proc = subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.nodes.pipeline', *args],
+                            env=ros_env(tmp_path, domain), cwd=ROOT, stdout=log,
+                            stderr=subprocess.STDOUT)
+    probe = None
+    try:
+        probe = Probe(domain)
+        risks = []
+        probe.node.create_subscription(DiagnosticArray, '/integrity_risk', risks.append,
+                                       probe.qos)
+        pub_gnss = probe.node.create_publisher(PointCloud2, 'gnss/pseudoranges', probe.qos)
+        pub_imu = probe.node.create_publisher(Imu, 'imu/data', probe.qos)
+        pub_odo = probe.node.create_publisher(TwistWithCovarianceStamped, 'odom/twist',
+                                              probe.qos)
+        for pub in (pub_gnss, pub_imu, pub_odo):
+            probe.spin_until(lambda: pub.get_subscription_count() > 0 or proc.poll() is not None,
+                             60.0, f'the pipeline subscribing {pub.topic_name}')
+            assert proc.poll() is None, (tmp_path / 'pipeline.log').read_text()
+        # Before any GNSS: STALE, never OK.
+        probe.spin_until(lambda: risks, 30.0, 'a STALE integrity_risk before any GNSS')
+        first = ma.parse_integrity_risk(risks[0])
+        assert first.stale and not first.integrity_ok
+
+        drive = make_emulated_drive(4, duration_s=6.0)
+        odo, imu = drive.odometry, drive.imu
+        events = sorted([(int(t), 0, k) for k, t in enumerate(odo.stamp_ns)]
+                        + [(int(t), 1, k) for k, t in enumerate(imu.stamp_ns)])
+        ev = 0
+        for epoch in drive.gnss:
+            while ev < len(events) and events[ev][0] <= epoch.stamp_ns:
+                stamp, kind, k = events[ev]
+                ev += 1
+                if kind == 0:
+                    pub_odo.publish(ma.sample_to_twist(ma.TwistSample(
+                        stamp, odo.speed_mps[k], odo.yaw_rate_rps[k], odo.speed_var[k],
+                        odo.yaw_rate_var[k])))
+                else:
+                    pub_imu.publish(ma.sample_to_imu(ma.ImuSample(
+                        stamp, imu.accel_mps2[k], imu.gyro_rps[k])))
+            probe.executor.spin_once(timeout_sec=0.05)
+            pub_gnss.publish(ma.gnss_epoch_to_pointcloud2(epoch))
+            probe.spin_until(lambda: any(ma.parse_integrity_risk(m).epoch_stamp_ns
+                                         == epoch.stamp_ns for m in risks),
+                             30.0, f'integrity_risk of epoch {epoch.stamp_ns}')
+        parsed = [ma.parse_integrity_risk(m) for m in risks]
+        verdicts = {r.epoch_stamp_ns: r for r in parsed if r.extra.get('status') == 'updated'}
+        assert len(verdicts) >= len(drive.gnss) - 1
+        assert all(r.level in (ma.OK, ma.ERROR) and 0.0 <= r.risk_bound <= 1.0
+                   for r in verdicts.values())
+        # GNSS stops: STALE again within the timeout plus a report period.
+        n = len(risks)
+        probe.spin_until(lambda: len(risks) > n + 1, 30.0, 'STALE after GNSS stopped')
+        after = [ma.parse_integrity_risk(m) for m in risks[n:]]
+        assert all(r.stale for r in after)
+    finally:
+        if probe is not None:
+            probe.close()
+        rc = stop(proc)
+        log.close()
+    assert rc == 0, (tmp_path / 'pipeline.log').read_text()
+
+
+# ================================================================ colcon + ros2 run
+def _colcon() -> str | None:
+    beside = Path(sys.executable).parent / 'colcon'
+    return str(beside) if beside.exists() else shutil.which('colcon')
+
+
+@pytest.fixture(scope='module')
+def colcon_install(tmp_path_factory):
+    """``colcon build`` of a copy of the package (the tree others edit is left alone)."""
+    colcon = _colcon()
+    if colcon is None:
+        pytest.skip('colcon not installed (requirements-dev.txt installs it)')
+    ws = tmp_path_factory.mktemp('ws')
+    shutil.copytree(ROOT, ws / 'src' / 'gnsscam_ros', ignore=shutil.ignore_patterns(
+        '.venv', '.git', 'build', 'install', 'log', 'out', '__pycache__', '.pytest_cache',
+        '.hypothesis', '*.egg-info', 'test'))
+    result = subprocess.run(
+        [colcon, '--log-base', str(ws / 'log'), 'build', '--base-paths', str(ws / 'src'),
+         '--build-base', str(ws / 'build'), '--install-base', str(ws / 'install')],
+        cwd=ws, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    # The environment `source install/setup.bash` gives, as on a ROS 2 machine.
+    dump = subprocess.run(['bash', '-c', f'source {ws}/install/setup.bash && env -0'],
+                          capture_output=True, timeout=60, env=dict(os.environ))
+    assert dump.returncode == 0, dump.stderr
+    env = dict(item.split('=', 1) for item in dump.stdout.decode().split('\0') if '=' in item)
+    return ws / 'install', env
+
+
+def ros2_run_path(package: str, executable: str, env: dict) -> Path:
+    """Where ``ros2 run package executable`` finds the file (ros2run.api logic): the
+    package prefix from the ament index on AMENT_PREFIX_PATH, then lib/<package>/."""
+    code = ('import sys; from ament_index_python.packages import get_package_prefix; '
+            'print(get_package_prefix(sys.argv[1]))')
+    prefix = subprocess.run([sys.executable, '-c', code, package], env=env,
+                            capture_output=True, text=True, timeout=60)
+    assert prefix.returncode == 0, prefix.stderr
+    path = Path(prefix.stdout.strip()) / 'lib' / package / executable
+    assert path.is_file() and os.access(path, os.X_OK), path
+    return path
+
+
+def test_colcon_install_layout_and_ament_index(colcon_install):
+    install, env = colcon_install
+    prefix = install / 'gnsscam_ros'
+    assert (prefix / 'share/ament_index/resource_index/packages/gnsscam_ros').is_file()
+    assert str(prefix) in env['AMENT_PREFIX_PATH'].split(os.pathsep)
+    for name in ('gnss_node', 'camera_node', 'imu_node', 'fusion_node'):
+        assert (prefix / 'share/gnsscam_ros/config' / f'{name}.yaml').is_file()
+    for exe in EXECUTABLES:
+        assert ros2_run_path('gnsscam_ros', exe, env) == prefix / 'lib/gnsscam_ros' / exe
+    # The executables import the installed package, not this source tree.
+    where = subprocess.run([sys.executable, '-c', 'import gnsscam_ros.nodes, msg_adapters; '
+                            'print(gnsscam_ros.nodes.__file__, msg_adapters.__file__)'],
+                           env=env, cwd='/', capture_output=True, text=True, timeout=60)
+    assert where.returncode == 0, where.stderr
+    assert all(p.startswith(str(prefix)) for p in where.stdout.split()), where.stdout
+
+
+def test_each_executable_starts_and_exits_cleanly_on_sigint(colcon_install, tmp_path):
+    _, env = colcon_install
+    domain = domain_id(1)
+    run_env = ros_env(tmp_path, domain, env)
+    procs, logs = {}, {}
+    for i, exe in enumerate(EXECUTABLES):
+        path = ros2_run_path('gnsscam_ros', exe, env)
+        logs[exe] = open(tmp_path / f'{exe}.log', 'w')
+        # One namespace per process: the same node names may not collide.
+        procs[exe] = subprocess.Popen([str(path), '--ros-args', '-r', f'__ns:=/p{i}'],
+                                      env=run_env, cwd=tmp_path, stdout=logs[exe],
+                                      stderr=subprocess.STDOUT)
+    probe = Probe(domain)
+    try:
+        wanted = {f'/p{i}/{n}' for i, exe in enumerate(EXECUTABLES) for n in NODE_NAMES[exe]}
+
+        def up():
+            names = {f'{ns.rstrip("/")}/{n}' for n, ns in
+                     probe.node.get_node_names_and_namespaces()}
+            dead = [e for e, p in procs.items() if p.poll() is not None]
+            assert not dead, {e: (tmp_path / f'{e}.log').read_text() for e in dead}
+            return wanted <= names
+
+        probe.spin_until(up, 90.0, 'every node to appear in the graph')
+    finally:
+        probe.close()
+        codes = {exe: stop(p) for exe, p in procs.items()}
+        for f in logs.values():
+            f.close()
+    logs_text = {e: (tmp_path / f'{e}.log').read_text() for e in EXECUTABLES}
+    assert codes == {exe: 0 for exe in EXECUTABLES}, (codes, logs_text)
+    assert not any('Traceback' in text for text in logs_text.values()), logs_text
