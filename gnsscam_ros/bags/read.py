@@ -21,6 +21,7 @@ recorded with ``ros2 bag record -a`` can be read.
 from __future__ import annotations
 
 import json
+import struct
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -107,8 +108,22 @@ def _select(reader: Reader, path: Path, wanted: dict[str, str], namespace: str
     return found
 
 
+def header_stamp_ns(raw: bytes | memoryview) -> int:
+    """Header stamp [ns] of a CDR-serialised message that starts with ``std_msgs/Header``,
+    read without decoding the rest (an image is ~1 MB; its stamp is 8 bytes).
+
+    Raises:
+        MessageError: Too short, or an encapsulation other than plain CDR.
+    """
+    if len(raw) < 12 or raw[0] != 0 or raw[1] not in (0, 1):
+        raise MessageError('not a plain CDR message with a header', 'size')
+    # Encapsulation kind 0x0001 is little endian, 0x0000 big endian; the Time follows.
+    sec, nanosec = struct.unpack_from('<iI' if raw[1] == 1 else '>iI', raw, 4)
+    return sec * 1_000_000_000 + nanosec
+
+
 def _scan(path: Path, wanted: dict[str, str], handlers: dict[str, Callable],
-          namespace: str = '/') -> dict[str, int]:
+          namespace: str = '/', raw: frozenset = frozenset()) -> dict[str, int]:
     """One pass over a bag: ``handlers[topic](log_ns, msg)`` for each wanted message.
 
     Args:
@@ -117,6 +132,7 @@ def _scan(path: Path, wanted: dict[str, str], handlers: dict[str, Callable],
         handlers: ``{relative topic: callback}`` (a topic without a handler is only
             type-checked).
         namespace: Namespace the topics were recorded under.
+        raw: Topics whose handler takes the serialised bytes instead of the message.
 
     Returns:
         ``{relative topic: number of connections found}`` (0: topic absent).
@@ -141,15 +157,16 @@ def _scan(path: Path, wanted: dict[str, str], handlers: dict[str, Callable],
                                        f'{type(err).__name__}: {err}', path=path) from err
                 if item is None:
                     break
-                conn, log_ns, raw = item
+                conn, log_ns, data = item
+                topic = by_id[conn.id]
                 try:
-                    msg = store.deserialize_cdr(raw, conn.msgtype)
+                    msg = data if topic in raw else store.deserialize_cdr(data, conn.msgtype)
                 except Exception as err:
                     raise BagReadError(f'{path}: topic {conn.topic}: message at {log_ns} ns '
                                        f'does not decode as {conn.msgtype}: {err}', path=path,
                                        topic=conn.topic) from err
                 try:
-                    handlers[by_id[conn.id]](log_ns, msg)
+                    handlers[topic](log_ns, msg)
                 except MessageError as err:
                     raise BagContentError(f'{path}: topic {conn.topic}: message at {log_ns} '
                                           f'ns: {err}', path=path, topic=conn.topic) from err
@@ -312,14 +329,14 @@ def read_drive(path: str | Path, namespace: str = '/', require_gnss: bool = True
         truth_ns.append(stamp_to_ns(msg.header.stamp))
         truth_rows.append((p.x, p.y, p.z, q.x, q.y, q.z, q.w))
 
-    def on_image(log_ns, msg):
-        cam_ns.append(stamp_to_ns(msg.header.stamp))
+    def on_image(log_ns, data):
+        cam_ns.append(header_stamp_ns(data))
         cam_log.append(log_ns)
 
     handlers = {schema.INFO: on_info, schema.ORIGIN: on_origin, schema.GNSS: on_gnss,
                 schema.IMU: on_imu, schema.TWIST: on_twist, schema.TRUTH: on_truth,
                 schema.IMAGE: on_image}
-    found = _scan(path, wanted, handlers, namespace)
+    found = _scan(path, wanted, handlers, namespace, raw=frozenset({schema.IMAGE}))
     if require_gnss and not found[schema.GNSS]:
         raise BagContentError(f'{path}: no topic {schema.qualified(schema.GNSS, namespace)} '
                               f'({schema.POINTCLOUD2}); is this a dataset bag?', path=path,
