@@ -4,7 +4,11 @@ import dataclasses
 import json
 import os
 import shutil
+import signal
+import subprocess
+import sys
 import threading
+import time
 import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -337,6 +341,26 @@ def test_ctrl_c_leaves_no_partial_bag(tmp_path, threaded):
     with pytest.raises(KeyboardInterrupt):
         convert_drive(drive, tmp_path / 'bag', progress=progress, workers=2)
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
+def test_cli_interrupted_process_leaves_no_partial_bag(tmp_path, sig):
+    """A real Ctrl-C (or kill) of gnsscam_convert mid-way: exit 130, nothing left."""
+    out = tmp_path / 'bags' / 'emu'
+    proc = subprocess.Popen(
+        [sys.executable, '-m', 'gnsscam_ros.bags.convert_cli', 'emulated', '--seed', '1',
+         '--duration-s', '60', '--out', str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    # Wait until frames are being written into the temporary sibling folder.
+    while not any((out.parent).glob('.emu.partial-*/emu/*.mcap')):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.05)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert 'interrupted; no bag written' in err
+    assert list(out.parent.iterdir()) == []
 
 
 @pytest.mark.parametrize('threaded', [False, True])
