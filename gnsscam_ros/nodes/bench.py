@@ -1,0 +1,343 @@
+"""Benchmarks of the ROS side: ``python -m gnsscam_ros.nodes.bench``.
+
+1. **End-to-end latency**: pipeline_node runs in its own process (as deployed); this
+   process replays the emulated drive (IMU, odometry, then each GNSS epoch on
+   ``gnss/pseudoranges``) and times every epoch from publishing its pseudoranges to
+   receiving its ``integrity_risk`` (one clock, this process), at ``--particles`` particles
+   from the first epoch on (``acquisition_particle_factor`` 1; see ``bench_latency``).
+2. **camera_node throughput**: camera_node runs in its own process pinned to one CPU core
+   (``sched_setaffinity``, ``opencv_threads`` 1) with a synthetic map database; this process
+   offers 640x480 bgr8 frames at ``--fps`` and then as fast as it can, and counts the
+   matches that come back (matched frames per second) and the frames the node dropped.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import TwistWithCovarianceStamped
+from nav_msgs.msg import Odometry
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Image, Imu, PointCloud2
+
+import msg_adapters as ma
+from gnsscam_ros.datasets.emulated import make_emulated_drive
+
+RELIABLE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2000,
+                      reliability=ReliabilityPolicy.RELIABLE)
+
+
+class _Probe:
+    def __init__(self, domain: int):
+        self.ctx = Context()
+        rclpy.init(context=self.ctx, domain_id=domain)
+        self.node = rclpy.create_node('bench_probe', context=self.ctx)
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+
+    def spin_until(self, condition, timeout_s: float, what: str) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not condition():
+            if time.monotonic() > deadline:
+                raise TimeoutError(f'timed out after {timeout_s} s waiting for {what}')
+            self.executor.spin_once(timeout_sec=0.001)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.ctx)
+
+
+def _env(domain: int, log_dir: str) -> dict:
+    env = dict(os.environ)
+    env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+               ROS_LOG_DIR=log_dir, OPENBLAS_NUM_THREADS='1')
+    return env
+
+
+def _stop(proc: subprocess.Popen) -> int:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        return proc.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        return proc.wait()
+
+
+# ============================================================================ latency
+def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: float = 0.0,
+                  acquisition_factor: int = 1, domain: int = 61, seed: int = 3,
+                  log=print) -> dict:
+    """Pseudoranges -> integrity_risk latency through pipeline_node in another process.
+
+    Args:
+        particles: Filter particles N (per posterior).
+        acquisition_factor: ``acquisition_particle_factor`` of the filter; 1 (default)
+            keeps N particles from the start, so every epoch measures the steady state
+            (the default 10 makes the first ~100 m of the drive 10 times as expensive).
+        duration_s: Length of the emulated drive replayed [s] (GNSS at 1 Hz).
+        period_s: Wall time between epochs [s]; 0 = send the next epoch as soon as the
+            previous verdict arrived (plus the dead reckoning of the interval).
+        domain: ROS domain id.
+        seed: Emulated drive seed.
+        log: Progress printer.
+
+    Returns:
+        Latency statistics [ms], and fusion_node's own processing time per epoch (filter
+        step and integrity_risk publication) from its diagnostics.
+    """
+    drive = make_emulated_drive(seed, faults=2, duration_s=duration_s)
+    log_dir = tempfile.mkdtemp(prefix='gnsscam_bench_')
+    params = Path(log_dir) / 'params.yaml'
+    params.write_text(f'fusion_node:\n  ros__parameters:\n    n_particles: {particles}\n'
+                      f'    acquisition_particle_factor: {acquisition_factor}\n'
+                      '    gnss_timeout_s: 30.0\n    odometry_wait_s: 0.5\n'
+                      'imu_node:\n  ros__parameters:\n    input_queue_depth: 2000\n'
+                      '    source_timeout_s: 30.0\n')
+    proc = subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.nodes.pipeline', '--ros-args',
+                             '--params-file', str(params)], env=_env(domain, log_dir),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    probe = _Probe(domain)
+    received: dict[int, float] = {}
+    statuses: dict[int, str] = {}
+    diagnostics: list = []
+    newest_dr = [-1]
+
+    def on_dead_reckoning(msg):
+        newest_dr[0] = max(newest_dr[0], ma.stamp_to_ns(msg.header.stamp))
+
+    def on_risk(msg):
+        now = time.perf_counter()
+        risk = ma.parse_integrity_risk(msg)
+        if risk.epoch_stamp_ns is not None and risk.extra.get('status') != 'no_gnss':
+            received.setdefault(risk.epoch_stamp_ns, now)
+            statuses[risk.epoch_stamp_ns] = risk.extra.get('status', '')
+
+    try:
+        node = probe.node
+        node.create_subscription(DiagnosticArray, 'integrity_risk', on_risk, RELIABLE)
+        node.create_subscription(DiagnosticArray, 'diagnostics', diagnostics.append, RELIABLE)
+        node.create_subscription(Odometry, 'odometry/dead_reckoning', on_dead_reckoning,
+                                 RELIABLE)
+        pub_gnss = node.create_publisher(PointCloud2, 'gnss/pseudoranges', RELIABLE)
+        pub_imu = node.create_publisher(Imu, 'imu/data', RELIABLE)
+        pub_odo = node.create_publisher(TwistWithCovarianceStamped, 'odom/twist', RELIABLE)
+        for pub in (pub_gnss, pub_imu, pub_odo):
+            probe.spin_until(lambda: pub.get_subscription_count() > 0, 60.0,
+                             f'pipeline_node on {pub.topic_name}')
+        odo, imu = drive.odometry, drive.imu
+        events = sorted([(int(t), 0, k) for k, t in enumerate(odo.stamp_ns)]
+                        + [(int(t), 1, k) for k, t in enumerate(imu.stamp_ns)])
+        ev = 0
+        sent: dict[int, float] = {}
+        for i, epoch in enumerate(drive.gnss):
+            while ev < len(events) and events[ev][0] <= epoch.stamp_ns:
+                stamp, kind, k = events[ev]
+                ev += 1
+                if kind == 0:
+                    pub_odo.publish(ma.sample_to_twist(ma.TwistSample(
+                        stamp, odo.speed_mps[k], odo.yaw_rate_rps[k], odo.speed_var[k],
+                        odo.yaw_rate_var[k])))
+                else:
+                    pub_imu.publish(ma.sample_to_imu(ma.ImuSample(
+                        stamp, imu.accel_mps2[k], imu.gyro_rps[k])))
+            # Let the dead reckoning reach the epoch first: a receiver delivers an epoch
+            # after its time of validity, so the IMU is already there in a live system.
+            probe.spin_until(lambda: newest_dr[0] >= epoch.stamp_ns, 60.0,
+                             'the dead reckoning to reach the epoch')
+            t_pause = time.perf_counter() + period_s
+            while time.perf_counter() < t_pause:
+                probe.executor.spin_once(timeout_sec=0.005)
+            msg = ma.gnss_epoch_to_pointcloud2(epoch)
+            sent[epoch.stamp_ns] = time.perf_counter()
+            pub_gnss.publish(msg)
+            probe.spin_until(lambda: epoch.stamp_ns in received, 60.0,
+                             f'integrity_risk of epoch {i}')
+            log(f'epoch {i:3d}: {1e3 * (received[epoch.stamp_ns] - sent[epoch.stamp_ns]):7.1f}'
+                f' ms  {statuses[epoch.stamp_ns]}')
+        probe.spin_until(lambda: any(s.name == 'fusion_node: status' for m in diagnostics
+                                     for s in m.status), 5.0, 'fusion diagnostics')
+    finally:
+        probe.close()
+        rc = _stop(proc)
+    lat = [1e3 * (received[s] - sent[s]) for s in sorted(sent)][1:]  # 0: initialisation
+    fusion = {}
+    for m in diagnostics:
+        for st in m.status:
+            if st.name == 'fusion_node: status':
+                fusion = ma.status_values(st)
+    return {'particles': particles, 'acquisition_particle_factor': acquisition_factor,
+            'epochs': len(lat), 'median_ms': float(np.median(lat)),
+            'p90_ms': float(np.percentile(lat, 90)), 'max_ms': float(np.max(lat)),
+            'fusion_processing_p50_ms': float(fusion.get('processing_p50_ms', 'nan')),
+            'pipeline_exit_code': rc}
+
+
+# ============================================================================= camera
+def bench_camera(fps: float = 30.0, seconds: float = 5.0, n_database: int = 60,
+                 domain: int = 62, cpu: int | None = 0, log=print) -> dict:
+    """camera_node matched frames per second on one core.
+
+    Args:
+        fps: Offered frame rate of the first phase [1/s].
+        seconds: Length of each phase [s].
+        n_database: Images in the synthetic map database.
+        domain: ROS domain id.
+        cpu: CPU the camera_node process is pinned to (None: not pinned).
+        log: Progress printer.
+
+    Returns:
+        Offered and matched frame rates and drops for the paced and the flood phase.
+    """
+    from gnsscam_ros.vision.database import MapDatabase, PositionTable
+    from gnsscam_ros.vision.features import OrbExtractor, OrbParams
+    from gnsscam_ros.vision.mapdb_cli import perturb_view, synthetic_scene
+
+    work = tempfile.mkdtemp(prefix='gnsscam_bench_cam_')
+    images = [synthetic_scene(i, seed=11) for i in range(n_database)]
+    ext = OrbExtractor(OrbParams())
+    db = MapDatabase.build([ext.descriptors(im) for im in images],
+                           [f'im{i:03d}.png' for i in range(n_database)],
+                           PositionTable.from_columns(('east_m', 'north_m'), np.column_stack(
+                               [np.arange(n_database) * 10.0, np.zeros(n_database)])),
+                           branching=10, depth=4, seed=0)
+    db_path = Path(work) / 'map.npz'
+    db.save(db_path)
+    rng = np.random.default_rng(0)
+    frames = [perturb_view(images[i % n_database], rng) for i in range(50)]
+    log(f'database: {n_database} images; frames 640x480 bgr8')
+
+    def pin():
+        if cpu is not None:
+            os.sched_setaffinity(0, {cpu})
+
+    proc = subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.nodes.camera_node',
+                             '--ros-args', '-p', f'database_path:={db_path}',
+                             '-p', 'opencv_threads:=1', '-p', 'queue_size:=2',
+                             '-p', 'input_queue_depth:=10', '-p', 'top_k:=5'],
+                            env=_env(domain, work), preexec_fn=pin,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    probe = _Probe(domain)
+    got: list[float] = []
+    diagnostics: list = []
+    out = {}
+    try:
+        node = probe.node
+        node.create_subscription(PointCloud2, 'camera/matches',
+                                 lambda m: got.append(time.perf_counter()), RELIABLE)
+        node.create_subscription(DiagnosticArray, 'diagnostics', diagnostics.append, RELIABLE)
+        pub = node.create_publisher(Image, 'camera/image_raw', RELIABLE)
+        probe.spin_until(lambda: pub.get_subscription_count() > 0, 60.0, 'camera_node')
+        msgs = [ma.array_to_image(f, 0) for f in frames]
+        stamp = [1]
+
+        def cpu_s() -> float:
+            # utime + stime of the camera_node process (all its threads) [s].
+            fields = Path(f'/proc/{proc.pid}/stat').read_text().rsplit(')', 1)[1].split()
+            return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+
+        def offer(rate: float | None, length_s: float) -> dict:
+            got.clear()
+            cpu0 = cpu_s()
+            start = time.perf_counter()
+            sent = 0
+            while time.perf_counter() - start < length_s:
+                if rate is not None:
+                    due = start + sent / rate
+                    while time.perf_counter() < due:
+                        probe.executor.spin_once(timeout_sec=max(0.0, min(
+                            0.002, due - time.perf_counter())))
+                msg = msgs[sent % len(msgs)]
+                msg.header.stamp = ma.ns_to_stamp(stamp[0] * 1_000_000)
+                stamp[0] += 1
+                pub.publish(msg)
+                sent += 1
+                probe.executor.spin_once(timeout_sec=0.0)
+            end = time.perf_counter()
+            settle = end + 1.0
+            while time.perf_counter() < settle:
+                probe.executor.spin_once(timeout_sec=0.01)
+            inside = [t for t in got if t <= end]
+            cpu_ms = 1e3 * (cpu_s() - cpu0) / max(len(got), 1)
+            return {'offered_fps': sent / (end - start),
+                    'matched_fps': len(inside) / (end - start), 'sent': sent,
+                    'matched': len(got), 'cpu_ms_per_matched_frame': cpu_ms,
+                    'one_core_capacity_fps': 1e3 / cpu_ms}
+
+        offer(fps, 1.0)                                  # warm-up
+        out['paced'] = offer(fps, seconds)
+        log(f"paced at {fps:g} fps: matched {out['paced']['matched_fps']:.1f} frames/s, "
+            f"{out['paced']['cpu_ms_per_matched_frame']:.1f} ms CPU per frame")
+        out['flood'] = offer(None, seconds)
+        log(f"flooded at {out['flood']['offered_fps']:.0f} fps: matched "
+            f"{out['flood']['matched_fps']:.1f} frames/s")
+        probe.spin_until(lambda: len(diagnostics) > 0, 5.0, 'camera diagnostics')
+        values = {}
+        for m in diagnostics:
+            for s in m.status:
+                values = ma.status_values(s)
+        out['node'] = {k: values.get(k) for k in ('received_images', 'dropped_frames',
+                                                  'published_matches', 'processing_p50_ms',
+                                                  'processing_mean_ms')}
+    finally:
+        probe.close()
+        out['exit_code'] = _stop(proc)
+    out['pinned_cpu'] = cpu
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog='python -m gnsscam_ros.nodes.bench',
+                                     description=__doc__.split('\n\n')[0])
+    parser.add_argument('--particles', type=int, default=10_000)
+    parser.add_argument('--acquisition-factor', type=int, default=1,
+                        help='acquisition_particle_factor of the filter (default 1)')
+    parser.add_argument('--duration-s', type=float, default=30.0,
+                        help='emulated drive replayed for the latency [s]')
+    parser.add_argument('--fps', type=float, default=30.0)
+    parser.add_argument('--camera-seconds', type=float, default=5.0)
+    parser.add_argument('--skip-latency', action='store_true')
+    parser.add_argument('--skip-camera', action='store_true')
+    parser.add_argument('--json', help='also write the results to this file')
+    parser.add_argument('--quiet', action='store_true')
+    args = parser.parse_args(argv)
+    log = (lambda *a: None) if args.quiet else (lambda *a: print(*a, file=sys.stderr))
+    results = {}
+    if not args.skip_latency:
+        results['latency'] = bench_latency(args.particles, args.duration_s,
+                                           acquisition_factor=args.acquisition_factor, log=log)
+        lat = results['latency']
+        print(f"latency pseudoranges -> integrity_risk, N = {args.particles} (x M = 10 "
+              f"posteriors): median {lat['median_ms']:.1f} ms, p90 {lat['p90_ms']:.1f} ms "
+              f"over {lat['epochs']} epochs; fusion_node processing p50 "
+              f"{lat['fusion_processing_p50_ms']:.1f} ms")
+    if not args.skip_camera:
+        results['camera'] = bench_camera(args.fps, args.camera_seconds, log=log)
+        cam = results['camera']
+        print(f"camera_node on one core (640x480 bgr8): {cam['paced']['matched_fps']:.1f} "
+              f"frames/s matched when offered {cam['paced']['offered_fps']:.1f}; "
+              f"{cam['flood']['matched_fps']:.1f} frames/s when flooded "
+              f"({cam['flood']['offered_fps']:.0f} offered, oldest dropped: "
+              f"{cam['node']['dropped_frames']}); process CPU "
+              f"{cam['paced']['cpu_ms_per_matched_frame']:.1f} ms per frame = "
+              f"{cam['paced']['one_core_capacity_fps']:.0f} frames/s on a free core")
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=2))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
