@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.filter import PARTICLE_RAIM, FilterConfig
+from ..core.fusion import CameraMeasurement
 from ..datasets.emulated import make_emulated_drive
 from .report import format_table
 from .runner import run_filter, summarize
@@ -58,12 +59,41 @@ def method_config(method: str, base: FilterConfig) -> FilterConfig:
 def camera_matches_for_seed(seed: int, cache_dir: Path) -> tuple[list, dict]:
     """Render and match every camera frame of a seed's drive (cached on disk).
 
+    The map database comes from the seed's own database pass (other lighting and
+    viewpoints, ``datasets.camera``); each frame's best match (top-1) is kept.
+
     Returns:
-        ``(matches, faults)``: the best database match of every frame (position at the
+        ``(matches, faults)``: a CameraMeasurement per frame with a match (position at the
         image time) and ``{frame_id: fault code}`` (0 clean, 1 blur, 2 occlusion).
     """
-    from ..datasets.camera import camera_matches
-    return camera_matches(seed, cache_dir=cache_dir)
+    from ..datasets.camera import build_emulated_map_database, scenario_of, with_camera
+    from .report import write_npz_atomic
+    cache_dir = Path(cache_dir)
+    drive = with_camera(make_emulated_drive(seed))
+    stream = drive.camera
+    key = f"camera_matches_s{seed}_{stream.info.get('render_version', 0)}_{len(stream)}.npz"
+    path = cache_dir / key
+    if path.exists():
+        data = np.load(path, allow_pickle=False)
+        stamps, positions, scores, frame_ids = (data['stamp_ns'], data['position_enu_m'],
+                                                data['score'], data['frame_id'])
+    else:
+        db = build_emulated_map_database(scenario_of(drive), cache_dir=cache_dir)
+        stamps, positions, scores, frame_ids = [], [], [], []
+        for i, stamp, image in stream.frames():
+            best = db.query(image, top_k=1)
+            if best:
+                stamps.append(stamp)
+                positions.append(best[0].position_enu_m)
+                scores.append(best[0].score)
+                frame_ids.append(i)
+        stamps, positions = np.array(stamps, np.int64), np.array(positions).reshape(-1, 3)
+        scores, frame_ids = np.array(scores, float), np.array(frame_ids, np.int64)
+        write_npz_atomic(path, stamp_ns=stamps, position_enu_m=positions, score=scores,
+                         frame_id=frame_ids)
+    matches = [CameraMeasurement(int(t), p, float(sc), int(f))
+               for t, p, sc, f in zip(stamps, positions, scores, frame_ids)]
+    return matches, {int(i): int(c) for i, c in enumerate(stream.fault)}
 
 
 def run_case(seed: int, faults: int, bias_m: float, method: str, base: FilterConfig,

@@ -101,11 +101,40 @@ def build_parser() -> argparse.ArgumentParser:
                       help='cache of map databases and camera matches')
     camp.add_argument('--methods', nargs='+', default=['particle_raim', 'gnss_robust', 'fused'],
                       choices=['particle_raim', 'fused', 'gnss_robust'])
-    for p in (smart, emu, camp):
+    bag = sub.add_parser('bag', help='metrics of a recorded result bag (pose/fix, '
+                         'integrity_risk) against ground truth')
+    bag.add_argument('result_bag', type=Path, help='bag recorded from the nodes')
+    bag.add_argument('--truth', type=Path, help='the dataset bag (gnsscam_convert), when the '
+                     'result bag has no ground_truth/pose')
+    bag.add_argument('--namespace', default='/', help='namespace of the recorded topics')
+    bag.add_argument('--origin', type=float, nargs=3, metavar=('LAT', 'LON', 'ALT'),
+                     help='map frame origin, when no bag has map/origin')
+    for p in (smart, emu, camp, bag):
         p.add_argument('--json', type=Path, help='write the metrics as JSON')
         p.add_argument('--force', action='store_true', help='replace an existing --json')
         p.add_argument('--quiet', action='store_true', help='no progress output')
     return parser
+
+
+def run_bag_command(args: argparse.Namespace) -> int:
+    """``gnsscam_eval bag``: the offline metrics computed from a recorded result bag."""
+    from ..bags.errors import BagError
+    from .bag_eval import evaluate_result_bag
+    try:
+        result = evaluate_result_bag(args.result_bag, args.truth, namespace=args.namespace,
+                                     origin_llh=tuple(args.origin) if args.origin else None)
+    except (BagError, ValueError) as err:
+        print(f'gnsscam_eval: {err}', file=sys.stderr)
+        return EXIT_INPUT
+    print_result(Path(args.result_bag).name, result)
+    if args.json is not None:
+        try:
+            write_json_atomic(args.json, result, force=args.force)
+        except (OSError, OutputExistsError) as err:
+            print(f'gnsscam_eval: cannot write {args.json}: {err}', file=sys.stderr)
+            return EXIT_OUTPUT
+        print(f'\nwrote {args.json}')
+    return EXIT_OK
 
 
 def run_campaign_command(args: argparse.Namespace) -> int:
@@ -153,6 +182,8 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_OUTPUT
     if args.command == 'campaign':
         return run_campaign_command(args)
+    if args.command == 'bag':
+        return run_bag_command(args)
     try:
         config = config_from_args(args)
     except ValueError as err:

@@ -36,6 +36,22 @@ def write_json_atomic(path: Path, data, force: bool = False) -> Path:
     return path
 
 
+def write_npz_atomic(path: Path, **arrays) -> Path:
+    """Write a compressed-free .npz via a temporary file and an atomic rename (cache use)."""
+    import numpy as np
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.npz', dir=path.parent)
+    try:
+        with os.fdopen(fd, 'wb') as handle:
+            np.savez(handle, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
 def _jsonable(value):
     """numpy scalars and arrays to plain JSON values."""
     if hasattr(value, 'tolist'):
