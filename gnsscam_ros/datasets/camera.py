@@ -37,7 +37,6 @@ import os
 import sys
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Callable, Iterator
 
@@ -501,39 +500,43 @@ def default_cache_dir() -> str:
     return os.path.join(base, 'gnsscam_ros')
 
 
+def _locality_order(pose: np.ndarray, cell_m: float) -> np.ndarray:
+    """Visiting order of views that keeps neighbours together (serpentine over cells).
+
+    Views in one cell see mostly the same facades, so rendering them one after the other
+    keeps the renderer's texture cache warm (the database order itself is unchanged).
+    """
+    cx = np.floor(pose[:, 0] / cell_m).astype(np.int64)
+    cy = np.floor(pose[:, 1] / cell_m).astype(np.int64)
+    cy = np.where(cx % 2 == 0, cy, -cy)
+    return np.lexsort((np.arange(len(pose)), cy, cx))
+
+
 def _describe_images(dbp: DatabasePass, city, intrinsics: CameraIntrinsics,
-                     orb_params: OrbParams, seed: int, jobs: int,
+                     orb_params: OrbParams, seed: int,
                      progress: Callable[[str, int, int], None] | None
                      ) -> tuple[list[np.ndarray], float]:
-    """Render every database view and extract its ORB descriptors (thread pool).
+    """Render every database view and extract its ORB descriptors.
+
+    Serial on purpose: OpenCV already spreads ORB over the cores, and the renderer's
+    Python parts hold the GIL, so threads or processes made the build slower here.
 
     Returns:
-        Per view its (n, 32) descriptors, and the summed render time [s].
+        Per view (database order) its (n, 32) descriptors, and the total render time [s].
     """
-    local = threading.local()
-    render_s = []
-
-    def work(k: int) -> np.ndarray:
-        st = getattr(local, 'state', None)
-        if st is None:
-            st = local.state = (StreetRenderer(city, intrinsics, dbp.lighting, seed=seed),
-                                OrbExtractor(orb_params))
-        t0 = time.perf_counter()
-        img = st[0].render(dbp.pose[k], noise_index=k)
-        render_s.append(time.perf_counter() - t0)
-        return st[1].descriptors(img)
-
-    out = []
+    renderer = StreetRenderer(city, intrinsics, dbp.lighting, seed=seed)
+    extractor = OrbExtractor(orb_params)
     n = len(dbp)
-    # Consecutive views share facades: hand each thread a contiguous block of views so
-    # that its texture cache stays warm.
-    order = np.arange(n)
-    with ThreadPoolExecutor(max_workers=max(1, jobs)) as pool:
-        for k, d in enumerate(pool.map(work, order, chunksize=1)):
-            out.append(d)
-            if progress and ((k + 1) % 250 == 0 or k + 1 == n):
-                progress('render', k + 1, n)
-    return out, float(np.sum(render_s))
+    out: list[np.ndarray | None] = [None] * n
+    render_s = 0.0
+    for j, k in enumerate(_locality_order(dbp.pose, 0.5 * float(city.pitch_m))):
+        t0 = time.perf_counter()
+        img = renderer.render(dbp.pose[k], noise_index=int(k))
+        render_s += time.perf_counter() - t0
+        out[k] = extractor.descriptors(img)
+        if progress and ((j + 1) % 250 == 0 or j + 1 == n):
+            progress('render', j + 1, n)
+    return out, render_s
 
 
 def build_emulated_map_database(scenario: Scenario, cache_dir: str | os.PathLike | None = None,
@@ -542,7 +545,6 @@ def build_emulated_map_database(scenario: Scenario, cache_dir: str | os.PathLike
                                 orb_params: OrbParams | None = None,
                                 branching: int = 10, depth: int = 5,
                                 max_train_descriptors: int | None = 200_000,
-                                jobs: int | None = None,
                                 progress: Callable[[str, int, int], None] | None = None,
                                 **pass_kwargs) -> MapDatabase:
     """Render the database pass and build (or load from the cache) its map database.
@@ -563,7 +565,6 @@ def build_emulated_map_database(scenario: Scenario, cache_dir: str | os.PathLike
         branching: Vocabulary tree branching factor.
         depth: Vocabulary tree depth.
         max_train_descriptors: Tree training subsample size.
-        jobs: Render/feature threads (default: CPU count).
         progress: Optional ``progress(stage, done, total)`` callback.
         **pass_kwargs: Passed to :func:`database_poses` (spacing_m, margin_m, ...).
 
@@ -593,8 +594,7 @@ def build_emulated_map_database(scenario: Scenario, cache_dir: str | os.PathLike
                 pass          # unreadable (e.g. an older format): rebuild and replace it
     t0 = time.perf_counter()
     descs, render_s = _describe_images(dbp, scenario.city, intrinsics, orb_params,
-                                       dbp.params['seed'] + 7919,
-                                       jobs or os.cpu_count() or 1, progress)
+                                       dbp.params['seed'] + 7919, progress)
     t1 = time.perf_counter()
     positions = PositionTable.from_columns(('east_m', 'north_m', 'up_m'), dbp.pose[:, :3])
     db = MapDatabase.build(descs, dbp.names, positions, orb_params=orb_params,

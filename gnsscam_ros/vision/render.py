@@ -586,7 +586,7 @@ def _make_texture(style_id: int, w: int, h: int, ppm: float) -> np.ndarray:
     return img
 
 
-@lru_cache(maxsize=64)
+@lru_cache(maxsize=128)
 def _cached_texture(style_id: int, w: int, h: int, ppm: float) -> np.ndarray:
     tex = _make_texture(style_id, w, h, ppm)
     tex.setflags(write=False)
