@@ -1,0 +1,305 @@
+"""``gnsscam_record``: record the nodes' outputs into a rosbag2 bag (MCAP), atomically.
+
+Usage::
+
+    gnsscam_record --out RESULT_BAG [TOPIC ...]
+
+Default topics: :data:`DEFAULT_TOPICS`, the outputs that ``gnsscam_eval bag`` evaluates
+(``pose``, ``fix``, ``particles``, ``integrity_risk``) plus the replayed ground truth and
+dataset description (``ground_truth/pose``, ``map/origin``, ``dataset/info``), so that the
+result bag is self-contained. Further topics are given by name; their type is taken from
+the ROS graph once a publisher appears, or given as ``name:pkg/msg/Type``.
+
+Messages are received serialised (``raw=True`` subscriptions) and written as they came:
+no decoding on the way. The bag time of each message is its reception time (node clock),
+as ``ros2 bag record`` does; the evaluation reads the header stamps. Subscriptions are
+reliable with deep queues (``transient_local`` for the once-only topics ``map/origin`` and
+``dataset/info``, so a recorder started after the replay still gets them).
+
+**Atomic**: the bag is written into a hidden sibling folder (``.NAME.partial-*``) and
+renamed to ``RESULT_BAG`` when recording stops cleanly (:meth:`BagRecorder.close`, or
+Ctrl-C / SIGTERM in the CLI). An existing ``RESULT_BAG`` is never overwritten; after an
+error the partial folder is removed (:meth:`BagRecorder.abort`).
+
+Exit codes of the CLI: 0 recorded (Ctrl-C is the normal way to stop), 2 bad usage,
+4 output exists or cannot be written.
+
+On a ROS 2 machine the equivalent is ``ros2 bag record -o RESULT_BAG /pose /fix
+/particles /integrity_risk /ground_truth/pose /map/origin``.
+"""
+from __future__ import annotations
+
+import argparse
+import shutil
+import signal
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import rclpy
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosbags.rosbag2 import Writer
+
+from . import schema
+from .convert import STORAGES
+from .errors import BagError, BagExistsError, BagTypeError
+from .replay import message_class
+
+EXIT_OK, EXIT_USAGE, EXIT_OUTPUT = 0, 2, 4
+
+#: Topics recorded by default, with their types and whether they are once-only (latched).
+DEFAULT_TOPICS: dict[str, tuple[str, bool]] = {
+    schema.POSE: (schema.POSE_COV_STAMPED, False),
+    schema.FIX: (schema.NAVSATFIX, False),
+    schema.PARTICLES: (schema.POSE_ARRAY, False),
+    schema.INTEGRITY: (schema.DIAGNOSTIC_ARRAY, False),
+    schema.TRUTH: (schema.POSE_STAMPED, False),
+    schema.ORIGIN: (schema.NAVSATFIX, True),
+    schema.INFO: (schema.STRING, True),
+}
+_DEPTH = {schema.PARTICLES: 100}       # particle clouds are large (~56 kB each)
+_QUEUE_DEPTH = 2000
+
+
+@dataclass
+class RecordSummary:
+    """What a recorder wrote.
+
+    Attributes:
+        path: The bag (final name once closed).
+        counts: Messages per qualified topic.
+        seconds: Recording time [s].
+        bag_bytes: Size on disk [bytes] (after closing).
+        pending_topics: Requested topics whose type never became known (not recorded).
+    """
+
+    path: Path
+    counts: dict[str, int] = field(default_factory=dict)
+    seconds: float = 0.0
+    bag_bytes: int = 0
+    pending_topics: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        """JSON-able form."""
+        return {'path': str(self.path), 'counts': self.counts, 'seconds': self.seconds,
+                'bag_bytes': self.bag_bytes, 'pending_topics': self.pending_topics}
+
+
+def parse_topic(spec: str) -> tuple[str, str | None]:
+    """``'name'`` or ``'name:pkg/msg/Type'`` -> ``(name, type or None)``."""
+    if ':' in spec:
+        name, msgtype = spec.split(':', 1)
+        return name, msgtype
+    return spec, DEFAULT_TOPICS.get(spec.lstrip('/'), (None, False))[0]
+
+
+class BagRecorder(Node):
+    """Records topics into a new bag; spin it with any executor, then :meth:`close`.
+
+    Args:
+        out: Bag folder to create (must not exist).
+        topics: Topic names (relative or qualified; ``name:pkg/msg/Type`` to give the
+            type); default :data:`DEFAULT_TOPICS`.
+        storage: ``'mcap'`` (default) or ``'sqlite3'``.
+        node_name: Node name.
+        **kwargs: Forwarded to ``rclpy.node.Node``.
+
+    Raises:
+        BagExistsError: ``out`` exists.
+        BagTypeError: A given type is unknown to the typestore or to rclpy.
+        BagError: The writer could not be opened.
+        ValueError: Unknown storage.
+    """
+
+    def __init__(self, out: str | Path, topics: list[str] | None = None,
+                 storage: str = 'mcap', node_name: str = 'gnsscam_record', **kwargs):
+        if storage not in STORAGES:
+            raise ValueError(f'unknown storage {storage!r}; use one of {sorted(STORAGES)}')
+        self.out = Path(out)
+        if self.out.exists() or self.out.is_symlink():
+            raise BagExistsError(f'{self.out} exists; not overwriting', path=self.out)
+        specs = [parse_topic(t) for t in (topics or list(DEFAULT_TOPICS))]
+        store = schema.typestore()
+        for name, msgtype in specs:
+            if msgtype is not None:
+                if msgtype not in store.types:
+                    raise BagTypeError(f'{name}: message type {msgtype} unknown to the '
+                                       'typestore', topic=name)
+                message_class(msgtype)
+        super().__init__(node_name, **kwargs)
+        self.out.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp = Path(tempfile.mkdtemp(prefix=f'.{self.out.name}.partial-',
+                                          dir=self.out.parent))
+        self._lock = threading.Lock()
+        self._writer = None
+        self._connections: dict[str, object] = {}
+        self.summary = RecordSummary(path=self.out)
+        self._started = time.monotonic()
+        self._closed = False
+        try:
+            # rosbags wants a folder that does not exist yet: write inside the temp dir.
+            self._writer = Writer(self._tmp / 'bag', version=9,
+                                  storage_plugin=STORAGES[storage])
+            self._writer.open()
+        except Exception as err:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            raise BagError(f'{self.out}: cannot open the bag writer: {err}',
+                           path=self.out) from err
+        self._waiting: dict[str, None] = {}
+        for name, msgtype in specs:
+            topic = self.resolve_topic_name(name)
+            if msgtype is None:
+                self._waiting[topic] = None
+            else:
+                self._subscribe(topic, msgtype)
+        if self._waiting:
+            self._type_timer = self.create_timer(0.2, self._resolve_types)
+
+    def _subscribe(self, topic: str, msgtype: str) -> None:
+        rel = schema.relative(topic) or topic
+        latched = DEFAULT_TOPICS.get(rel, (None, False))[1]
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST,
+                         depth=1 if latched else _DEPTH.get(rel, _QUEUE_DEPTH),
+                         reliability=ReliabilityPolicy.RELIABLE,
+                         durability=(DurabilityPolicy.TRANSIENT_LOCAL if latched
+                                     else DurabilityPolicy.VOLATILE))
+        with self._lock:
+            self._connections[topic] = self._writer.add_connection(
+                topic, msgtype, typestore=schema.typestore(),
+                offered_qos_profiles=[schema.qos(latched)])
+        self.summary.counts[topic] = 0
+        self.create_subscription(message_class(msgtype), topic, self._writer_of(topic), qos,
+                                 raw=True)
+
+    def _resolve_types(self) -> None:
+        """Subscribe to topics given without a type once the graph knows their type."""
+        known = dict(self.get_topic_names_and_types())
+        for topic in list(self._waiting):
+            types = known.get(topic) or []
+            if types and types[0] in schema.typestore().types:
+                del self._waiting[topic]
+                self._subscribe(topic, types[0])
+        if not self._waiting:
+            self._type_timer.cancel()
+
+    def _writer_of(self, topic: str):
+        def callback(data: bytes) -> None:
+            now = self.get_clock().now().nanoseconds
+            with self._lock:
+                if self._closed:
+                    return
+                self._writer.write(self._connections[topic], now, data)
+                self.summary.counts[topic] += 1
+        return callback
+
+    def count(self, name: str) -> int:
+        """Messages recorded so far on a topic (relative or qualified name)."""
+        with self._lock:
+            return self.summary.counts.get(self.resolve_topic_name(name), 0)
+
+    def close(self) -> RecordSummary:
+        """Stop recording, finish the bag and move it into place.
+
+        Returns:
+            What was written.
+
+        Raises:
+            BagExistsError: ``out`` appeared meanwhile (the bag stays in the temp folder,
+                whose name is in the message).
+            BagError: Finishing the bag failed (the partial folder is removed).
+        """
+        with self._lock:
+            if self._closed:
+                return self.summary
+            self._closed = True
+            try:
+                self._writer.close()
+            except Exception as err:
+                shutil.rmtree(self._tmp, ignore_errors=True)
+                raise BagError(f'{self.out}: finishing the bag failed: {err}',
+                               path=self.out) from err
+        self.summary.seconds = time.monotonic() - self._started
+        self.summary.pending_topics = sorted(self._waiting)
+        if self.out.exists() or self.out.is_symlink():
+            raise BagExistsError(f'{self.out} appeared while recording; the bag is left in '
+                                 f'{self._tmp / "bag"}', path=self.out)
+        (self._tmp / 'bag').rename(self.out)
+        shutil.rmtree(self._tmp, ignore_errors=True)
+        self.summary.bag_bytes = sum(p.stat().st_size for p in self.out.rglob('*')
+                                     if p.is_file())
+        return self.summary
+
+    def abort(self) -> None:
+        """Stop recording and remove the partial bag (after an error)."""
+        with self._lock:
+            if not self._closed:
+                self._closed = True
+                try:
+                    self._writer.close()
+                except Exception:
+                    pass
+        shutil.rmtree(self._tmp, ignore_errors=True)
+
+
+def _terminate(signum, frame):
+    # SIGTERM stops like Ctrl-C: the bag is finished and kept.
+    raise KeyboardInterrupt(f'signal {signum}')
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``gnsscam_record``; returns the exit code (see the module docstring)."""
+    args_all = sys.argv[1:] if argv is None else list(argv)
+    ros_at = args_all.index('--ros-args') if '--ros-args' in args_all else len(args_all)
+    parser = argparse.ArgumentParser(
+        prog='gnsscam_record', description='Record the gnsscam_ros outputs (and replayed '
+        'ground truth) into a new rosbag2 bag; Ctrl-C stops and keeps the bag.')
+    parser.add_argument('topics', nargs='*', metavar='TOPIC',
+                        help='topics (name or name:pkg/msg/Type); default: '
+                        + ' '.join(DEFAULT_TOPICS))
+    parser.add_argument('--out', '-o', type=Path, required=True,
+                        help='bag folder to create (must not exist)')
+    parser.add_argument('--storage', choices=sorted(STORAGES), default='mcap')
+    parser.add_argument('--duration', type=float, default=None, metavar='SECONDS',
+                        help='stop after this long (default: until Ctrl-C)')
+    args = parser.parse_args(args_all[:ros_at])
+    if args.out.exists() or args.out.is_symlink():
+        print(f'gnsscam_record: {args.out} exists; not overwriting', file=sys.stderr)
+        return EXIT_OUTPUT
+    rclpy.init(args=['gnsscam_record'] + args_all[ros_at:])
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    node = None
+    code = EXIT_OK
+    try:
+        node = BagRecorder(args.out, topics=args.topics or None, storage=args.storage)
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        deadline = None if args.duration is None else time.monotonic() + args.duration
+        while rclpy.ok() and (deadline is None or time.monotonic() < deadline):
+            executor.spin_once(timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (BagError, ValueError) as err:
+        print(f'gnsscam_record: {err}', file=sys.stderr)
+        code = EXIT_OUTPUT if isinstance(err, BagError) else EXIT_USAGE
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    if node is not None:
+        try:
+            summary = node.close()
+            print(f'gnsscam_record: wrote {summary.path}: '
+                  + ', '.join(f'{k} {v}' for k, v in summary.counts.items()))
+        except BagError as err:
+            print(f'gnsscam_record: {err}', file=sys.stderr)
+            code = EXIT_OUTPUT
+        node.destroy_node()
+    rclpy.try_shutdown()
+    return code
+
+
+if __name__ == '__main__':
+    sys.exit(main())
