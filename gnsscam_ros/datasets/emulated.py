@@ -626,7 +626,8 @@ def _fault_episodes(rng: np.random.Generator, t_ep: np.ndarray, rate_hz: float,
 def make_emulated_drive(seed: int, faults: int = 0, bias_m: float = 100.0, nlos: bool = True,
                         duration_s: float | None = None, gnss_rate_hz: float = 1.0,
                         fault_fraction: float = 0.3,
-                        config: EmulationConfig | None = None) -> Drive:
+                        config: EmulationConfig | None = None,
+                        camera: bool = False) -> Drive:
     """Generate the seeded emulated urban drive.
 
     Pseudorange of satellite j at epoch k (metres)::
@@ -663,6 +664,7 @@ def make_emulated_drive(seed: int, faults: int = 0, bias_m: float = 100.0, nlos:
         gnss_rate_hz: GNSS epoch rate [Hz] (the truth rate should be a multiple of it).
         fault_fraction: Target fraction of faulty epochs.
         config: Physical parameters (defaults when None).
+        camera: Attach the rendered camera stream (``datasets.camera.with_camera``).
 
     Returns:
         The drive. ``info`` holds the provenance and the error decomposition; the arrays
@@ -823,5 +825,9 @@ def make_emulated_drive(seed: int, faults: int = 0, bias_m: float = 100.0, nlos:
         'fault_episodes': [(a, min(b, n_keep)) for a, b in episodes if a < n_keep],
     }
     name = f'emulated-urban-s{seed}-f{faults}' + ('' if nlos else '-nonlos')
-    return Drive(name=name, origin_llh=frame.origin_llh, gnss=gnss, odometry=odom, imu=imu,
-                 truth=truth, camera=None, info=info)
+    drive = Drive(name=name, origin_llh=frame.origin_llh, gnss=gnss, odometry=odom, imu=imu,
+                  truth=truth, camera=None, info=info)
+    if camera:
+        from .camera import with_camera      # camera.py imports this module
+        drive = with_camera(drive)
+    return drive

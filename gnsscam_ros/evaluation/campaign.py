@@ -29,6 +29,9 @@ GNSS_CASES = [(0, 0.0)] + [(f, b) for b in (100.0, 200.0) for f in (2, 4, 6, 9)]
 METHODS = ('particle_raim', 'gnss_robust', 'fused')
 ALERT_LIMITS_M = (8.0, 16.0)
 FAULT_NAMES = {0: 'clean', 1: 'blur', 2: 'occlusion'}
+# Database pass: the streets within this distance of the route (both directions and the
+# turn arcs, 3 m spacing). Wider margins add distractors but cost build time per seed.
+DATABASE_MARGIN_M = 40.0
 
 
 def campaign_config(**overrides) -> FilterConfig:
@@ -66,10 +69,10 @@ def camera_matches_for_seed(seed: int, cache_dir: Path) -> tuple[list, dict]:
         ``(matches, faults)``: a CameraMeasurement per frame with a match (position at the
         image time) and ``{frame_id: fault code}`` (0 clean, 1 blur, 2 occlusion).
     """
-    from ..datasets.camera import build_emulated_map_database, scenario_of, with_camera
+    from ..datasets.camera import build_emulated_map_database, scenario_of
     from .report import write_npz_atomic
     cache_dir = Path(cache_dir)
-    drive = with_camera(make_emulated_drive(seed))
+    drive = make_emulated_drive(seed, camera=True)
     stream = drive.camera
     key = f"camera_matches_s{seed}_{stream.info.get('render_version', 0)}_{len(stream)}.npz"
     path = cache_dir / key
@@ -78,7 +81,8 @@ def camera_matches_for_seed(seed: int, cache_dir: Path) -> tuple[list, dict]:
         stamps, positions, scores, frame_ids = (data['stamp_ns'], data['position_enu_m'],
                                                 data['score'], data['frame_id'])
     else:
-        db = build_emulated_map_database(scenario_of(drive), cache_dir=cache_dir)
+        db = build_emulated_map_database(scenario_of(drive), cache_dir=cache_dir,
+                                         margin_m=DATABASE_MARGIN_M)
         stamps, positions, scores, frame_ids = [], [], [], []
         for i, stamp, image in stream.frames():
             best = db.query(image, top_k=1)
