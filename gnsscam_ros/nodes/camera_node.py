@@ -38,6 +38,7 @@ DEFAULTS = {
     'map_frame_id': 'map',
     'opencv_threads': 1,
     'input_queue_depth': 5,
+    'input_reliable': False,
     'stale_timeout_s': 2.0,
     'diagnostics_period_s': 1.0,
 }
@@ -89,6 +90,10 @@ class CameraNode(GnssCamNode):
         self.declare('input_queue_depth', d['input_queue_depth'],
                      'Subscription queue depth of camera/image_raw [messages].', (1, 100000),
                      read_only=True)
+        self.declare('input_reliable', d['input_reliable'],
+                     'Subscribe camera/image_raw reliably instead of best effort (sensor '
+                     'QoS): a VGA frame is ~0.9 MB, split into many UDP fragments; best '
+                     'effort loses the frame with any fragment.', read_only=True)
         self.declare('stale_timeout_s', d['stale_timeout_s'],
                      'No image for this long is reported as a stale input [s].',
                      (0.01, 1e12))
@@ -110,8 +115,10 @@ class CameraNode(GnssCamNode):
         self._last_receipt: float | None = None
         self._started = time.monotonic()
         self.pub = self.create_publisher(PointCloud2, 'camera/matches', reliable_qos())
-        self.sub = self.create_subscription(Image, 'camera/image_raw', self.on_image,
-                                            sensor_qos(self.param('input_queue_depth')))
+        depth = self.param('input_queue_depth')
+        self.sub = self.create_subscription(
+            Image, 'camera/image_raw', self.on_image,
+            reliable_qos(depth) if self.param('input_reliable') else sensor_qos(depth))
         self._worker = threading.Thread(target=self._work, name=f'{node_name}_matcher',
                                         daemon=True)
         self._worker.start()
