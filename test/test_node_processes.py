@@ -114,7 +114,8 @@ def test_pipeline_process_and_integrity_subscriber_process(tmp_path):
             probe.spin_until(lambda: pub.get_subscription_count() > 0 or proc.poll() is not None,
                              60.0, f'the pipeline subscribing {pub.topic_name}')
             assert proc.poll() is None, (tmp_path / 'pipeline.log').read_text()
-        # Before any GNSS: STALE, never OK.
+        # Before any GNSS: STALE, never OK. (The wait also lets discovery settle both ways:
+        # a best-effort reader drops samples of a writer it has not matched yet.)
         probe.spin_until(lambda: risks, 30.0, 'a STALE integrity_risk before any GNSS')
         first = ma.parse_integrity_risk(risks[0])
         assert first.stale and not first.integrity_ok
