@@ -360,14 +360,15 @@ class ParticleFilter:
                                             prep.n_systems, spread_m)
         residual = gnss.clock_corrected_residuals(priors[..., POS].reshape(-1, 3), prep,
                                                   clock_w)
-        z = (residual / prep.sigma_m).reshape(m, n, -1)
+        residual /= prep.sigma_m
+        z = residual.reshape(m, n, -1)
         log_sigma = np.log(prep.sigma_m)
         if cfg.likelihood == PARTICLE_RAIM:
             lik = gnss.particle_raim_log_likelihood(z, log_sigma, self.log_w,
                                                     cfg.dirichlet_alpha)
         else:
             lik = gnss.robust_log_likelihood(z, log_sigma, cfg.outlier_prob,
-                                             cfg.outlier_range_m)
+                                             cfg.outlier_range_m, inlier_share=False)
         log_lik = lik.log_lik * self._evidence_weight(dt_s)
         joint = self.log_w[None, :] + log_lik
         fusion = None
@@ -389,7 +390,11 @@ class ParticleFilter:
             result.camera_alpha = fusion.alpha[:, chosen]
             result.camera_kl_nats = fusion.kl_nats[:, chosen]
             result.camera_excluded = bool(fusion.excluded[chosen])
-        result.gamma = lik.gamma[chosen]
+        if lik.gamma is not None:
+            result.gamma = lik.gamma[chosen]
+        else:                                 # robust: inlier shares of the chosen set only
+            result.gamma = gnss.robust_log_likelihood(
+                z[chosen:chosen + 1], log_sigma, cfg.outlier_prob, cfg.outlier_range_m).gamma[0]
         result.n_satellites = int(prep.pr_m.shape[0])
         return result
 

@@ -228,7 +228,7 @@ def particle_raim_log_likelihood(z: np.ndarray, log_sigma: np.ndarray, prior_log
 
 
 def robust_log_likelihood(z: np.ndarray, log_sigma: np.ndarray, outlier_prob: float,
-                          outlier_range_m: float) -> GnssLikelihood:
+                          outlier_range_m: float, inlier_share: bool = True) -> GnssLikelihood:
     """Product over satellites of a Gaussian with a uniform outlier floor.
 
     ``log L = sum_k log((1 - eps) N(e_k; 0, sigma_k) + eps / range_out)``: every healthy
@@ -237,16 +237,27 @@ def robust_log_likelihood(z: np.ndarray, log_sigma: np.ndarray, outlier_prob: fl
     from zero, so the per-satellite term is evaluated directly (one exp, one log) without a
     log-sum-exp shift: an underflowing Gaussian simply leaves the floor.
 
+    Args:
+        z: (M, N, k) normalised residuals.
+        log_sigma: (k,) log standard deviations.
+        outlier_prob: Outlier probability eps.
+        outlier_range_m: Width of the uniform outlier density [m].
+        inlier_share: Also return the per-satellite inlier share (costs one more pass; the
+            filter asks for it on the chosen set only).
+
     Returns:
-        Log-likelihoods (M, N) and the posterior inlier probability per satellite (M, k)
-        averaged over particles, reported as ``gamma`` for diagnostics.
+        Log-likelihoods (M, N) and, as ``gamma``, the posterior inlier probability per
+        satellite (M, k) averaged over particles and normalised (None when not asked for).
     """
-    gauss = np.multiply(z, z)
-    gauss *= -0.5
-    np.exp(gauss, out=gauss)
-    gauss *= ((1.0 - outlier_prob) * np.exp(-log_sigma - LOG_SQRT_2PI))
+    dens = np.square(z)
+    dens *= -0.5
+    np.exp(dens, out=dens)
+    dens *= (1.0 - outlier_prob) * np.exp(-log_sigma - LOG_SQRT_2PI)
     floor = outlier_prob / outlier_range_m
-    total = gauss + floor
-    inlier = (gauss / total).mean(axis=1)
-    log_lik = np.log(total, out=total).sum(axis=-1)
-    return GnssLikelihood(log_lik=log_lik, gamma=inlier / inlier.sum(axis=-1, keepdims=True))
+    gamma = None
+    if inlier_share:
+        inlier = (dens / (dens + floor)).mean(axis=1)
+        gamma = inlier / inlier.sum(axis=-1, keepdims=True)
+    dens += floor
+    log_lik = np.log(dens, out=dens).sum(axis=-1)
+    return GnssLikelihood(log_lik=log_lik, gamma=gamma)

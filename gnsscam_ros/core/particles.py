@@ -109,11 +109,17 @@ def propagate(particles: np.ndarray, distance_m: np.ndarray, dyaw_rad: np.ndarra
         (M, N, 4) propagated sets, one per motion sample.
     """
     m, n = distance_m.shape[0], particles.shape[0]
-    noise = rng.standard_normal((m, n, STATE_DIM))
-    yaw_mid = particles[None, :, YAW] + 0.5 * dyaw_rad[:, None]
+    # Single-precision draws are twice as fast and ample for process noise.
+    noise = rng.standard_normal((m, n, STATE_DIM), dtype=np.float32)
+    # cos(yaw + d) = cos(yaw) cos(d) - sin(yaw) sin(d): the trigonometry runs on the N
+    # headings once, not on all M * N.
+    cos_n, sin_n = np.cos(particles[:, YAW]), np.sin(particles[:, YAW])
+    half = 0.5 * dyaw_rad
+    step_c = (distance_m * np.cos(half))[:, None]
+    step_s = (distance_m * np.sin(half))[:, None]
     out = np.empty((m, n, STATE_DIM))
-    out[..., 0] = particles[None, :, 0] + distance_m[:, None] * np.cos(yaw_mid)
-    out[..., 1] = particles[None, :, 1] + distance_m[:, None] * np.sin(yaw_mid)
+    out[..., 0] = particles[None, :, 0] + step_c * cos_n - step_s * sin_n
+    out[..., 1] = particles[None, :, 1] + step_c * sin_n + step_s * cos_n
     out[..., 2] = particles[None, :, 2] + dup_m
     out[..., :3] += np.sqrt(pos_var_m2) * noise[..., :3]
     out[..., YAW] = particles[None, :, YAW] + dyaw_rad[:, None] + np.sqrt(yaw_var_rad2) * noise[
