@@ -106,13 +106,8 @@ def build_parser() -> argparse.ArgumentParser:
 def load(args: argparse.Namespace):
     """The drive named on the command line (emulated: with its camera stream)."""
     if args.dataset == 'smartloc':
-        from ..datasets.smartloc import discover_files, load_smartloc
-        if args.input is not None:
-            return load_smartloc(args.input, args.truth)
-        if args.folder is None:
-            raise DatasetError('give a smartLoc folder or --input/--truth')
-        found_input, found_truth = discover_files(args.folder)
-        return load_smartloc(found_input, args.truth or found_truth)
+        from ..datasets.smartloc import load_smartloc_args
+        return load_smartloc_args(args.folder, args.input, args.truth)
     from ..datasets.emulated import make_emulated_drive
     try:
         drive = make_emulated_drive(args.seed, faults=args.faults, bias_m=args.bias_m,

@@ -172,3 +172,22 @@ def load_smartloc(input_path: Path, truth_path: Path | None = None,
                  info={'input': str(input_path),
                        'truth': str(truth_path) if truth_path else None,
                        'license': 'smartLoc dataset, TU Chemnitz, CC BY-SA 4.0'})
+
+
+def load_smartloc_args(folder: Path | None, input_path: Path | None = None,
+                       truth_path: Path | None = None) -> Drive:
+    """Load a run named the way the command-line tools take it.
+
+    Either explicit ``input_path`` (and optional ``truth_path``), or a ``folder`` whose
+    input and ground-truth files are discovered (:func:`discover_files`); an explicit
+    ``truth_path`` wins over the discovered one.
+
+    Raises:
+        DatasetError: Nothing to load, or the files are missing or malformed.
+    """
+    if input_path is not None:
+        return load_smartloc(input_path, truth_path)
+    if folder is None:
+        raise DatasetError('give a smartLoc folder or --input/--truth')
+    found_input, found_truth = discover_files(folder)
+    return load_smartloc(found_input, truth_path or found_truth)

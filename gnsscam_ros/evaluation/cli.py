@@ -116,6 +116,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def write_result(args: argparse.Namespace, result: dict) -> int:
+    """Write ``--json`` when asked; the exit code of the command."""
+    if args.json is not None:
+        try:
+            write_json_atomic(args.json, result, force=args.force)
+        except (OSError, OutputExistsError) as err:
+            print(f'gnsscam_eval: cannot write {args.json}: {err}', file=sys.stderr)
+            return EXIT_OUTPUT
+        print(f'\nwrote {args.json}')
+    return EXIT_OK
+
+
 def run_bag_command(args: argparse.Namespace) -> int:
     """``gnsscam_eval bag``: the offline metrics computed from a recorded result bag."""
     from ..bags.errors import BagError
@@ -127,14 +139,7 @@ def run_bag_command(args: argparse.Namespace) -> int:
         print(f'gnsscam_eval: {err}', file=sys.stderr)
         return EXIT_INPUT
     print_result(Path(args.result_bag).name, result)
-    if args.json is not None:
-        try:
-            write_json_atomic(args.json, result, force=args.force)
-        except (OSError, OutputExistsError) as err:
-            print(f'gnsscam_eval: cannot write {args.json}: {err}', file=sys.stderr)
-            return EXIT_OUTPUT
-        print(f'\nwrote {args.json}')
-    return EXIT_OK
+    return write_result(args, result)
 
 
 def run_campaign_command(args: argparse.Namespace) -> int:
@@ -161,13 +166,8 @@ def run_campaign_command(args: argparse.Namespace) -> int:
 def load_drive(args: argparse.Namespace):
     """The drive named on the command line."""
     if args.command == 'smartloc':
-        from ..datasets.smartloc import discover_files, load_smartloc
-        if args.input is not None:
-            return load_smartloc(args.input, args.truth)
-        if args.folder is None:
-            raise DatasetError('give a smartLoc folder or --input/--truth')
-        found_input, found_truth = discover_files(args.folder)
-        return load_smartloc(found_input, args.truth or found_truth)
+        from ..datasets.smartloc import load_smartloc_args
+        return load_smartloc_args(args.folder, args.input, args.truth)
     from ..datasets.emulated import make_emulated_drive
     seed = args.seed if args.drive_seed is None else args.drive_seed
     return make_emulated_drive(seed, faults=args.faults, bias_m=args.bias_m,
@@ -195,14 +195,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f'gnsscam_eval: {err}', file=sys.stderr)
         return EXIT_INPUT
     print_result(drive.name, result)
-    if args.json is not None:
-        try:
-            write_json_atomic(args.json, result, force=args.force)
-        except (OSError, OutputExistsError) as err:
-            print(f'gnsscam_eval: cannot write {args.json}: {err}', file=sys.stderr)
-            return EXIT_OUTPUT
-        print(f'\nwrote {args.json}')
-    return EXIT_OK
+    return write_result(args, result)
 
 
 if __name__ == '__main__':
