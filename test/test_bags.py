@@ -348,8 +348,10 @@ def test_cli_interrupted_process_leaves_no_partial_bag(tmp_path, sig):
     """A real Ctrl-C (or kill) of gnsscam_convert mid-way: exit 130, nothing left."""
     out = tmp_path / 'bags' / 'emu'
     proc = subprocess.Popen(
-        [sys.executable, '-m', 'gnsscam_ros.bags.convert_cli', 'emulated', '--seed', '1',
-         '--duration-s', '60', '--out', str(out)],
+        # Invoked the way the gnsscam_convert console script does.
+        [sys.executable, '-c', 'import sys; from gnsscam_ros.bags.convert_cli import main; '
+         'sys.exit(main())', 'emulated', '--seed', '1', '--duration-s', '60', '--out',
+         str(out)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
     # Wait until frames are being written into the temporary sibling folder.

@@ -149,6 +149,14 @@ def main(argv: list[str] | None = None) -> int:
                                 progress=None if args.quiet else ProgressLine(),
                                 namespace=args.namespace, workers=args.workers)
     except KeyboardInterrupt:
+        # Cleanup is done; a signal still pending (OpenCV and writer threads may have
+        # caught a copy) must not turn exit code 130 into death by SIGINT at shutdown.
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                signal.signal(sig, signal.SIG_IGN)
+            except ValueError:
+                break           # not the main thread
+        previous = None
         print(f'\ngnsscam_convert: interrupted; no bag written at {args.out}',
               file=sys.stderr)
         return EXIT_INTERRUPTED
