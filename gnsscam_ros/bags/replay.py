@@ -82,8 +82,7 @@ from pathlib import Path
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.context import Context
-from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor,
-                             SingleThreadedExecutor)
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -107,20 +106,33 @@ class FlowRule:
         ack_topic: Relative output topic whose stamps acknowledge the input.
         ack_type: Its message type (``pkg/msg/Type``).
         window: Messages of the input allowed in flight (published, not acknowledged).
+        via: ``(topic, subscribers)`` inside the graph that must be connected before
+            playing: a publisher and at least that many subscribers (the replay counts
+            itself where it listens), so that nothing is lost between two nodes that
+            have not discovered each other yet.
     """
 
     ack_topic: str
     ack_type: str
     window: int
+    via: tuple = ()
 
 
 #: Flow control per relative input topic (the gnsscam_ros node graph; see module doc).
 FLOW_RULES: dict[str, FlowRule] = {
-    schema.IMU: FlowRule(DEAD_RECKONING, 'nav_msgs/msg/Odometry', 50),
-    schema.TWIST: FlowRule(DEAD_RECKONING, 'nav_msgs/msg/Odometry', 50),
-    schema.IMAGE: FlowRule(MATCHES, schema.POINTCLOUD2, 2),
-    schema.GNSS: FlowRule(schema.INTEGRITY, schema.DIAGNOSTIC_ARRAY, 1),
+    schema.IMU: FlowRule(DEAD_RECKONING, 'nav_msgs/msg/Odometry', 50,
+                         ((DEAD_RECKONING, 2),)),
+    schema.TWIST: FlowRule(DEAD_RECKONING, 'nav_msgs/msg/Odometry', 50,
+                           ((DEAD_RECKONING, 2),)),
+    schema.IMAGE: FlowRule(MATCHES, schema.POINTCLOUD2, 2, ((MATCHES, 2),)),
+    schema.GNSS: FlowRule(schema.INTEGRITY, schema.DIAGNOSTIC_ARRAY, 1,
+                          (('gnss/measurements', 1),)),
 }
+#: Publication order of messages with equal stamps (others after, in bag order).
+TIE_ORDER = (schema.TWIST, schema.IMU, schema.IMAGE, schema.GNSS)
+#: Wait after the graph is connected, for the endpoints to match (discovery of the graph
+#: and matching of the DDS endpoints are separate steps) [s].
+MATCH_SETTLE_S = 0.5
 #: Streams that must be acknowledged up to a GNSS epoch's stamp before it is published.
 GNSS_BARRIER = (schema.IMAGE,)
 _MAX_TIMEOUTS = 3              # consecutive ack timeouts before a stream's control goes off
@@ -192,6 +204,9 @@ class ReplaySummary:
         flow_control: Per relative topic, ``'on'``, ``'off: ...'`` with the reason.
         ack_wait_s: Per relative topic, wall time spent waiting for acknowledgements [s].
         interrupted: Stopped early (Ctrl-C or shutdown).
+        cpu_s: CPU time [s] by process (``replay`` = this process during the replay, with
+            any in-process nodes; child node processes by name, start-up included), when
+            measured by :func:`replay_through_nodes`.
         node_diagnostics: The newest ``diagnostics`` values per status name seen during the
             replay (the nodes' counters: ``dropped_epochs``, ``dropped_frames``, ...).
     """
@@ -208,6 +223,7 @@ class ReplaySummary:
     flow_control: dict[str, str] = field(default_factory=dict)
     ack_wait_s: dict[str, float] = field(default_factory=dict)
     interrupted: bool = False
+    cpu_s: dict[str, float] = field(default_factory=dict)
     node_diagnostics: dict[str, dict] = field(default_factory=dict)
 
     @property
@@ -239,7 +255,7 @@ class ReplaySummary:
                 'dropped_gnss_epochs': self.dropped_gnss_epochs,
                 'unacknowledged': self.unacknowledged, 'flow_control': self.flow_control,
                 'ack_wait_s': self.ack_wait_s, 'interrupted': self.interrupted,
-                'node_diagnostics': self.node_diagnostics}
+                'cpu_s': self.cpu_s, 'node_diagnostics': self.node_diagnostics}
 
     def text(self) -> str:
         """Readable one-paragraph summary."""
@@ -333,7 +349,7 @@ class BagReplayer(Node):
         self._epochs_seen: set[int] = set()
         self._diagnostics: dict[str, dict] = {}
         self._stop = False
-        self._publishers: dict[str, object] = {}
+        self._bag_pubs: dict[str, object] = {}
         store = schema.typestore()
         for topic, (msgtype, latched) in self._topics.items():
             cls = message_class(msgtype)
@@ -348,7 +364,7 @@ class BagReplayer(Node):
                 qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
                                  reliability=ReliabilityPolicy.RELIABLE,
                                  durability=DurabilityPolicy.VOLATILE)
-            self._publishers[topic] = self.create_publisher(cls, topic, qos)
+            self._bag_pubs[topic] = self.create_publisher(cls, topic, qos)
         self._has_header = {
             topic: bool(store.fielddefs.get(msgtype)) and bool(store.fielddefs[msgtype][1])
             and store.fielddefs[msgtype][1][0][0] == 'header'
@@ -367,7 +383,7 @@ class BagReplayer(Node):
                 if window < 1:
                     raise ValueError(f'flow-control window of {rel} must be >= 1, got {window}')
                 self._streams[topic] = _Stream(rel, FlowRule(rule.ack_topic, rule.ack_type,
-                                                             window))
+                                                             window, rule.via))
             self._subscribe_acks()
         self.create_subscription(DiagnosticArray, 'diagnostics', self._on_diagnostics,
                                  QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
@@ -502,6 +518,16 @@ class BagReplayer(Node):
                         self._wait(other, lambda o=other: self._settle(o) == 0
                                    or o.pending[0] > stamp_ns,
                                    f'the images up to the GNSS epoch at {stamp_ns} ns')
+            # The first message of an acknowledging topic goes alone: a node initialises
+            # from its first input (the dead reckoning starts from whichever source comes
+            # first), and only an acknowledgement makes the processing order the
+            # publication order. Afterwards the window applies.
+            group = [s for s in self._streams.values()
+                     if s.rule.ack_topic == stream.rule.ack_topic and s.enabled]
+            if stream.rule.ack_topic not in self._ack_newest:
+                for other in group:
+                    self._wait(other, lambda o=other: self._settle(o) == 0,
+                               f'the first message on {other.topic}')
             self._wait(stream, lambda: self._settle(stream) < stream.rule.window,
                        f'the message at {stream.pending[0] if stream.pending else 0} ns')
 
@@ -514,21 +540,26 @@ class BagReplayer(Node):
         def missing() -> list[str]:
             out = []
             for topic, stream in self._streams.items():
-                if self._publishers[topic].get_subscription_count() == 0:
+                if self._bag_pubs[topic].get_subscription_count() == 0:
                     out.append(f'a subscriber on {topic}')
                 elif acks[stream.rule.ack_topic].get_publisher_count() == 0:
                     out.append(f'a publisher of {stream.rule.ack_topic}')
+                for via, subscribers in stream.rule.via:
+                    if (self.count_publishers(via) == 0
+                            or self.count_subscribers(via) < subscribers):
+                        out.append(f'the connection {via}')
             for rel in self.require_subscribers:
-                for topic in self._publishers:
+                for topic in self._bag_pubs:
                     if (schema.relative(topic, self.namespace) == rel
-                            and self._publishers[topic].get_subscription_count() == 0):
+                            and self._bag_pubs[topic].get_subscription_count() == 0):
                         out.append(f'a subscriber on {topic}')
             return out
 
         while missing() and time.monotonic() < deadline and not self._stop:
             time.sleep(0.02)
+        time.sleep(MATCH_SETTLE_S)
         for topic, stream in self._streams.items():
-            if self._publishers[topic].get_subscription_count() == 0:
+            if self._bag_pubs[topic].get_subscription_count() == 0:
                 stream.enabled, stream.reason = False, 'off: no subscriber'
             elif acks[stream.rule.ack_topic].get_publisher_count() == 0:
                 stream.enabled = False
@@ -593,25 +624,16 @@ class BagReplayer(Node):
                 # Once-only topics first, whatever --start says: they describe the data.
                 if latched:
                     for conn, _, raw in reader.messages(connections=latched):
-                        self._publishers[conn.topic].publish(bytes(raw))
+                        self._bag_pubs[conn.topic].publish(bytes(raw))
                         summary.published[conn.topic] = summary.published.get(conn.topic,
                                                                               0) + 1
                 if not timed:
                     return
                 t0_stamp = t0_wall = None
                 previous_target = 0.0
-                for conn, log_ns, raw in reader.messages(connections=timed, start=start_ns):
+                for conn, stamp, raw in self._stamped(reader, timed, start_ns):
                     if self._stop or not self.context.ok():
                         break
-                    raw = bytes(raw)
-                    stamp = log_ns
-                    if self._has_header[conn.topic]:
-                        try:
-                            stamp = header_stamp_ns(raw)
-                        except MessageError as err:
-                            raise BagReadError(f'{self.bag}: topic {conn.topic}: message at '
-                                               f'{log_ns} ns: {err}', path=self.bag,
-                                               topic=conn.topic) from err
                     if t0_stamp is None:
                         t0_stamp, t0_wall = stamp, time.monotonic()
                         summary.first_stamp_ns = stamp
@@ -624,7 +646,7 @@ class BagReplayer(Node):
                     self._flow(conn.topic, stamp)
                     if self._stop:
                         break
-                    self._publishers[conn.topic].publish(raw)
+                    self._bag_pubs[conn.topic].publish(raw)
                     stream = self._streams.get(conn.topic)
                     if stream is not None and stream.enabled:
                         with self._cond:
@@ -638,6 +660,39 @@ class BagReplayer(Node):
         except Exception as err:       # storage errors while iterating (truncated file)
             raise BagReadError(f'{self.bag}: reading failed: {type(err).__name__}: {err}',
                                path=self.bag) from err
+
+    def _stamped(self, reader, connections, start_ns: int):
+        """``(connection, stamp_ns, raw bytes)`` in bag order, equal stamps in TIE_ORDER.
+
+        Messages with the same stamp have no order of their own (a live system receives
+        them in any order); they are published in a fixed one, the dead reckoning's rule
+        (``core.motion.DR_SOURCES``: odometry before IMU at equal stamps), then camera and
+        GNSS after the motion of their instant, as a receiver delivers an epoch after its
+        time of validity. Only consecutive messages are regrouped (bounded look-ahead).
+        """
+        group: list = []
+        for conn, log_ns, raw in reader.messages(connections=connections, start=start_ns):
+            raw = bytes(raw)
+            stamp = log_ns
+            if self._has_header[conn.topic]:
+                try:
+                    stamp = header_stamp_ns(raw)
+                except MessageError as err:
+                    raise BagReadError(f'{self.bag}: topic {conn.topic}: message at '
+                                       f'{log_ns} ns: {err}', path=self.bag,
+                                       topic=conn.topic) from err
+            if group and stamp != group[0][1]:
+                yield from self._tie_sorted(group)
+                group = []
+            group.append((conn, stamp, raw))
+        yield from self._tie_sorted(group)
+
+    def _tie_sorted(self, group: list) -> list:
+        if len(group) < 2:
+            return group
+        rank = {t: i for i, t in enumerate(TIE_ORDER)}
+        return sorted(group, key=lambda m: rank.get(
+            schema.relative(m[0].topic, self.namespace), len(TIE_ORDER)))
 
     def _drain(self) -> None:
         """Wait for the acknowledgements of the last GNSS epochs and images.
@@ -702,21 +757,37 @@ def _overrides(values: dict) -> list:
     return [Parameter(name, value=value) for name, value in values.items()]
 
 
+#: Where :func:`replay_through_nodes` runs the nodes (see there).
+LAYOUTS = ('threads', 'processes', 'pipeline')
+NODE_MODULES = {'gnss_node': 'gnss_node', 'camera_node': 'camera_node',
+                'imu_node': 'imu_node', 'fusion_node': 'fusion_node'}
+
+
 def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None, *,
                          rate: float = 0.0, start_s: float = 0.0,
                          topics: list[str] | None = None,
                          parameters: dict[str, dict] | None = None, database=None,
-                         in_process: bool = True, domain_id: int | None = None,
+                         layout: str = 'processes', domain_id: int | None = None,
                          record_topics: list[str] | None = None, settle_s: float = 0.5,
-                         wait_s: float = 30.0, log_dir: str | Path | None = None
+                         wait_s: float = 60.0, log_dir: str | Path | None = None
                          ) -> tuple[ReplaySummary, object]:
     """Replay a bag through the four nodes and record their outputs (one call).
 
-    The nodes run either in this process (gnss_node, camera_node, imu_node, fusion_node
-    on a multi-threaded executor, as pipeline_node does) or as ``pipeline_node`` in a
-    child process with a generated ``--params-file`` (as deployed; the GIL of the filter
-    epoch is then not shared with the replay). The replay and the recorder run in this
-    process. :data:`REPLAY_NODE_PARAMETERS` are applied under ``parameters``.
+    Layouts:
+
+    * ``'processes'`` (default, fastest): each node is its own executable in a child
+      process (``python -m gnsscam_ros.nodes.<node>``, as ``ros2 run`` starts them) with a
+      generated ``--params-file``; the replay and the recorder run in this process. The
+      nodes then run in parallel on separate cores and each spins a small executor.
+    * ``'threads'``: the nodes in this process, one single-threaded executor per node on
+      its own thread (an rclpy executor rebuilds its wait set on every wake-up, at a cost
+      that grows with the number of entities it serves: per-node executors keep it
+      small). All share one GIL with the replay. ``database`` can pass a loaded map
+      database to camera_node.
+    * ``'pipeline'``: ``pipeline_node`` (the four nodes on one multi-threaded executor) in
+      a child process.
+
+    :data:`REPLAY_NODE_PARAMETERS` are applied under ``parameters``.
 
     Args:
         bag: The dataset bag.
@@ -725,35 +796,39 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None, 
         start_s: Skip this much of the bag [s].
         topics: Topics to replay (None: all).
         parameters: Node parameters ``{node name: {name: value}}``.
-        database: A loaded map database for camera_node (in-process only; a child
-            process needs ``camera_node.database_path`` instead).
-        in_process: Nodes in this process (True) or in a pipeline_node child process.
+        database: A loaded map database for camera_node (``'threads'`` only; child
+            processes need ``camera_node.database_path``).
+        layout: One of :data:`LAYOUTS`.
         domain_id: ROS domain (default :func:`default_domain_id`).
         record_topics: Topics to record (default ``record.DEFAULT_TOPICS``).
         settle_s: After the replay, wait until the recorder saw nothing new for this
             long [s].
         wait_s: Longest wait for the nodes to come up [s].
-        log_dir: ``ROS_LOG_DIR`` of the child process (default: inherited).
+        log_dir: Folder for the child processes' ROS logs and stderr (default: a new
+            temporary folder).
 
     Returns:
         ``(replay summary, record summary or None)``.
 
     Raises:
         BagError: Unreadable bag or result bag problems.
-        RuntimeError: The child process died.
+        RuntimeError: A child process died during the replay.
+        ValueError: Unknown layout.
     """
     from .record import BagRecorder
+    if layout not in LAYOUTS:
+        raise ValueError(f'unknown layout {layout!r}; use one of {LAYOUTS}')
     params = merge_parameters(REPLAY_NODE_PARAMETERS, parameters or {})
     domain = default_domain_id() if domain_id is None else int(domain_id)
     ctx = Context()
     rclpy.init(context=ctx, domain_id=domain)
     nodes: list = []
+    procs: list = []
     recorder = None
-    proc = None
-    executor = thread = None
+    executors: list = []
     record_summary = None
     try:
-        if in_process:
+        if layout == 'threads':
             from ..nodes.camera_node import CameraNode
             from ..nodes.fusion_node import FusionNode
             from ..nodes.gnss_node import GnssNode
@@ -767,30 +842,36 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None, 
                      FusionNode(context=ctx, parameter_overrides=_overrides(
                          params.get('fusion_node', {})))]
         else:
-            proc = _start_pipeline_process(params, domain, log_dir)
-        executor = MultiThreadedExecutor(num_threads=4, context=ctx)
-        for node in nodes:
-            executor.add_node(node)
+            procs = _start_node_processes(params, domain, log_dir, layout == 'pipeline')
         if result_bag is not None:
             recorder = BagRecorder(result_bag, topics=record_topics, context=ctx)
-            executor.add_node(recorder)
-        thread = threading.Thread(target=_spin, args=(executor,), daemon=True,
-                                  name='gnsscam_nodes_spin')
-        thread.start()
-        required = tuple(schema.relative(t.split(':')[0]) or t for t in (
-            record_topics or [schema.TRUTH, schema.ORIGIN])) if recorder else ()
+        for node in nodes + ([recorder] if recorder is not None else []):
+            executor = SingleThreadedExecutor(context=ctx)
+            executor.add_node(node)
+            thread = threading.Thread(target=_spin, args=(executor,), daemon=True,
+                                      name=f'gnsscam_spin_{node.get_name()}')
+            thread.start()
+            executors.append((executor, thread))
+        required = ()
+        if recorder is not None:
+            wanted = [schema.relative(t.split(':')[0]) for t in (record_topics or [
+                schema.TRUTH, schema.ORIGIN, schema.INFO])]
+            required = tuple(t for t in wanted if t in (schema.TRUTH, schema.ORIGIN,
+                                                        schema.INFO))
         replayer = BagReplayer(bag, rate=rate, start_s=start_s, topics=topics,
-                               wait_s=wait_s, context=ctx,
-                               require_subscribers=tuple(
-                                   r for r in required if r in (schema.TRUTH, schema.ORIGIN,
-                                                                schema.INFO)))
+                               wait_s=wait_s, context=ctx, require_subscribers=required)
+        cpu0 = _own_cpu_s()
         try:
             summary = replayer.play()
         finally:
             replayer.destroy_node()
-        if proc is not None and proc.poll() is not None:
-            raise RuntimeError(f'pipeline_node exited with status {proc.returncode} '
-                               'during the replay')
+        summary.cpu_s['replay'] = _own_cpu_s() - cpu0
+        for proc, name in procs:
+            summary.cpu_s[name] = _process_cpu_s(proc.pid)
+        for proc, name in procs:
+            if proc.poll() is not None:
+                raise RuntimeError(f'{name} exited with status {proc.returncode} during '
+                                   'the replay')
         if recorder is not None:
             last, quiet_since = -1, time.monotonic()
             deadline = time.monotonic() + max(10.0, 4 * settle_s)
@@ -806,32 +887,59 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None, 
             recorder.abort()
         raise
     finally:
-        if executor is not None:
+        for executor, thread in executors:
             executor.shutdown(timeout_sec=2.0)
-        if thread is not None:
             thread.join(timeout=5.0)
         for node in nodes + ([recorder] if recorder is not None else []):
             node.destroy_node()
         rclpy.try_shutdown(context=ctx)
-        if proc is not None:
+        for proc, _ in procs:
             _stop_process(proc)
 
 
-def _start_pipeline_process(params: dict[str, dict], domain: int,
-                            log_dir: str | Path | None):
-    """pipeline_node in a child process with ``params`` as its ``--params-file``."""
+def _start_node_processes(params: dict[str, dict], domain: int,
+                          log_dir: str | Path | None, pipeline: bool) -> list:
+    """Start the nodes as child processes: ``[(Popen, name)]``."""
     import subprocess
     import tempfile
-    folder = Path(tempfile.mkdtemp(prefix='gnsscam_replay_'))
-    params_file = write_params_file(folder / 'params.yaml', params)
+    folder = Path(log_dir) if log_dir is not None else Path(
+        tempfile.mkdtemp(prefix='gnsscam_replay_'))
+    folder.mkdir(parents=True, exist_ok=True)
+    params_file = write_params_file(folder / 'replay_params.yaml', params)
     env = dict(os.environ)
-    env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE=env.get(
-        'ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST'), OPENBLAS_NUM_THREADS=env.get(
-        'OPENBLAS_NUM_THREADS', '1'))
-    env['ROS_LOG_DIR'] = str(log_dir or env.get('ROS_LOG_DIR') or folder)
-    return subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.nodes.pipeline', '--ros-args',
-                             '--params-file', str(params_file)], env=env,
-                            stdout=subprocess.DEVNULL, stderr=(folder / 'stderr.txt').open('w'))
+    env.update(ROS_DOMAIN_ID=str(domain), ROS_LOG_DIR=str(folder / 'ros_log'),
+               ROS_AUTOMATIC_DISCOVERY_RANGE=env.get('ROS_AUTOMATIC_DISCOVERY_RANGE',
+                                                     'LOCALHOST'),
+               OPENBLAS_NUM_THREADS=env.get('OPENBLAS_NUM_THREADS', '1'))
+    modules = {'pipeline_node': 'pipeline'} if pipeline else NODE_MODULES
+    procs = []
+    try:
+        for name, module in modules.items():
+            stderr = (folder / f'{name}.stderr.txt').open('w')
+            procs.append((subprocess.Popen(
+                [sys.executable, '-m', f'gnsscam_ros.nodes.{module}', '--ros-args',
+                 '--params-file', str(params_file)], env=env, stdout=subprocess.DEVNULL,
+                stderr=stderr), name))
+            stderr.close()
+    except BaseException:
+        for proc, _ in procs:
+            _stop_process(proc)
+        raise
+    return procs
+
+
+def _own_cpu_s() -> float:
+    """CPU time of this process so far (all threads) [s]."""
+    return time.process_time()
+
+
+def _process_cpu_s(pid: int) -> float:
+    """CPU time (user + system) of a running child process [s] (NaN when unknown)."""
+    try:
+        fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+    except (OSError, ValueError, IndexError):
+        return math.nan
 
 
 def _stop_process(proc) -> int:
