@@ -41,6 +41,7 @@ from pathlib import Path
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.rosbag2 import Writer
@@ -51,6 +52,7 @@ from .errors import BagError, BagExistsError, BagTypeError
 from .replay import message_class
 
 EXIT_OK, EXIT_USAGE, EXIT_OUTPUT = 0, 2, 4
+_NO_SUB_EVENTS = SubscriptionEventCallbacks(use_default_callbacks=False)
 
 #: Topics recorded by default, with their types and whether they are once-only (latched).
 DEFAULT_TOPICS: dict[str, tuple[str, bool]] = {
@@ -131,6 +133,9 @@ class BagRecorder(Node):
                     raise BagTypeError(f'{name}: message type {msgtype} unknown to the '
                                        'typestore', topic=name)
                 message_class(msgtype)
+        # Woken for every message: no parameter services or QoS event handlers, whose
+        # entities rclpy walks at each wake (the recorder has no ROS parameters).
+        kwargs.setdefault('start_parameter_services', False)
         super().__init__(node_name, **kwargs)
         self.out.parent.mkdir(parents=True, exist_ok=True)
         self._tmp = Path(tempfile.mkdtemp(prefix=f'.{self.out.name}.partial-',
@@ -174,7 +179,7 @@ class BagRecorder(Node):
                 offered_qos_profiles=[schema.qos(latched)])
         self.summary.counts[topic] = 0
         self.create_subscription(message_class(msgtype), topic, self._writer_of(topic), qos,
-                                 raw=True)
+                                 raw=True, event_callbacks=_NO_SUB_EVENTS)
 
     def _resolve_types(self) -> None:
         """Subscribe to topics given without a type once the graph knows their type."""

@@ -70,6 +70,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import itertools
 import math
 import os
 import sys
@@ -83,6 +84,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -93,6 +95,8 @@ from .errors import BagError, BagReadError, BagTypeError
 from .read import header_stamp_ns, open_bag
 
 EXIT_OK, EXIT_USAGE, EXIT_INPUT = 0, 2, 3
+_NO_PUB_EVENTS = PublisherEventCallbacks(use_default_callbacks=False)
+_NO_SUB_EVENTS = SubscriptionEventCallbacks(use_default_callbacks=False)
 
 DEAD_RECKONING = 'odometry/dead_reckoning'
 MATCHES = 'camera/matches'
@@ -343,6 +347,12 @@ class BagReplayer(Node):
             self._connections = list(reader.connections)
             self._bag_start_ns = int(reader.start_time)
         self._select(topics)
+        # The executor of this node wakes for every acknowledgement (100 per second of an
+        # IMU stream) and rclpy rebuilds its wait set at each wake, at a cost that grows
+        # with every service and event handler: the replay has no ROS parameters, so no
+        # parameter services, and no QoS event handlers (all its endpoints are reliable,
+        # compatible with any subscriber).
+        kwargs.setdefault('start_parameter_services', False)
         super().__init__(node_name, **kwargs)
         self._cond = threading.Condition()
         self._ack_newest: dict[str, int] = {}
@@ -364,7 +374,8 @@ class BagReplayer(Node):
                 qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
                                  reliability=ReliabilityPolicy.RELIABLE,
                                  durability=DurabilityPolicy.VOLATILE)
-            self._bag_pubs[topic] = self.create_publisher(cls, topic, qos)
+            self._bag_pubs[topic] = self.create_publisher(cls, topic, qos,
+                                                          event_callbacks=_NO_PUB_EVENTS)
         self._has_header = {
             topic: bool(store.fielddefs.get(msgtype)) and bool(store.fielddefs[msgtype][1])
             and store.fielddefs[msgtype][1][0][0] == 'header'
@@ -387,7 +398,8 @@ class BagReplayer(Node):
             self._subscribe_acks()
         self.create_subscription(DiagnosticArray, 'diagnostics', self._on_diagnostics,
                                  QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
-                                            reliability=ReliabilityPolicy.RELIABLE))
+                                            reliability=ReliabilityPolicy.RELIABLE),
+                                 event_callbacks=_NO_SUB_EVENTS)
 
     # ----------------------------------------------------------------- selection
     def _select(self, topics: list[str] | None) -> None:
@@ -425,12 +437,14 @@ class BagReplayer(Node):
         ack_topics = {s.rule.ack_topic: s.rule.ack_type for s in self._streams.values()}
         for topic, msgtype in ack_topics.items():
             if topic == schema.INTEGRITY:
-                sub = self.create_subscription(DiagnosticArray, topic, self._on_integrity, qos)
+                sub = self.create_subscription(DiagnosticArray, topic, self._on_integrity, qos,
+                                               event_callbacks=_NO_SUB_EVENTS)
             else:
                 # Raw: the acknowledging stamp is the header stamp, read from the CDR
                 # bytes without decoding the message (100 dead-reckoning states per second).
                 sub = self.create_subscription(message_class(msgtype), topic,
-                                               self._raw_ack(topic), qos, raw=True)
+                                               self._raw_ack(topic), qos, raw=True,
+                                               event_callbacks=_NO_SUB_EVENTS)
             self._ack_subs.append((topic, sub))
 
     def _raw_ack(self, topic: str):
@@ -743,13 +757,18 @@ def _spin(executor) -> None:
 
 
 # ================================================================ through the nodes
+_runs = itertools.count()
+
+
 def default_domain_id() -> int:
-    """``$ROS_DOMAIN_ID``, else a per-process id in 220-231 (apart from the tests' ids),
-    so that concurrent runs on one machine do not see each other's topics."""
+    """``$ROS_DOMAIN_ID``, else a domain in 220-232 (apart from the tests' ids) that
+    changes with the process and with every call, so that concurrent runs on one machine
+    do not see each other's topics and a run does not match the endpoints of a previous
+    run's nodes that the discovery has not forgotten yet."""
     env = os.environ.get('ROS_DOMAIN_ID')
     if env and env.isdigit():
         return int(env)
-    return 220 + os.getpid() % 12
+    return 220 + (os.getpid() + next(_runs)) % 13
 
 
 def _overrides(values: dict) -> list:
