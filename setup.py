@@ -27,6 +27,8 @@ setup(
             'gnsscam_bench = gnsscam_ros.evaluation.bench:main',
             'gnsscam_mapdb = gnsscam_ros.vision.mapdb_cli:main',
             'gnsscam_convert = gnsscam_ros.bags.convert_cli:main',
+            'gnsscam_replay = gnsscam_ros.bags.replay:main',
+            'gnsscam_record = gnsscam_ros.bags.record:main',
             'gnss_node = gnsscam_ros.nodes.gnss_node:main',
             'camera_node = gnsscam_ros.nodes.camera_node:main',
             'imu_node = gnsscam_ros.nodes.imu_node:main',
