@@ -1,60 +1,462 @@
-"""The main job (``./run demo``): evaluate the filter on the real and the emulated data.
+"""The main job (``./run demo``): datasets -> bags -> replay through the nodes -> results.
 
-Runs the filter with its defaults on the smartLoc Berlin run (when the data folder is
-there) and on the emulated urban drive with 6 faulty satellites of 100 m bias, each next
-to the robust snapshot WLS baseline of the same run, prints one results table and writes
-the JSON of each run into a new time-stamped folder (nothing is overwritten).
+For the emulated urban drive (camera included) and, when the data folder is there, the
+real smartLoc run (no camera), in one command and without a ROS install:
+
+1. the dataset is generated (emulated: seeded, a ``--duration-s`` cut of the drive with
+   its rendered camera) or loaded (smartLoc: a ``--smartloc-duration-s`` cut) and
+   converted into a rosbag2 bag (``bags.convert_drive``);
+2. emulated: the map database of the drive's route is built (or loaded from the cache:
+   the first build renders a few thousand database views, about a minute or two on two
+   cores; later runs load it in a second) and saved next to the bag for camera_node;
+3. the bag is replayed at ``R = 0`` (as fast as the nodes keep up, lossless;
+   ``bags.replay``) into gnss_node, imu_node, camera_node and fusion_node, each in its own
+   process, and their outputs are recorded into a result bag (``bags.record``);
+4. ``gnsscam_eval bag`` metrics are computed from the result bag
+   (``evaluation.bag_eval``), next to the offline evaluation of the same drive with the
+   same seed and configuration (:func:`offline_run`: the filter core run over the bag's
+   data with the nodes' dead reckoning and camera handling, no ROS graph) and the snapshot
+   WLS baseline; the largest difference between the nodes' and the offline estimates
+   shows that the replay path changes nothing;
+5. figures (trajectory; risk bound against the reference risk) go next to the JSON.
+
+Everything lands in a new folder ``<out>/demo-<UTC time>/`` (a suffix is added if it
+exists: nothing is ever overwritten). The time of every stage and the replay speed (x real
+time) are printed.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import math
+import os
 import sys
 import time
 from pathlib import Path
 
-from ..core.filter import FilterConfig
-from ..datasets.emulated import make_emulated_drive
-from ..datasets.errors import DatasetError
-from ..datasets.smartloc import discover_files, load_smartloc
-from .cli import DEFAULT_ALERT_LIMITS_M, print_result
-from .evaluate import evaluate_drive
+import numpy as np
+
+from ..core import integrity
+from ..core.filter import UPDATED, FilterConfig, ParticleFilter
+from ..core.frames import LocalFrame
+from ..core.fusion import CameraMeasurement
+from ..core.motion import DeadReckoningConfig, MotionAccumulator, dead_reckon
+from ..core.types import Drive, ImuSeries, OdometrySeries, Trajectory
 from .report import format_table, write_json_atomic
+from .runner import RunRecord, accuracy, run_snapshot_baseline, summarize, truth_at
+
+#: Alert limit of the comparison [m]: the nodes publish the risk at one alert limit
+#: (fusion_node ``alert_limit_m``; extra limits are not a node parameter).
+ALERT_LIMIT_M = 8.0
+EMULATED_SEED, EMULATED_FAULTS, EMULATED_BIAS_M = 3, 6, 100.0
 
 
+# ============================================================================ helpers
+def route_range_of(scenario, drive: Drive, margin_m: float = 50.0) -> tuple[float, float]:
+    """Arc lengths ``(0, s_end + margin)`` [m] of the route a (cut) emulated drive covers.
+
+    The map database only needs the streets the drive passes: limiting it to them keeps
+    the first build of a short demo within a minute or two instead of rendering the whole
+    city.
+    """
+    duration_s = float(drive.info.get('duration_s', scenario.duration_s))
+    s_end = float(np.interp(duration_s, scenario.t_s, scenario.s_m))
+    return 0.0, min(s_end + margin_m, float(scenario.route.length_m))
+
+
+def cut_drive(drive: Drive, duration_s: float | None) -> Drive:
+    """The first ``duration_s`` seconds of a drive (None or <= 0: the whole drive).
+
+    The cut starts at the first GNSS epoch; odometry, IMU and truth are kept over the same
+    span (truth one second longer, so that the last epoch is bracketed).
+    """
+    if not duration_s or duration_s <= 0 or not drive.gnss:
+        return drive
+    t0 = drive.gnss[0].stamp_ns
+    t1 = t0 + int(round(duration_s * 1e9))
+
+    def keep(stamps, end=t1):
+        return (np.asarray(stamps) >= t0 - 10**9) & (np.asarray(stamps) <= end)
+
+    odo, imu, truth = drive.odometry, drive.imu, drive.truth
+    if odo is not None:
+        k = keep(odo.stamp_ns)
+        odo = OdometrySeries(odo.stamp_ns[k], odo.speed_mps[k], odo.yaw_rate_rps[k],
+                             odo.speed_var[k], odo.yaw_rate_var[k])
+    if imu is not None:
+        k = keep(imu.stamp_ns)
+        imu = ImuSeries(imu.stamp_ns[k], imu.accel_mps2[k], imu.gyro_rps[k])
+    if truth is not None:
+        k = keep(truth.stamp_ns, t1 + 10**9)
+        truth = Trajectory(truth.stamp_ns[k], truth.ecef_m[k],
+                           None if truth.yaw_rad is None else truth.yaw_rad[k])
+    return dataclasses.replace(
+        drive, gnss=[e for e in drive.gnss if e.stamp_ns <= t1], odometry=odo, imu=imu,
+        truth=truth, info={**drive.info, 'cut_s': float(duration_s)})
+
+
+def offline_camera_matches(camera, database, top_k: int = 5) -> list[CameraMeasurement]:
+    """Best database match of every frame of a camera stream, as camera_node + fusion_node
+    produce them (top-``top_k`` query, best first; ``frame_id`` counts every frame).
+
+    Args:
+        camera: Frames (``bags.read.BagCamera`` or ``datasets.camera.CameraStream``).
+        database: The map database (positions in the map frame).
+        top_k: camera_node's ``top_k``.
+    """
+    out = []
+    positions = database.positions.enu_m
+    for i, stamp, image in camera.frames():
+        found = database.query(image, top_k=top_k)
+        if found:
+            out.append(CameraMeasurement(int(stamp), np.asarray(positions[found[0].index],
+                                                                dtype=float),
+                                         float(found[0].score), int(i)))
+    return out
+
+
+def offline_run(drive: Drive, config: FilterConfig, seed: int,
+                camera_matches: list[CameraMeasurement] | None = None,
+                dr_config: DeadReckoningConfig | None = None) -> tuple[RunRecord, LocalFrame]:
+    """The offline evaluation run of a drive with the nodes' motion and camera handling.
+
+    The filter core (``ParticleFilter``) runs over the drive's epochs as
+    :func:`.runner.run_filter` does, with the motion and camera measurements that
+    fusion_node computes: the dead reckoning of imu_node (``core.motion.dead_reckon``,
+    odometry before IMU at equal stamps) accumulated by ``MotionAccumulator``, and the
+    camera matches moved to the epoch by ``fusion_node.camera_for_epoch``. ``run_filter``
+    integrates the odometry directly (``integrate_odometry``), which agrees with the dead
+    reckoning to ~1e-9 m; the filter amplifies such differences (its discrete choices:
+    resampling, the chosen posterior) to metres over a few dozen epochs, so only the same
+    motion arithmetic gives the same trajectory as the nodes.
+
+    Args:
+        drive: The data (with truth).
+        config: Filter configuration (as fusion_node's parameters).
+        seed: Filter seed (fusion_node ``seed``).
+        camera_matches: Best match of every camera frame (:func:`offline_camera_matches`),
+            None for GNSS only.
+        dr_config: imu_node's dead-reckoning parameters (default: its defaults).
+
+    Returns:
+        The run record (as :func:`.runner.run_filter`) and the filter's map frame.
+    """
+    from ..nodes.fusion_node import DEFAULTS, camera_for_epoch, motion_for_epoch
+    frame = LocalFrame(*drive.origin_llh) if drive.origin_llh is not None else None
+    filt = ParticleFilter(config, frame=frame, rng=np.random.default_rng(seed))
+    states = dead_reckon(drive.imu, drive.odometry, dr_config)
+    acc = MotionAccumulator(DEFAULTS['odometry_buffer_s'])
+    limits = config.alert_limits_m
+    other = integrity.APPROX if config.inverse_bernoulli == integrity.EXACT else integrity.EXACT
+    stamps, estimates, bounds, bounds_other, references = [], [], [], [], []
+    statuses: dict[str, int] = {}
+    camera_alpha: dict[int, float] = {}
+    camera_epochs = camera_excluded = 0
+    truth_enu = None
+    nxt = 0
+    start = time.monotonic()
+    for epoch in drive.gnss:
+        # The states fusion_node has when it runs the epoch: up to the first one at or
+        # after the epoch (the accumulator forgets states 60 s behind its newest).
+        while nxt < len(states) and (not acc.states or acc.newest_stamp_ns < epoch.stamp_ns):
+            acc.add(states[nxt])
+            nxt += 1
+        motion = motion_for_epoch(acc, filt, epoch.stamp_ns)
+        camera = (camera_for_epoch(camera_matches, acc, filt, epoch.stamp_ns)
+                  if camera_matches else None)
+        result = filt.step(epoch, motion, camera)
+        if result.camera_alpha is not None:
+            camera_epochs += 1
+            camera_excluded += int(result.camera_excluded)
+            camera_alpha.update(zip(result.camera_frame_ids, result.camera_alpha.tolist()))
+        statuses[result.status] = statuses.get(result.status, 0) + 1
+        if result.status != UPDATED or drive.truth is None:
+            continue
+        if truth_enu is None:
+            truth_enu = filt.frame.ecef_to_enu(drive.truth.ecef_m)
+        truth = np.array([np.interp(epoch.stamp_ns, drive.truth.stamp_ns, truth_enu[:, j])
+                          for j in range(3)])
+        stamps.append(epoch.stamp_ns)
+        estimates.append(result.position_enu_m)
+        bounds.append(result.risk.risk_bound)
+        bounds_other.append(integrity.risk_bound(
+            result.risk.empirical_risk, result.risk.kl_nats, config.n_posteriors,
+            config.risk_delta, other).risk_bound)
+        references.append(integrity.hazard_mass(filt.posteriors[..., :3],
+                                                filt.posterior_log_w, truth, limits,
+                                                config.horizontal_risk))
+    stamps_arr = np.array(stamps, dtype=np.int64)
+    record = RunRecord(
+        stamp_ns=stamps_arr, estimate_enu_m=np.array(estimates).reshape(-1, 3),
+        truth_enu_m=(truth_at(drive, filt.frame, stamps_arr) if stamps else np.zeros((0, 3))),
+        risk_bound={config.inverse_bernoulli: np.array(bounds).reshape(-1, len(limits)),
+                    other: np.array(bounds_other).reshape(-1, len(limits))},
+        reference_risk=np.array(references).reshape(-1, len(limits)), alert_limits_m=limits,
+        statuses=statuses, seconds=time.monotonic() - start, camera_alpha=camera_alpha,
+        camera_excluded_epochs=camera_excluded, camera_epochs=camera_epochs)
+    return record, filt.frame
+
+
+def node_series(result_bag: Path, frame: LocalFrame) -> dict:
+    """Per-epoch estimates (from ``fix``, in ``frame``) and risk bounds of a result bag.
+
+    Returns:
+        ``{'stamp_ns': (E,), 'estimate_enu_m': (E, 3), 'risk_bound': (E,)}`` for the
+        epochs with an OK/ERROR verdict and a fix.
+    """
+    import pymap3d
+
+    from ..bags.read import read_results
+    res = read_results(result_bag, particles=False)
+    bound = {int(r.epoch_stamp_ns): float(r.risk_bound) for r in res.integrity
+             if r.level in (0, 2) and r.epoch_stamp_ns is not None
+             and math.isfinite(r.risk_bound)}
+    ecef = np.column_stack(pymap3d.geodetic2ecef(res.fix_llh[:, 0], res.fix_llh[:, 1],
+                                                 res.fix_llh[:, 2])) if len(
+        res.fix_llh) else np.zeros((0, 3))
+    enu = frame.ecef_to_enu(ecef) if len(ecef) else np.zeros((0, 3))
+    keep = [i for i, s in enumerate(res.fix_stamp_ns) if int(s) in bound]
+    stamps = res.fix_stamp_ns[keep]
+    return {'stamp_ns': stamps, 'estimate_enu_m': enu[keep].reshape(-1, 3),
+            'risk_bound': np.array([bound[int(s)] for s in stamps], dtype=float)}
+
+
+def new_run_folder(root: Path) -> Path:
+    """``root/demo-<UTC time>``, with a suffix when it exists (never reused)."""
+    base = root / time.strftime('demo-%Y%m%d-%H%M%S', time.gmtime())
+    path, k = base, 1
+    while True:
+        try:
+            path.mkdir(parents=True, exist_ok=False)
+            return path
+        except FileExistsError:
+            k += 1
+            path = base.with_name(f'{base.name}-{k}')
+
+
+class Stages:
+    """Wall time of each stage, printed as it ends."""
+
+    def __init__(self):
+        self.start = time.monotonic()
+        self.times: dict[str, float] = {}
+
+    def run(self, name: str, fn, *args, **kwargs):
+        t0 = time.monotonic()
+        print(f'[demo] {name} ...', file=sys.stderr, flush=True)
+        out = fn(*args, **kwargs)
+        self.times[name] = time.monotonic() - t0
+        print(f'[demo] {name}: {self.times[name]:.1f} s', file=sys.stderr, flush=True)
+        return out
+
+    @property
+    def total_s(self) -> float:
+        return time.monotonic() - self.start
+
+
+# ============================================================================ one dataset
+def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed: int,
+                stages: Stages, layout: str = 'processes', database=None) -> dict:
+    """Convert, replay through the nodes, record, evaluate and plot one drive.
+
+    Args:
+        key: Short name (``emulated``, ``smartloc``): prefix of the stage names.
+        drive: The data (``drive.camera`` set for the camera path).
+        folder: Output folder of this dataset (created).
+        config: Filter configuration of both the nodes and the offline run.
+        seed: Filter seed of both.
+        stages: Stage timer.
+        layout: Where the nodes run (``bags.replay.LAYOUTS``).
+        database: Map database for the camera (None: GNSS only).
+
+    Returns:
+        The dataset's results (metrics of the nodes, the offline run and WLS; replay and
+        record summaries; paths).
+    """
+    from ..bags.convert import convert_drive
+    from ..bags.read import read_drive
+    from ..bags.replay import replay_through_nodes
+    from ..nodes.camera_node import DEFAULTS as CAMERA_DEFAULTS
+    from .bag_eval import evaluate_result_bag
+    from .plots import risk_plot, trajectory_plot
+    folder.mkdir(parents=True, exist_ok=True)
+    bag, result_bag = folder / 'dataset_bag', folder / 'result_bag'
+    conversion = stages.run(f'{key}: convert to {bag}', convert_drive, drive, bag)
+    print(f'[demo] {key}: {conversion.messages} messages, {conversion.duration_s:.0f} s, '
+          f'{conversion.bag_bytes / 1e6:.0f} MB', file=sys.stderr)
+    data = read_drive(bag)              # what the nodes receive (float32 fields included)
+    params = {'fusion_node': {**{f.name: getattr(config, f.name)
+                                 for f in dataclasses.fields(config)
+                                 if f.name != 'extra_alert_limits_m'},
+                              'seed': int(seed)}}
+    if data.origin_llh is not None:
+        params['fusion_node'].update(use_map_origin=True,
+                                     map_origin_llh=[float(v) for v in data.origin_llh])
+    topics = None
+    if database is not None:
+        db_path = folder / 'map_database.npz'
+        stages.run(f'{key}: save the map database', database.save, db_path)
+        params['camera_node'] = {'database_path': str(db_path)}
+    elif data.camera is not None:
+        topics = [t for t in ('dataset/info', 'map/origin', 'gnss/pseudoranges', 'imu/data',
+                              'odom/twist', 'ground_truth/pose')]
+    replay, record = stages.run(
+        f'{key}: replay through the nodes ({layout}) -> {result_bag}', replay_through_nodes,
+        bag, result_bag, rate=0.0, parameters=params, layout=layout, topics=topics,
+        log_dir=folder / 'logs')
+    print(f'[demo] {key}: {replay.text()}', file=sys.stderr)
+    nodes = stages.run(f'{key}: gnsscam_eval bag', evaluate_result_bag, result_bag, bag)
+    matches = None
+    if database is not None and data.camera is not None:
+        matches = stages.run(f'{key}: offline camera matching', offline_camera_matches,
+                             data.camera, database, CAMERA_DEFAULTS['top_k'])
+    record_off, frame = stages.run(f'{key}: offline run (same drive, seed, config)',
+                                   offline_run, data, config, seed, matches)
+    offline = summarize(record_off, config)
+    # Baseline in the offline run's frame (WLS needs no seed: it is the same for both).
+    stamps_wls, fixes = run_snapshot_baseline(data, frame, config.measurement_var_m2)
+    wls = accuracy(fixes, truth_at(data, frame, stamps_wls))
+    series = node_series(result_bag, frame)
+    index = {int(s): i for i, s in enumerate(record_off.stamp_ns)}
+    common = [(i, index[int(s)]) for i, s in enumerate(series['stamp_ns']) if int(s) in index]
+    diff = (np.abs(series['estimate_enu_m'][[i for i, _ in common]]
+                   - record_off.estimate_enu_m[[j for _, j in common]]).max()
+            if common else math.nan)
+    # Figures: truth and both estimates at the common epochs; the nodes' bound against
+    # the reference risk (posterior mass beyond the alert limit around the truth).
+    paths = []
+    if common:
+        j = np.array([j for _, j in common])
+        i = np.array([i for i, _ in common])
+        t_s = (record_off.stamp_ns[j] - record_off.stamp_ns[j[0]]) * 1e-9
+        paths.append(trajectory_plot(
+            folder / 'trajectory.png', f'{drive.name}: replay through the nodes vs offline',
+            record_off.truth_enu_m[j], {'nodes (replayed bag)': series['estimate_enu_m'][i],
+                                        'offline': record_off.estimate_enu_m[j]}))
+        paths.append(risk_plot(
+            folder / f'risk_al{ALERT_LIMIT_M:g}m.png',
+            f'{drive.name}: risk bound of the nodes vs reference risk', t_s,
+            series['risk_bound'][i], record_off.reference_risk[j, 0], ALERT_LIMIT_M,
+            config.target_risk))
+    result = {'dataset': drive.name, 'nodes': nodes, 'offline': offline, 'wls': wls,
+              'max_estimate_difference_m': float(diff), 'common_epochs': len(common),
+              'replay': replay.as_dict(),
+              'record': record.as_dict() if record is not None else None,
+              'camera_matches_offline': None if matches is None else len(matches),
+              'bags': {'dataset': str(bag), 'result': str(result_bag)},
+              'plots': [str(p) for p in paths], 'seed': seed,
+              'config': dataclasses.asdict(config)}
+    write_json_atomic(folder / 'results.json', result)
+    return result
+
+
+def _rows(key: str, result: dict) -> list[list]:
+    """Table rows: nodes, offline, WLS of one dataset."""
+    limit = f'{ALERT_LIMIT_M:g}'
+    rows = []
+    for label, m in (('nodes (replayed bag)', result['nodes']),
+                     ('offline (same seed)', result['offline'])):
+        integ = m['integrity'][limit]
+        rows.append([key, label, m['epochs'], m['rmse_2d_m'], m['rmse_3d_m'],
+                     integ['p_fa'], integ['p_mi'], integ['failure_ratio'],
+                     integ['mean_risk_bound']])
+    w = result['wls']
+    rows.append([key, 'snapshot WLS', w['epochs'], w['rmse_2d_m'], w['rmse_3d_m'], None,
+                 None, None, None])
+    return rows
+
+
+# ============================================================================ main
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='gnsscam demo', description=__doc__.split('\n')[0])
     parser.add_argument('--shared', type=Path, default=Path('../shared'),
                         help='folder holding data/smartloc (default %(default)s)')
     parser.add_argument('--out', type=Path, default=Path('out'),
                         help='results root; each run writes a new sub-folder')
-    parser.add_argument('--seed', type=int, default=1)
+    parser.add_argument('--seed', type=int, default=1, help='filter seed (default 1)')
+    parser.add_argument('--particles', type=int, default=FilterConfig().n_particles,
+                        help='particles per posterior N (default %(default)s)')
+    parser.add_argument('--duration-s', type=float, default=150.0,
+                        help='emulated drive length [s] (default %(default)s; the whole '
+                        'drive is ~424 s: --full)')
+    parser.add_argument('--full', action='store_true', help='the whole emulated drive')
+    parser.add_argument('--smartloc-duration-s', type=float, default=120.0,
+                        help='smartLoc cut [s]; 0 = the whole run (~275 s) '
+                        '(default %(default)s)')
+    parser.add_argument('--no-camera', action='store_true', help='emulated drive: GNSS only')
+    parser.add_argument('--no-smartloc', action='store_true', help='skip the smartLoc data')
+    parser.add_argument('--layout', default='processes',
+                        choices=('processes', 'threads', 'pipeline'),
+                        help='where the nodes run (default %(default)s)')
+    parser.add_argument('--cache', type=Path,
+                        default=Path(os.environ.get('GNSSCAM_CACHE_DIR', '.cache/gnsscam')),
+                        help='map database cache (default %(default)s)')
     args = parser.parse_args(argv)
-    config = FilterConfig(alert_limit_m=DEFAULT_ALERT_LIMITS_M[0],
-                          extra_alert_limits_m=DEFAULT_ALERT_LIMITS_M[1:])
-    out_dir = args.out / time.strftime('demo-%Y%m%d-%H%M%S', time.gmtime())
-    runs = []
+    config = FilterConfig(n_particles=args.particles, alert_limit_m=ALERT_LIMIT_M)
+    stages = Stages()
+    out_dir = new_run_folder(args.out)
+    print(f'[demo] writing into {out_dir}', file=sys.stderr)
+    from ..bags.replay import use_dds_profile
+    use_dds_profile(out_dir)            # before the first ROS participant of this process
+    results: dict[str, dict] = {}
+
+    # ---- emulated urban drive, camera included
+    from ..datasets.emulated import make_emulated_drive
+    duration = None if args.full else args.duration_s
+    drive = stages.run('emulated: generate the drive', make_emulated_drive, EMULATED_SEED,
+                       faults=EMULATED_FAULTS, bias_m=EMULATED_BIAS_M, duration_s=duration)
+    database = None
+    if not args.no_camera:
+        from ..datasets.camera import build_emulated_map_database, scenario_of, with_camera
+        drive = with_camera(drive)
+        scenario = scenario_of(drive)
+        database = stages.run(
+            'emulated: map database of the route (cached; the first build renders the '
+            'database pass)', build_emulated_map_database, scenario, cache_dir=args.cache,
+            route_range_m=route_range_of(scenario, drive))
+    results['emulated'] = run_dataset('emulated', drive, out_dir / 'emulated', config,
+                                      args.seed, stages, args.layout, database)
+
+    # ---- smartLoc (real data), no camera
     smartloc_dir = args.shared / 'data' / 'smartloc'
-    if smartloc_dir.is_dir():
+    if args.no_smartloc:
+        pass
+    elif smartloc_dir.is_dir():
+        from ..datasets.errors import DatasetError
+        from ..datasets.smartloc import discover_files, load_smartloc
         try:
-            runs.append(('smartloc', load_smartloc(*discover_files(smartloc_dir))))
+            real = cut_drive(load_smartloc(*discover_files(smartloc_dir)),
+                             args.smartloc_duration_s)
+            results['smartloc'] = run_dataset('smartloc', real, out_dir / 'smartloc', config,
+                                              args.seed, stages, args.layout)
         except DatasetError as err:
-            print(f'demo: skipping smartLoc: {err}', file=sys.stderr)
+            print(f'[demo] skipping smartLoc: {err}', file=sys.stderr)
     else:
-        print(f'demo: {smartloc_dir} not found, running the emulated drive only',
-              file=sys.stderr)
-    runs.append(('emulated', make_emulated_drive(3, faults=6, bias_m=100.0)))
-    summary = []
-    for key, drive in runs:
-        result = evaluate_drive(drive, config, seed=args.seed, progress=True)
-        print_result(drive.name, result)
-        print()
-        path = write_json_atomic(out_dir / f'{key}.json', result)
-        summary.append([drive.name, result['epochs'], result['rmse_2d_m'],
-                        result['baseline_wls']['rmse_2d_m'], result['rmse_2d_ratio_to_wls'],
-                        result['rmse_3d_m'], result['integrity']['8']['failure_ratio'],
-                        result['integrity']['16']['failure_ratio'], str(path)])
-    print(format_table(['drive', 'epochs', 'RMSE 2D [m]', 'WLS 2D [m]', 'ratio',
-                        'RMSE 3D [m]', 'fail 8 m', 'fail 16 m', 'json'], summary))
+        print(f'[demo] {smartloc_dir} not found: emulated drive only', file=sys.stderr)
+
+    # ---- summary
+    rows = [row for key, r in results.items() for row in _rows(key, r)]
+    print()
+    print(f'Results at alert limit {ALERT_LIMIT_M:g} m, target risk {config.target_risk:g}, '
+          f'N = {config.n_particles} x M = {config.n_posteriors}, seed {args.seed}:')
+    print(format_table(['data', 'run', 'epochs', 'RMSE 2D [m]', 'RMSE 3D [m]', 'P_FA', 'P_MI',
+                        'fail ratio', 'mean bound'], rows))
+    print()
+    for key, r in results.items():
+        rep = r['replay']
+        print(f'{key}: replay {rep["bag_span_s"]:.0f} s of data in {rep["wall_s"]:.1f} s = '
+              f'{rep["speed_x_real_time"]:.1f}x real time; GNSS epochs {rep["gnss_epochs"]} '
+              f'published, {rep["gnss_epochs_processed"]} processed, dropped '
+              f'{rep["dropped_gnss_epochs"]}; nodes vs offline estimates differ by at most '
+              f'{r["max_estimate_difference_m"]:.2g} m over {r["common_epochs"]} epochs')
+    summary = {'results': results, 'stages_s': stages.times, 'total_s': stages.total_s,
+               'out_dir': str(out_dir)}
+    path = write_json_atomic(out_dir / 'summary.json', summary)
+    print(f'\nOutputs in {out_dir} (bags, result bags, results.json, trajectory.png, '
+          f'risk_al{ALERT_LIMIT_M:g}m.png per dataset; {path.name}).')
+    print('Stage times: ' + ', '.join(f'{k.split(" (")[0].split(" ->")[0]} {v:.0f} s'
+                                      for k, v in stages.times.items()))
+    print(f'Total wall time: {stages.total_s:.0f} s')
     return 0
 
 
