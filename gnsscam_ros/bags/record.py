@@ -108,6 +108,8 @@ class BagRecorder(Node):
         topics: Topic names (relative or qualified; ``name:pkg/msg/Type`` to give the
             type); default :data:`DEFAULT_TOPICS`.
         storage: ``'mcap'`` (default) or ``'sqlite3'``.
+        strip_namespace: Write the topics without the node's namespace (``/ns/pose`` is
+            stored as ``/pose``), e.g. for nodes run under a private namespace.
         node_name: Node name.
         **kwargs: Forwarded to ``rclpy.node.Node``.
 
@@ -119,7 +121,8 @@ class BagRecorder(Node):
     """
 
     def __init__(self, out: str | Path, topics: list[str] | None = None,
-                 storage: str = 'mcap', node_name: str = 'gnsscam_record', **kwargs):
+                 storage: str = 'mcap', strip_namespace: bool = False,
+                 node_name: str = 'gnsscam_record', **kwargs):
         if storage not in STORAGES:
             raise ValueError(f'unknown storage {storage!r}; use one of {sorted(STORAGES)}')
         self.out = Path(out)
@@ -155,6 +158,7 @@ class BagRecorder(Node):
             shutil.rmtree(self._tmp, ignore_errors=True)
             raise BagError(f'{self.out}: cannot open the bag writer: {err}',
                            path=self.out) from err
+        self._strip = strip_namespace
         self._waiting: dict[str, None] = {}
         for name, msgtype in specs:
             topic = self.resolve_topic_name(name)
@@ -165,8 +169,16 @@ class BagRecorder(Node):
         if self._waiting:
             self._type_timer = self.create_timer(0.2, self._resolve_types)
 
+    def bag_name(self, topic: str) -> str:
+        """The name a resolved topic is written under."""
+        ns = self.get_namespace().rstrip('/')
+        if self._strip and ns and topic.startswith(ns + '/'):
+            return topic[len(ns):]
+        return topic
+
     def _subscribe(self, topic: str, msgtype: str) -> None:
-        rel = schema.relative(topic) or topic
+        name = self.bag_name(topic)
+        rel = schema.relative(name) or name
         latched = DEFAULT_TOPICS.get(rel, (None, False))[1]
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST,
                          depth=1 if latched else _DEPTH.get(rel, _QUEUE_DEPTH),
@@ -175,9 +187,9 @@ class BagRecorder(Node):
                                      else DurabilityPolicy.VOLATILE))
         with self._lock:
             self._connections[topic] = self._writer.add_connection(
-                topic, msgtype, typestore=schema.typestore(),
+                name, msgtype, typestore=schema.typestore(),
                 offered_qos_profiles=[schema.qos(latched)])
-        self.summary.counts[topic] = 0
+            self.summary.counts[name] = 0
         self.create_subscription(message_class(msgtype), topic, self._writer_of(topic), qos,
                                  raw=True, event_callbacks=_NO_SUB_EVENTS)
 
@@ -193,19 +205,21 @@ class BagRecorder(Node):
             self._type_timer.cancel()
 
     def _writer_of(self, topic: str):
+        name = self.bag_name(topic)
+
         def callback(data: bytes) -> None:
             now = self.get_clock().now().nanoseconds
             with self._lock:
                 if self._closed:
                     return
                 self._writer.write(self._connections[topic], now, data)
-                self.summary.counts[topic] += 1
+                self.summary.counts[name] += 1
         return callback
 
     def count(self, name: str) -> int:
         """Messages recorded so far on a topic (relative or qualified name)."""
         with self._lock:
-            return self.summary.counts.get(self.resolve_topic_name(name), 0)
+            return self.summary.counts.get(self.bag_name(self.resolve_topic_name(name)), 0)
 
     def close(self) -> RecordSummary:
         """Stop recording, finish the bag and move it into place.

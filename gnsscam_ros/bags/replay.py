@@ -141,8 +141,14 @@ FLOW_RULES: dict[str, FlowRule] = {
 #: Publication order of messages with equal stamps (others after, in bag order).
 TIE_ORDER = (schema.TWIST, schema.IMU, schema.IMAGE, schema.GNSS)
 #: Wait after the graph is connected, for the endpoints to match (discovery of the graph
-#: and matching of the DDS endpoints are separate steps) [s].
+#: and matching of the DDS endpoints between two other processes are separate steps, which
+#: the replay cannot observe) [s].
 MATCH_SETTLE_S = 0.5
+#: The same for node processes started together with the replay: two participants that
+#: miss each other's first announcements meet at the next periodic one (Fast DDS: every
+#: 3 s). Measured: with 0.5 s, about every second run lost fusion_node's first
+#: dead-reckoning states or camera matches; with 3 s none in 8 runs.
+FRESH_PROCESSES_SETTLE_S = 3.5
 #: Streams that must be acknowledged up to a GNSS epoch's stamp before it is published.
 GNSS_BARRIER = (schema.IMAGE,)
 _MAX_TIMEOUTS = 3              # consecutive ack timeouts before a stream's control goes off
@@ -152,7 +158,7 @@ _MAX_TIMEOUTS = 3              # consecutive ack timeouts before a stream's cont
 REPLAY_NODE_PARAMETERS: dict[str, dict] = {
     'imu_node': {'source_timeout_s': 3600.0},
     'fusion_node': {'odometry_wait_s': 10.0, 'odometry_timeout_s': 10.0,
-                    'gnss_timeout_s': 3600.0},
+                    'gnss_timeout_s': 3600.0, 'input_queue_depth': 200},
 }
 
 
@@ -321,7 +327,9 @@ class BagReplayer(Node):
             to appear before playing [s].
         require_subscribers: Relative topics that must have a subscriber before playing
             (e.g. the ones a recorder records), within ``wait_s``.
-        namespace: Namespace the bag's topics were written under (to recognise them).
+        settle_s: Wait after the graph is connected, before the first message [s].
+        bag_namespace: Namespace the bag's topics were written under (to recognise them);
+            they are published relative to the node's own namespace (``namespace=``).
         node_name: Node name.
         **kwargs: Forwarded to ``rclpy.node.Node`` (``context=``, ...).
 
@@ -335,7 +343,8 @@ class BagReplayer(Node):
                  topics: list[str] | None = None, flow_control: bool = True,
                  windows: dict[str, int] | None = None, ack_timeout_s: float = 30.0,
                  wait_s: float = 10.0, require_subscribers: tuple[str, ...] = (),
-                 namespace: str = '/', node_name: str = 'gnsscam_replay', **kwargs):
+                 settle_s: float = MATCH_SETTLE_S,
+                 bag_namespace: str = '/', node_name: str = 'gnsscam_replay', **kwargs):
         if not (rate >= 0.0 and math.isfinite(rate)):
             raise ValueError(f'rate must be finite and >= 0, got {rate}')
         if not (start_s >= 0.0 and math.isfinite(start_s)):
@@ -343,9 +352,10 @@ class BagReplayer(Node):
         self.bag = Path(bag)
         self.rate = float(rate)
         self.start_s = float(start_s)
-        self.namespace = namespace
+        self.bag_namespace = bag_namespace
         self.ack_timeout_s = float(ack_timeout_s)
         self.wait_s = float(wait_s)
+        self.settle_s = float(settle_s)
         self.require_subscribers = tuple(require_subscribers)
         # Read the bag's table of contents before creating the node, so that a bad bag
         # fails fast without touching the ROS graph.
@@ -380,7 +390,10 @@ class BagReplayer(Node):
                 qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
                                  reliability=ReliabilityPolicy.RELIABLE,
                                  durability=DurabilityPolicy.VOLATILE)
-            self._bag_pubs[topic] = self.create_publisher(cls, topic, qos,
+            # Topics of the bag's namespace are published relative to this node's, so
+            # that a replayer in a namespace feeds nodes in the same namespace.
+            name = schema.relative(topic, bag_namespace) or topic
+            self._bag_pubs[topic] = self.create_publisher(cls, name, qos,
                                                           event_callbacks=_NO_PUB_EVENTS)
         self._has_header = {
             topic: bool(store.fielddefs.get(msgtype)) and bool(store.fielddefs[msgtype][1])
@@ -392,7 +405,7 @@ class BagReplayer(Node):
         if flow_control:
             windows = windows or {}
             for topic in self._topics:
-                rel = schema.relative(topic, namespace)
+                rel = schema.relative(topic, bag_namespace)
                 rule = FLOW_RULES.get(rel)
                 if rule is None:
                     continue
@@ -416,7 +429,7 @@ class BagReplayer(Node):
             chosen = set()
             for want in topics:
                 hits = {n for n in names if n == want or n == schema.qualified(
-                    want, self.namespace) or schema.relative(n, self.namespace) == want}
+                    want, self.bag_namespace) or schema.relative(n, self.bag_namespace) == want}
                 if not hits:
                     raise ValueError(f'{self.bag}: no topic {want!r} in the bag (it has '
                                      f'{", ".join(sorted(names))})')
@@ -570,14 +583,14 @@ class BagReplayer(Node):
                         out.append(f'the connection {via}')
             for rel in self.require_subscribers:
                 for topic in self._bag_pubs:
-                    if (schema.relative(topic, self.namespace) == rel
+                    if (schema.relative(topic, self.bag_namespace) == rel
                             and self._bag_pubs[topic].get_subscription_count() == 0):
                         out.append(f'a subscriber on {topic}')
             return out
 
         while missing() and time.monotonic() < deadline and not self._stop:
             time.sleep(0.02)
-        time.sleep(MATCH_SETTLE_S)
+        time.sleep(self.settle_s)
         for topic, stream in self._streams.items():
             if self._bag_pubs[topic].get_subscription_count() == 0:
                 stream.enabled, stream.reason = False, 'off: no subscriber'
@@ -673,7 +686,7 @@ class BagReplayer(Node):
                             stream.pending.append(stamp)
                     summary.published[conn.topic] = summary.published.get(conn.topic, 0) + 1
                     summary.last_stamp_ns = max(summary.last_stamp_ns or stamp, stamp)
-                    if schema.relative(conn.topic, self.namespace) == schema.GNSS:
+                    if schema.relative(conn.topic, self.bag_namespace) == schema.GNSS:
                         gnss_stamps.append(stamp)
         except BagError:
             raise
@@ -712,7 +725,7 @@ class BagReplayer(Node):
             return group
         rank = {t: i for i, t in enumerate(TIE_ORDER)}
         return sorted(group, key=lambda m: rank.get(
-            schema.relative(m[0].topic, self.namespace), len(TIE_ORDER)))
+            schema.relative(m[0].topic, self.bag_namespace), len(TIE_ORDER)))
 
     def _drain(self) -> None:
         """Wait for the acknowledgements of the last GNSS epochs and images.
@@ -858,7 +871,7 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None, 
                          layout: str = 'processes', domain_id: int | None = None,
                          record_topics: list[str] | None = None, settle_s: float = 0.5,
                          wait_s: float = 60.0, log_dir: str | Path | None = None,
-                         windows: dict[str, int] | None = None
+                         windows: dict[str, int] | None = None, namespace: str | None = None
                          ) -> tuple[ReplaySummary, object]:
     """Replay a bag through the four nodes and record their outputs (one call).
 
@@ -896,6 +909,10 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None, 
         log_dir: Folder for the child processes' ROS logs and stderr (default: a new
             temporary folder).
         windows: Flow-control windows overriding :data:`FLOW_RULES` (by relative topic).
+        namespace: ROS namespace of the nodes, the replay and the recorder (default: a
+            private one per run, ``/gnsscam_<pid>_<n>``, so that other graphs on the
+            machine, in the same domain or not, never mix with this one). The result bag
+            stores the topics without it (``/pose``).
 
     Returns:
         ``(replay summary, record summary or None)``.
@@ -914,6 +931,7 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None, 
         import tempfile
         use_dds_profile(log_dir if log_dir is not None else tempfile.mkdtemp(
             prefix='gnsscam_dds_'))
+    ns = namespace or f'/gnsscam_{os.getpid()}_{next(_runs)}'
     ctx = Context()
     rclpy.init(context=ctx, domain_id=domain)
     nodes: list = []
@@ -927,18 +945,19 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None, 
             from ..nodes.fusion_node import FusionNode
             from ..nodes.gnss_node import GnssNode
             from ..nodes.imu_node import ImuNode
-            nodes = [GnssNode(context=ctx, parameter_overrides=_overrides(
-                         params.get('gnss_node', {}))),
-                     CameraNode(context=ctx, database=database, parameter_overrides=_overrides(
-                         params.get('camera_node', {}))),
-                     ImuNode(context=ctx, parameter_overrides=_overrides(
-                         params.get('imu_node', {}))),
-                     FusionNode(context=ctx, parameter_overrides=_overrides(
-                         params.get('fusion_node', {})))]
+
+            def kwargs(node: str) -> dict:
+                return {'context': ctx, 'namespace': ns,
+                        'parameter_overrides': _overrides(params.get(node, {}))}
+
+            nodes = [GnssNode(**kwargs('gnss_node')),
+                     CameraNode(database=database, **kwargs('camera_node')),
+                     ImuNode(**kwargs('imu_node')), FusionNode(**kwargs('fusion_node'))]
         else:
-            procs = _start_node_processes(params, domain, log_dir, layout == 'pipeline')
+            procs = _start_node_processes(params, domain, log_dir, layout == 'pipeline', ns)
         if result_bag is not None:
-            recorder = BagRecorder(result_bag, topics=record_topics, context=ctx)
+            recorder = BagRecorder(result_bag, topics=record_topics, context=ctx,
+                                   namespace=ns, strip_namespace=True)
         for node in nodes + ([recorder] if recorder is not None else []):
             executor = SingleThreadedExecutor(context=ctx)
             executor.add_node(node)
@@ -953,8 +972,10 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None, 
             required = tuple(t for t in wanted if t in (schema.TRUTH, schema.ORIGIN,
                                                         schema.INFO))
         replayer = BagReplayer(bag, rate=rate, start_s=start_s, topics=topics,
-                               windows=windows, wait_s=wait_s, context=ctx,
-                               require_subscribers=required)
+                               windows=windows, wait_s=wait_s, context=ctx, namespace=ns,
+                               require_subscribers=required,
+                               settle_s=MATCH_SETTLE_S if layout == 'threads'
+                               else FRESH_PROCESSES_SETTLE_S)
         cpu0 = _own_cpu_s()
         try:
             summary = replayer.play()
@@ -993,14 +1014,16 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None, 
 
 
 def _start_node_processes(params: dict[str, dict], domain: int,
-                          log_dir: str | Path | None, pipeline: bool) -> list:
+                          log_dir: str | Path | None, pipeline: bool, namespace: str) -> list:
     """Start the nodes as child processes: ``[(Popen, name)]``."""
     import subprocess
     import tempfile
     folder = Path(log_dir) if log_dir is not None else Path(
         tempfile.mkdtemp(prefix='gnsscam_replay_'))
     folder.mkdir(parents=True, exist_ok=True)
-    params_file = write_params_file(folder / 'replay_params.yaml', params)
+    # Keys with the namespace: a bare node name only matches nodes in the root namespace.
+    params_file = write_params_file(folder / 'replay_params.yaml', {
+        f'{namespace.rstrip("/")}/{node}': values for node, values in params.items()})
     env = dict(os.environ)
     env.update(ROS_DOMAIN_ID=str(domain), ROS_LOG_DIR=str(folder / 'ros_log'),
                ROS_AUTOMATIC_DISCOVERY_RANGE=env.get('ROS_AUTOMATIC_DISCOVERY_RANGE',
@@ -1013,8 +1036,8 @@ def _start_node_processes(params: dict[str, dict], domain: int,
             stderr = (folder / f'{name}.stderr.txt').open('w')
             procs.append((subprocess.Popen(
                 [sys.executable, '-m', f'gnsscam_ros.nodes.{module}', '--ros-args',
-                 '--params-file', str(params_file)], env=env, stdout=subprocess.DEVNULL,
-                stderr=stderr), name))
+                 '-r', f'__ns:={namespace}', '--params-file', str(params_file)], env=env,
+                stdout=subprocess.DEVNULL, stderr=stderr), name))
             stderr.close()
     except BaseException:
         for proc, _ in procs:
@@ -1103,7 +1126,7 @@ def main(argv: list[str] | None = None) -> int:
         node = BagReplayer(args.bag, rate=args.rate, start_s=args.start, topics=args.topics,
                            flow_control=not args.no_flow_control,
                            ack_timeout_s=args.ack_timeout, wait_s=args.wait,
-                           namespace=args.namespace)
+                           bag_namespace=args.namespace)
         summary = node.play()
     except (BagError, ValueError) as err:
         print(f'gnsscam_replay: {err}', file=sys.stderr)
