@@ -37,13 +37,27 @@ input                  acknowledged by                   window (messages in fli
 =====================  ================================  ====================================
 
 Acknowledgements are monotone in stamp: a later acknowledgement covers every earlier
-message (a refused image is covered by the next match). Before a GNSS epoch is published,
-every camera image stamped up to the epoch must be acknowledged too, so fusion_node has the
-matches of the interval when it runs the epoch, as an offline run has. With the GNSS
-window of one epoch, fusion_node's GNSS queue never holds more than one epoch: **no epoch
-can be dropped**, and the replay reports per epoch whether its ``integrity_risk`` came
-back (``gnss_epochs_processed``). The filter epoch runs while the replay already feeds the
-IMU of the next interval, so the replay goes as fast as the slowest node.
+message (a refused image is covered by the next match). With the GNSS window of one epoch,
+fusion_node's GNSS queue never holds more than one epoch: **no epoch can be dropped**, and
+the replay reports per epoch whether its ``integrity_risk`` came back
+(``gnss_epochs_processed``). The filter runs epoch k while the replay already feeds the IMU
+of the next interval, so the replay goes as fast as the slowest node.
+
+**Same input, same order as an offline run.** So that the nodes compute exactly what an
+offline run of the same data computes (``evaluation.demo.offline_run``; the tests check it
+to 1e-6 m):
+
+* messages with equal stamps go out in :data:`TIE_ORDER` (odometry before IMU, the dead
+  reckoning's own rule; GNSS last, after the motion of its instant);
+* the first message of each acknowledged stream goes alone and is acknowledged before the
+  next (the dead reckoning starts from whichever source arrives first);
+* before a GNSS epoch, every camera image stamped up to it must be acknowledged, then
+  :data:`GNSS_GRACE_S` passes (fusion_node serves ``gnss/measurements`` before
+  ``camera/matches`` when both are ready, which would run the epoch without the last
+  match);
+* before the first message the replay waits for the graph's internal connections
+  (``FlowRule.via``) and then ``settle_s`` for their endpoints to match
+  (:data:`FRESH_PROCESSES_SETTLE_S` for node processes started with the replay).
 
 A stream whose consumer is absent (no subscriber on the input, or no publisher of its
 acknowledging topic after ``--wait``) is played without flow control. An acknowledgement
@@ -52,13 +66,17 @@ three in a row on one stream its flow control is switched off with a warning (e.
 camera_node without a map database refuses every frame).
 
 **Node parameters for replay.** Some node timeouts are in wall time, which a replay at
-``R != 1`` does not follow. :data:`REPLAY_NODE_PARAMETERS` lifts them (imu_node's
-``source_timeout_s``: otherwise a pause of the odometry stream longer than 0.5 s while the
-filter runs a slow epoch would switch the dead reckoning to the IMU-only source for a
-moment; fusion_node's ``odometry_wait_s``/``odometry_timeout_s``/``gnss_timeout_s``). With
-them, a replay at ``R = 0`` gives the nodes the same input in the same order as an
-offline run: the result does not depend on the speed. :func:`write_params_file` writes
-them as a ``--params-file``.
+``R != 1`` does not follow, and fusion_node's ``camera/matches`` queue (10) is shorter than
+the matches that arrive while it runs a slow epoch. :data:`REPLAY_NODE_PARAMETERS` lifts
+them (imu_node's ``source_timeout_s``: otherwise a pause of the odometry stream longer than
+0.5 s while the filter runs a slow epoch would switch the dead reckoning to the IMU-only
+source for a moment; fusion_node's ``odometry_wait_s``, ``odometry_timeout_s``,
+``gnss_timeout_s`` and ``input_queue_depth``). With them, a replay at ``R = 0`` gives the
+nodes the same input in the same order whatever the speed. :func:`write_params_file`
+writes them as a ``--params-file``.
+
+:func:`replay_through_nodes` runs the whole chain (nodes as processes or threads, replay,
+recorder) under a private namespace, so that concurrent runs on one machine never mix.
 
 **Large messages.** With Fast DDS's default transports a camera image (0.9 MB) does not fit
 the shared-memory segment and travels as UDP fragments, and a best-effort subscriber

@@ -1,0 +1,350 @@
+"""Replay of a converted bag through the nodes, recording and evaluation (bags.replay,
+bags.record, evaluation.demo).
+
+* end to end: an emulated drive -> bag -> replay at R = 0 through the four nodes ->
+  recorded result bag -> ``evaluate_result_bag`` equals the offline run of the same drive
+  and seed (estimates to 1e-6 m, the same RMSE, P_FA, P_MI), and is close to
+  ``evaluate_drive``; no GNSS epoch dropped, nothing unacknowledged;
+* camera: the matches flow (every frame acknowledged by camera/matches, the filter fuses
+  them) and the camera path equals the offline run with the same database;
+* rate scaling (R = 2 on a 4 s bag takes ~2 s), ``--start``, ``--topics``;
+* missing and corrupt bags -> clear errors (library and CLI exit code), the recorder
+  never overwrites and removes its partial bag; SIGINT stops the CLIs cleanly.
+"""
+import itertools
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.context import Context
+
+from gnsscam_ros.bags.convert import convert_drive
+from gnsscam_ros.bags.errors import BagExistsError, BagReadError
+from gnsscam_ros.bags.read import bag_topics, read_drive, read_results
+from gnsscam_ros.bags.record import BagRecorder
+from gnsscam_ros.bags.replay import BagReplayer, main as replay_main, replay_through_nodes
+from gnsscam_ros.core.filter import FilterConfig
+from gnsscam_ros.datasets.emulated import make_emulated_drive
+from gnsscam_ros.evaluation.bag_eval import evaluate_result_bag
+from gnsscam_ros.evaluation.demo import (node_series, offline_camera_matches, offline_run,
+                                         route_range_of)
+from gnsscam_ros.evaluation.evaluate import evaluate_drive
+from gnsscam_ros.evaluation.runner import summarize
+
+ROOT = Path(__file__).resolve().parents[1]
+SEED, N_PARTICLES = 7, 400
+_domains = itertools.count()
+
+
+def domain() -> int:
+    """Domain ids apart from test_nodes (120-219), test_node_processes (10-109) and the
+    replay's default (220-232)."""
+    return 110 + (os.getpid() + next(_domains)) % 10
+
+
+def fusion_params(drive, **extra) -> dict:
+    return {'fusion_node': {'n_particles': N_PARTICLES, 'seed': SEED, 'use_map_origin': True,
+                            'map_origin_llh': [float(v) for v in drive.origin_llh], **extra}}
+
+
+@pytest.fixture(scope='module')
+def emulated_bag(tmp_path_factory):
+    """A 40 s emulated drive with faults (GNSS, IMU, odometry, truth; no camera)."""
+    folder = tmp_path_factory.mktemp('replay')
+    drive = make_emulated_drive(3, faults=6, bias_m=100.0, duration_s=40.0)
+    convert_drive(drive, folder / 'bag')
+    return folder / 'bag'
+
+
+@pytest.fixture(scope='module')
+def short_bag(tmp_path_factory):
+    """A 4 s emulated drive."""
+    folder = tmp_path_factory.mktemp('replay_short')
+    convert_drive(make_emulated_drive(5, duration_s=4.0), folder / 'bag')
+    return folder / 'bag'
+
+
+class Ctx:
+    """A fresh rclpy context (no nodes of the graph: the replay plays to nobody)."""
+
+    def __init__(self):
+        self.ctx = Context()
+        rclpy.init(context=self.ctx, domain_id=domain())
+
+    def close(self):
+        rclpy.try_shutdown(context=self.ctx)
+
+
+@pytest.fixture
+def ctx():
+    c = Ctx()
+    yield c.ctx
+    c.close()
+
+
+# ================================================================= end to end (GNSS)
+def test_replay_through_nodes_equals_offline_evaluation(emulated_bag, tmp_path):
+    drive = read_drive(emulated_bag)
+    result_bag = tmp_path / 'result'
+    summary, record = replay_through_nodes(emulated_bag, result_bag, rate=0.0,
+                                           parameters=fusion_params(drive), layout='threads')
+    # Lossless: every GNSS epoch got its integrity_risk back, nothing timed out.
+    assert summary.gnss_epochs == len(drive.gnss) == 41
+    assert summary.gnss_epochs_processed == summary.gnss_epochs
+    assert summary.dropped_gnss_epochs == 0
+    assert not any(summary.unacknowledged.values()), summary.unacknowledged
+    assert set(summary.flow_control.values()) == {'on'}
+    assert summary.node_diagnostics['fusion_node: status'].get('dropped_epochs', '0') == '0'
+    counts = {k: v[1] for k, v in bag_topics(emulated_bag).items()}
+    assert summary.published == counts
+    assert record.counts['/integrity_risk'] == len(drive.gnss)
+    assert record.counts['/ground_truth/pose'] == counts['/ground_truth/pose']
+    assert record.counts['/map/origin'] == 1 and record.counts['/dataset/info'] == 1
+
+    # The recorded run equals the offline run of the same drive, seed and configuration.
+    config = FilterConfig(n_particles=N_PARTICLES)
+    nodes = evaluate_result_bag(result_bag)            # self-contained: truth recorded
+    off_record, frame = offline_run(drive, config, SEED)
+    offline = summarize(off_record, config)
+    series = node_series(result_bag, frame)
+    np.testing.assert_array_equal(series['stamp_ns'], off_record.stamp_ns)
+    np.testing.assert_allclose(series['estimate_enu_m'], off_record.estimate_enu_m, rtol=0,
+                               atol=1e-6)
+    np.testing.assert_allclose(series['risk_bound'], off_record.risk_bound['exact'][:, 0],
+                               rtol=1e-9, atol=1e-12)
+    assert nodes['epochs'] == offline['epochs'] == len(off_record.stamp_ns)
+    for key in ('rmse_2d_m', 'rmse_3d_m', 'p95_2d_m', 'max_2d_m'):
+        assert nodes[key] == pytest.approx(offline[key], rel=1e-7), key
+    mine, theirs = nodes['integrity']['8'], offline['integrity']['8']
+    for key in ('p_fa', 'p_mi', 'false_alarms', 'missed_identifications', 'faults'):
+        assert mine[key] == theirs[key], key
+    assert mine['mean_risk_bound'] == pytest.approx(theirs['mean_risk_bound'], rel=1e-9)
+    # Reference risk: recorded particle cloud (bag) vs the M posteriors (offline).
+    assert abs(mine['failure_ratio'] - theirs['failure_ratio']) <= 0.1
+    # evaluate_drive integrates the odometry itself (integrate_odometry, equal to the dead
+    # reckoning to ~1e-9 m); the filter amplifies that, so only closeness is expected.
+    standard = evaluate_drive(drive, config, seed=SEED)
+    assert nodes['rmse_2d_m'] == pytest.approx(standard['rmse_2d_m'], rel=0.1)
+    assert nodes['rmse_3d_m'] == pytest.approx(standard['rmse_3d_m'], rel=0.1)
+    # And the dataset bag gives the same metrics as the recorded truth, plus the baseline.
+    with_truth_bag = evaluate_result_bag(result_bag, emulated_bag)
+    assert with_truth_bag['rmse_2d_m'] == nodes['rmse_2d_m']
+    assert with_truth_bag['baseline_wls']['epochs'] == len(drive.gnss)
+
+
+# ===================================================================== camera path
+class SceneCamera:
+    """Synthetic street images at 2 Hz (seeded facades; ORB finds features on them)."""
+
+    def __init__(self, stamps_ns):
+        from gnsscam_ros.vision.mapdb_cli import synthetic_scene
+        self.stamp_ns = np.asarray(stamps_ns, dtype=np.int64)
+        self._scene = synthetic_scene
+
+    def image(self, i):
+        return self._scene(int(i), seed=11)
+
+
+def test_camera_matches_flow_and_equal_offline(tmp_path):
+    from gnsscam_ros.core.frames import LocalFrame
+    from gnsscam_ros.vision.database import MapDatabase, PositionTable
+    from gnsscam_ros.vision.features import OrbExtractor, OrbParams
+    drive = make_emulated_drive(21, faults=3, bias_m=80.0, duration_s=14.0)
+    t0 = drive.gnss[0].stamp_ns
+    camera = SceneCamera(t0 + np.arange(1, 28) * 500_000_000)      # 27 frames at 2 Hz
+    frame = LocalFrame(*drive.origin_llh)
+    truth_enu = frame.ecef_to_enu(drive.truth.ecef_m)
+    positions = np.column_stack([np.interp(camera.stamp_ns, drive.truth.stamp_ns,
+                                           truth_enu[:, j]) for j in range(3)])
+    ext = OrbExtractor(OrbParams(nfeatures=500))
+    images = [camera.image(i) for i in range(len(camera.stamp_ns))]
+    db = MapDatabase.build([ext.descriptors(im) for im in images],
+                           [f'im{i}.png' for i in range(len(images))],
+                           PositionTable.from_columns(('east_m', 'north_m', 'up_m'), positions),
+                           orb_params=OrbParams(nfeatures=500), branching=8, depth=3,
+                           iterations=4, seed=0)
+    convert_drive(drive, tmp_path / 'bag', camera=camera)
+    data = read_drive(tmp_path / 'bag')
+    summary, record = replay_through_nodes(
+        tmp_path / 'bag', tmp_path / 'result', parameters=fusion_params(data),
+        database=db, layout='threads',
+        record_topics=['pose', 'fix', 'particles', 'integrity_risk', 'ground_truth/pose',
+                       'map/origin', 'camera/matches:sensor_msgs/msg/PointCloud2'])
+    assert summary.published['/camera/image_raw'] == len(images)
+    assert summary.flow_control['camera/image_raw'] == 'on'
+    assert summary.unacknowledged['camera/image_raw'] == 0
+    assert record.counts['/camera/matches'] == len(images)      # every frame matched
+    assert summary.dropped_gnss_epochs == 0
+    risks = read_results(tmp_path / 'result', particles=False).integrity
+    fused = [r for r in risks if 'camera_images' in r.extra]
+    assert fused, 'the filter fused camera matches'
+    # The camera path equals the offline run with the same database and matches.
+    matches = offline_camera_matches(data.camera, db)
+    assert [m.frame_id for m in matches] == list(range(len(images)))
+    config = FilterConfig(n_particles=N_PARTICLES)
+    off_record, off_frame = offline_run(data, config, SEED, matches)
+    assert off_record.camera_epochs == len(fused)
+    series = node_series(tmp_path / 'result', off_frame)
+    np.testing.assert_allclose(series['estimate_enu_m'], off_record.estimate_enu_m, rtol=0,
+                               atol=1e-6)
+
+
+def test_route_range_limits_the_database_to_the_drive():
+    from gnsscam_ros.datasets.camera import database_poses, scenario_of
+    drive = make_emulated_drive(3, duration_s=60.0)
+    scenario = scenario_of(drive)
+    s0, s1 = route_range_of(scenario, drive)
+    assert s0 == 0.0 and 0.0 < s1 < scenario.route.length_m
+    assert len(database_poses(scenario, route_range_m=(s0, s1))) < len(
+        database_poses(scenario))
+
+
+# ============================================================ timing, start, topics
+def test_rate_scales_the_original_timing(short_bag, ctx):
+    replayer = BagReplayer(short_bag, rate=2.0, wait_s=0.0, context=ctx)
+    try:
+        started = time.monotonic()
+        summary = replayer.play()
+        wall = time.monotonic() - started
+    finally:
+        replayer.destroy_node()
+    assert summary.bag_span_s == pytest.approx(4.0, abs=0.02)
+    assert summary.wall_s == pytest.approx(2.0, abs=0.25)
+    assert wall < 3.5
+    assert summary.speed == pytest.approx(2.0, rel=0.15)
+    # Nobody listens: flow control is off for every stream, with the reason.
+    assert all(v == 'off: no subscriber' for v in summary.flow_control.values())
+    fast = BagReplayer(short_bag, rate=0.0, wait_s=0.0, context=ctx)
+    try:
+        assert fast.play().wall_s < 1.0
+    finally:
+        fast.destroy_node()
+
+
+def test_start_skips_bag_time_but_keeps_the_once_only_topics(short_bag, ctx):
+    replayer = BagReplayer(short_bag, rate=0.0, start_s=2.0, wait_s=0.0, context=ctx)
+    try:
+        summary = replayer.play()
+    finally:
+        replayer.destroy_node()
+    drive = read_drive(short_bag)
+    t0 = drive.gnss[0].stamp_ns
+    assert summary.first_stamp_ns >= t0 + 2_000_000_000
+    assert summary.published['/map/origin'] == 1 and summary.published['/dataset/info'] == 1
+    assert summary.gnss_epochs == sum(e.stamp_ns >= t0 + 2_000_000_000 for e in drive.gnss)
+
+
+def test_topics_filter_plays_only_the_named_topics(short_bag, tmp_path, ctx):
+    topics = ['imu/data:sensor_msgs/msg/Imu', 'odom/twist',
+              'gnss/pseudoranges:sensor_msgs/msg/PointCloud2']
+    recorder = BagRecorder(tmp_path / 'rec', topics=topics, context=ctx)
+    executor = rclpy.executors.SingleThreadedExecutor(context=ctx)
+    executor.add_node(recorder)
+    import threading
+    spin = threading.Thread(target=executor.spin, daemon=True)
+    spin.start()
+    replayer = BagReplayer(short_bag, rate=0.0, topics=['imu/data', '/odom/twist'],
+                           wait_s=5.0, require_subscribers=('imu/data', 'odom/twist'),
+                           context=ctx)
+    try:
+        summary = replayer.play()
+        deadline = time.monotonic() + 5.0
+        counts = {k: v[1] for k, v in bag_topics(short_bag).items()}
+        while (recorder.count('imu/data') < counts['/imu/data']
+               and time.monotonic() < deadline):
+            time.sleep(0.05)
+    finally:
+        replayer.destroy_node()
+        executor.shutdown()
+        spin.join(timeout=5)
+    rec = recorder.close()
+    recorder.destroy_node()
+    assert set(summary.published) == {'/imu/data', '/odom/twist'}
+    assert summary.published['/imu/data'] == counts['/imu/data']
+    assert rec.counts['/imu/data'] == counts['/imu/data']
+    assert rec.counts['/odom/twist'] == counts['/odom/twist']
+    assert rec.counts['/gnss/pseudoranges'] == 0          # not played
+    with pytest.raises(ValueError, match='no topic .camera/image_raw'):
+        BagReplayer(short_bag, topics=['camera/image_raw'], context=ctx)
+
+
+# ===================================================================== bad input
+def test_missing_and_corrupt_bags_give_clear_errors(short_bag, tmp_path, ctx, capsys):
+    missing = tmp_path / 'nothing'
+    with pytest.raises(BagReadError, match='no such bag'):
+        BagReplayer(missing, context=ctx)
+    assert replay_main([str(missing), '--wait', '0']) == 3
+    assert 'no such bag' in capsys.readouterr().err
+    # A truncated MCAP file: refused when opened or while playing, never half-silently.
+    broken = tmp_path / 'broken'
+    shutil.copytree(short_bag, broken)
+    mcap = next(broken.glob('*.mcap'))
+    data = mcap.read_bytes()
+    mcap.write_bytes(data[:len(data) // 2])
+    with pytest.raises(BagReadError, match='broken'):
+        replayer = BagReplayer(broken, rate=0.0, wait_s=0.0, context=ctx)
+        try:
+            replayer.play()
+        finally:
+            replayer.destroy_node()
+    not_a_bag = tmp_path / 'not_a_bag'
+    not_a_bag.mkdir()
+    (not_a_bag / 'metadata.yaml').write_text('this: is not rosbag2 metadata\n')
+    assert replay_main([str(not_a_bag), '--wait', '0']) == 3
+    assert 'not_a_bag' in capsys.readouterr().err
+
+
+def test_recorder_never_overwrites_and_cleans_up(tmp_path, ctx):
+    existing = tmp_path / 'exists'
+    existing.mkdir()
+    with pytest.raises(BagExistsError):
+        BagRecorder(existing, context=ctx)
+    recorder = BagRecorder(tmp_path / 'aborted', context=ctx)
+    recorder.abort()
+    recorder.destroy_node()
+    assert not any(p.name.startswith('.aborted') for p in tmp_path.iterdir())
+    assert not (tmp_path / 'aborted').exists()
+
+
+# ============================================================================= CLIs
+def _env(tmp_path, dom):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(dom), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
+               ROS_LOG_DIR=str(tmp_path / 'ros_log'), PYTHONUNBUFFERED='1')
+    return env
+
+
+def test_clis_stop_cleanly_on_sigint(emulated_bag, tmp_path):
+    dom = domain()
+    env = _env(tmp_path, dom)
+    record = subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.bags.record', '--out',
+                               str(tmp_path / 'rec'), 'imu/data:sensor_msgs/msg/Imu'],
+                              env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True)
+    replay = subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.bags.replay',
+                               str(emulated_bag), '--rate', '1', '--wait', '0'],
+                              env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True)
+    try:
+        time.sleep(6.0)                 # imports (~2 s), then part of the 40 s bag
+        replay.send_signal(signal.SIGINT)
+        out, err = replay.communicate(timeout=20)
+        assert replay.returncode == 0, err
+        assert 'interrupted' in out and 'replayed' in out          # the partial summary
+        assert '40.0 s of bag time' not in out
+        record.send_signal(signal.SIGINT)
+        out, err = record.communicate(timeout=20)
+        assert record.returncode == 0, err
+    finally:
+        for proc in (replay, record):
+            if proc.poll() is None:
+                proc.kill()
+    counts = {k: v[1] for k, v in bag_topics(tmp_path / 'rec').items()}
+    assert 0 < counts['/imu/data'] < 4001          # part of the drive, and a valid bag
+    assert not any(p.name.startswith('.rec') for p in tmp_path.iterdir())
