@@ -13,7 +13,7 @@ SECOND = 1_000_000_000
 
 
 def config(**kw):
-    base = dict(n_particles=400, acquisition_particle_factor=2, heading_acquisition_m=20.0,
+    base = dict(n_particles=400, acquisition_particles=800, heading_acquisition_m=20.0,
                 init_position_sd_m=10.0, init_vertical_sd_m=10.0)
     base.update(kw)
     return FilterConfig(**base)

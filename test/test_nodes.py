@@ -12,6 +12,7 @@ import itertools
 import math
 import os
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -92,7 +93,8 @@ def test_dead_reckoning_motion_equals_integrate_odometry():
     imu = ImuSeries(stamp_ns=(np.arange(0, 20.0001, 0.01) * S).astype(np.int64),
                     accel_mps2=rng.normal(0, 1, (2001, 3)), gyro_rps=rng.normal(0, 1, (2001, 3)))
     acc = MotionAccumulator()
-    for s in dead_reckon(imu, odo):                   # odometry preferred for yaw
+    every = DeadReckoningConfig(output_period_s=0.0)
+    for s in dead_reckon(imu, odo, every):            # odometry preferred for yaw
         acc.add(s)
     for t0, t1 in ((0.0, 1.0), (3.05, 7.3), (10.0, 20.0)):
         a = acc.increment(int(t0 * S), int(t1 * S))
@@ -106,13 +108,51 @@ def test_dead_reckoning_motion_equals_integrate_odometry():
     assert a.dyaw_var_rad2 == pytest.approx(b.dyaw_var_rad2, rel=1e-9)
 
 
+def test_dead_reckoning_output_period_thins_the_states_on_a_stamp_grid():
+    rng = np.random.default_rng(2)
+    t = np.arange(201) / 10                       # stamps exact in ns: 10 Hz and 100 Hz
+    odo = _odometry(t, 8 + rng.normal(0, 1, t.size), rng.normal(0, 0.05, t.size))
+    odo = replace(odo, stamp_ns=np.arange(201, dtype=np.int64) * (S // 10))
+    imu = ImuSeries(stamp_ns=np.arange(2001, dtype=np.int64) * (S // 100),
+                    accel_mps2=rng.normal(0, 1, (2001, 3)), gyro_rps=rng.normal(0, 1, (2001, 3)))
+    every = dead_reckon(imu, odo, DeadReckoningConfig(output_period_s=0.0))
+    thinned = dead_reckon(imu, odo, DeadReckoningConfig(output_period_s=0.5))
+    assert len(every) == 2001
+    # The first state at or after each multiple of 0.5 s: the integration is the same,
+    # only fewer states are emitted.
+    assert [s.stamp_ns for s in thinned] == [int(k * 0.5 * S) for k in range(41)]
+    by_stamp = {s.stamp_ns: s for s in every}
+    assert all(s == by_stamp[s.stamp_ns] for s in thinned)
+    coarse, fine = MotionAccumulator(), MotionAccumulator()
+    for s in thinned:
+        coarse.add(s)
+    for s in every:
+        fine.add(s)
+    # Intervals on the grid: the same heading change and variances; the distance is the
+    # chord of each 0.5 s segment instead of the sum of its 0.01 s chords (shorter by
+    # ~dyaw^2 / 24 of it). Off the grid: the linear split of one segment on top.
+    for t0, t1 in ((0.0, 1.0), (2.5, 17.0)):
+        a = coarse.increment(int(t0 * S), int(t1 * S))
+        b = fine.increment(int(t0 * S), int(t1 * S))
+        assert a.distance_m == pytest.approx(b.distance_m, rel=1e-4)
+        assert a.dyaw_rad == pytest.approx(b.dyaw_rad, rel=1e-9)
+        assert a.distance_var_m2 == pytest.approx(b.distance_var_m2, rel=1e-9)
+        assert a.dyaw_var_rad2 == pytest.approx(b.dyaw_var_rad2, rel=1e-9)
+    a, b = coarse.increment(int(3.05 * S), int(7.3 * S)), fine.increment(int(3.05 * S),
+                                                                         int(7.3 * S))
+    assert a.distance_m == pytest.approx(b.distance_m, rel=1e-2)
+    assert a.dyaw_rad == pytest.approx(b.dyaw_rad, abs=0.02)
+    with pytest.raises(ValueError, match='output_period_s'):
+        DeadReckoningConfig(output_period_s=-1.0)
+
+
 def test_dead_reckoning_does_not_depend_on_stream_interleaving():
     rng = np.random.default_rng(1)
     t_odo = np.arange(0, 3.0001, 0.1)
     t_imu = np.arange(0, 3.0001, 0.01)
     odo = [(int(t * S), 5 + rng.normal(), rng.normal(0, 0.1)) for t in t_odo]
     imu = [(int(t * S), rng.normal(), rng.normal(0, 0.1)) for t in t_imu]
-    cfg = DeadReckoningConfig(yaw_rate_source=IMU)
+    cfg = DeadReckoningConfig(yaw_rate_source=IMU, output_period_s=0.0)   # every state
     a, b = DeadReckoner(cfg), DeadReckoner(cfg)
     out_a, out_b = [], []
     a.add_odometry(*odo[0])

@@ -31,7 +31,7 @@ from .replay import LAYOUTS, replay_through_nodes
 
 
 def bench_once(particles: int = 10_000, duration_s: float = 120.0, seed: int = 3,
-               layout: str = 'processes', acquisition_factor: int | None = None,
+               layout: str = 'processes', acquisition_particles: int | None = None,
                camera: bool = False, topics: list[str] | None = None,
                work_dir: Path | None = None, log=print) -> dict:
     """One replay of an emulated drive through the nodes; returns the figures.
@@ -41,8 +41,8 @@ def bench_once(particles: int = 10_000, duration_s: float = 120.0, seed: int = 3
         duration_s: Length of the drive [s].
         seed: Drive (and filter) seed.
         layout: Where the nodes run (:data:`.replay.LAYOUTS`).
-        acquisition_factor: ``acquisition_particle_factor`` (None: the filter default, 10:
-            the first 100 m run with 10 N particles).
+        acquisition_particles: ``acquisition_particles`` (None: the filter default, 10,000
+            particles for the first 100 m when N is smaller).
         camera: Include the camera (renders the frames and builds the map database of the
             drive's route; slow the first time).
         topics: Topics to replay (None: all).
@@ -58,8 +58,8 @@ def bench_once(particles: int = 10_000, duration_s: float = 120.0, seed: int = 3
     params: dict = {'fusion_node': {'n_particles': int(particles), 'seed': int(seed),
                                     'use_map_origin': True,
                                     'map_origin_llh': [float(v) for v in drive.origin_llh]}}
-    if acquisition_factor is not None:
-        params['fusion_node']['acquisition_particle_factor'] = int(acquisition_factor)
+    if acquisition_particles is not None:
+        params['fusion_node']['acquisition_particles'] = int(acquisition_particles)
     folder = Path(work_dir) if work_dir is not None else Path(
         tempfile.mkdtemp(prefix='gnsscam_replay_bench_'))
     try:
@@ -89,7 +89,7 @@ def bench_once(particles: int = 10_000, duration_s: float = 120.0, seed: int = 3
     fusion = summary.node_diagnostics.get('fusion_node: status', {})
     return {'particles': particles, 'posteriors': 10, 'duration_s': duration_s,
             'layout': layout, 'camera': camera, 'topics': topics,
-            'acquisition_particle_factor': acquisition_factor,
+            'acquisition_particles': acquisition_particles,
             'speed_x_real_time': summary.speed, 'replay_wall_s': summary.wall_s,
             'total_wall_s_with_startup': total_s,
             'gnss_epochs': summary.gnss_epochs,
@@ -128,8 +128,8 @@ def main(argv: list[str] | None = None) -> int:
                         help='drive length [s] (default %(default)s)')
     parser.add_argument('--seed', type=int, default=3)
     parser.add_argument('--layout', choices=LAYOUTS, nargs='+', default=['processes'])
-    parser.add_argument('--acquisition-factor', type=int, nargs='+', default=[None],
-                        help='acquisition_particle_factor values (default: the filter '
+    parser.add_argument('--acquisition-particles', type=int, nargs='+', default=[None],
+                        help='acquisition_particles values (default: the filter '
                         'default)')
     parser.add_argument('--camera', action='store_true', help='include the camera')
     parser.add_argument('--topics', nargs='+', help='replay only these topics')
@@ -141,18 +141,19 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     for layout in args.layout:
         for n in args.particles:
-            for factor in args.acquisition_factor:
-                r = bench_once(n, args.duration, args.seed, layout, factor, args.camera,
+            for acquisition in args.acquisition_particles:
+                r = bench_once(n, args.duration, args.seed, layout, acquisition, args.camera,
                                args.topics, log=lambda m: print(m, file=sys.stderr))
                 results.append(r)
                 print(json.dumps({k: v for k, v in r.items() if k != 'replay'}),
                       file=sys.stderr)
-    rows = [[r['layout'], r['particles'], r['acquisition_particle_factor'] or 'default',
+    rows = [[r['layout'], r['particles'],
+             'default' if r['acquisition_particles'] is None else r['acquisition_particles'],
              r['duration_s'], r['speed_x_real_time'], r['gnss_epochs'],
              r['dropped_gnss_epochs'], r['fusion_dropped_epochs'],
              r['fusion_processing_p50_ms'],
              ' '.join(f'{k} {v:.1f}' for k, v in r['cpu_s'].items())] for r in results]
-    print(format_table(['layout', 'N', 'acq. factor', 'bag [s]', 'x real time',
+    print(format_table(['layout', 'N', 'acq. particles', 'bag [s]', 'x real time',
                         'GNSS epochs', 'dropped', 'fusion dropped', 'epoch p50 [ms]',
                         'CPU [s]'], rows))
     if args.json is not None:

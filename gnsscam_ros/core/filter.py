@@ -58,10 +58,14 @@ class FilterConfig:
             the clock, and through it the height, by tens of metres.
         heading_acquisition_m: The heading is unknown at start and observable only once the
             vehicle has moved well beyond the GNSS errors. Until it has travelled this far
-            the set keeps ``acquisition_particle_factor`` times more particles, so that the
-            4D (position, height, heading) search is covered densely and does not lock onto
-            a wrong heading by sampling luck.
-        acquisition_particle_factor: Set enlargement during heading acquisition (>= 1).
+            the set holds ``acquisition_particles`` particles (when that is more than
+            ``n_particles``), so that the 4D (position, height, heading) search is covered
+            densely and does not lock onto a wrong heading by sampling luck.
+        acquisition_particles: Set size during heading acquisition; 0 or fewer than
+            ``n_particles``: no enlargement. An absolute count, not a multiple of N: how
+            many particles cover the search (the initial spread times the heading circle)
+            depends on that volume, not on the working size, so a large N gains nothing
+            from an enlargement and would pay ten times its epoch cost for the first 100 m.
         dirichlet_alpha: Dirichlet prior concentration in the EM pooling.
         outlier_prob: Outlier probability of the robust likelihood.
         outlier_range_m: Width of the robust likelihood's uniform outlier density [m].
@@ -100,7 +104,7 @@ class FilterConfig:
     error_correlation_time_s: float = 5.0
     clock_kernel_max_m: float = 3.0
     heading_acquisition_m: float = 100.0
-    acquisition_particle_factor: int = 10
+    acquisition_particles: int = 10_000
     dirichlet_alpha: float = 1.01
     outlier_prob: float = 0.3
     outlier_range_m: float = 300.0
@@ -126,8 +130,8 @@ class FilterConfig:
         problems = []
         if self.n_particles < 2:
             problems.append('n_particles must be >= 2')
-        if self.acquisition_particle_factor < 1:
-            problems.append('acquisition_particle_factor must be >= 1')
+        if self.acquisition_particles < 0:
+            problems.append('acquisition_particles must be >= 0')
         if self.n_posteriors < 1:
             problems.append('n_posteriors must be >= 1')
         for name in ('measurement_var_m2', 'alert_limit_m', 'camera_temperature_m',
@@ -317,7 +321,7 @@ class ParticleFilter:
                                rejected=check.rejected)
         if self.frame is None:
             self.frame = LocalFrame.from_ecef(fix.ecef_m)
-        n = cfg.n_particles * cfg.acquisition_particle_factor
+        n = max(cfg.n_particles, cfg.acquisition_particles)
         self.particles = np.empty((n, 4))
         sd = np.array([cfg.init_position_sd_m, cfg.init_position_sd_m, cfg.init_vertical_sd_m])
         self.particles[:, POS] = self.frame.ecef_to_enu(fix.ecef_m) + (

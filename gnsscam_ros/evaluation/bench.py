@@ -55,7 +55,7 @@ def bench(counts=DEFAULT_COUNTS, n_posteriors: int = 10, likelihood: str | None 
     rows = {}
     for n in counts:
         config = FilterConfig(n_particles=n, n_posteriors=n_posteriors,
-                              acquisition_particle_factor=1)
+                              acquisition_particles=0)
         if likelihood is not None:
             config = replace(config, likelihood=likelihood)
         filt = ParticleFilter(config, frame=frame, rng=np.random.default_rng(seed))

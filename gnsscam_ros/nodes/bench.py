@@ -4,7 +4,7 @@
    process replays the emulated drive (IMU, odometry, then each GNSS epoch on
    ``gnss/pseudoranges``) and times every epoch from publishing its pseudoranges to
    receiving its ``integrity_risk`` (one clock, this process), at ``--particles`` particles
-   from the first epoch on (``acquisition_particle_factor`` 1; see ``bench_latency``).
+   from the first epoch on (``acquisition_particles`` 0; see ``bench_latency``).
 2. **camera_node throughput**: camera_node runs in its own process pinned to one CPU core
    (``sched_setaffinity``, ``opencv_threads`` 1) with a synthetic map database; this process
    offers 640x480 bgr8 frames at ``--fps`` and then as fast as it can, and counts the
@@ -82,15 +82,15 @@ def _stop(proc: subprocess.Popen) -> int:
 
 # ============================================================================ latency
 def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: float = 0.0,
-                  acquisition_factor: int = 1, domain: int = 61, seed: int = 3,
+                  acquisition_particles: int = 0, domain: int = 61, seed: int = 3,
                   log=print) -> dict:
     """Pseudoranges -> integrity_risk latency through pipeline_node in another process.
 
     Args:
         particles: Filter particles N (per posterior).
-        acquisition_factor: ``acquisition_particle_factor`` of the filter; 1 (default)
+        acquisition_particles: ``acquisition_particles`` of the filter; 0 (default)
             keeps N particles from the start, so every epoch measures the steady state
-            (the default 10 makes the first ~100 m of the drive 10 times as expensive).
+            (the filter default 10,000 enlarges sets smaller than that for ~100 m).
         duration_s: Length of the emulated drive replayed [s] (GNSS at 1 Hz).
         period_s: Wall time between epochs [s]; 0 = send the next epoch as soon as the
             previous verdict arrived (plus the dead reckoning of the interval).
@@ -106,7 +106,7 @@ def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: f
     log_dir = tempfile.mkdtemp(prefix='gnsscam_bench_')
     params = Path(log_dir) / 'params.yaml'
     params.write_text(f'fusion_node:\n  ros__parameters:\n    n_particles: {particles}\n'
-                      f'    acquisition_particle_factor: {acquisition_factor}\n'
+                      f'    acquisition_particles: {acquisition_particles}\n'
                       '    gnss_timeout_s: 30.0\n    odometry_wait_s: 0.5\n'
                       'imu_node:\n  ros__parameters:\n    input_queue_depth: 2000\n'
                       '    source_timeout_s: 30.0\n')
@@ -193,7 +193,7 @@ def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: f
         for st in m.status:
             if st.name == 'fusion_node: status':
                 fusion = ma.status_values(st)
-    return {'particles': particles, 'acquisition_particle_factor': acquisition_factor,
+    return {'particles': particles, 'acquisition_particles': acquisition_particles,
             'epochs': len(lat), 'median_ms': float(np.median(lat)),
             'p90_ms': float(np.percentile(lat, 90)), 'max_ms': float(np.max(lat)),
             'fusion_processing_p50_ms': float(fusion.get('processing_p50_ms', 'nan')),
@@ -320,8 +320,8 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog='python -m gnsscam_ros.nodes.bench',
                                      description=__doc__.split('\n\n')[0])
     parser.add_argument('--particles', type=int, default=10_000)
-    parser.add_argument('--acquisition-factor', type=int, default=1,
-                        help='acquisition_particle_factor of the filter (default 1)')
+    parser.add_argument('--acquisition-particles', type=int, default=0,
+                        help='acquisition_particles of the filter (default 0)')
     parser.add_argument('--duration-s', type=float, default=30.0,
                         help='emulated drive replayed for the latency [s]')
     parser.add_argument('--fps', type=float, default=30.0)
@@ -335,7 +335,8 @@ def main(argv=None) -> int:
     results = {}
     if not args.skip_latency:
         results['latency'] = bench_latency(args.particles, args.duration_s,
-                                           acquisition_factor=args.acquisition_factor, log=log)
+                                           acquisition_particles=args.acquisition_particles,
+                                           log=log)
         lat = results['latency']
         print(f"latency pseudoranges -> integrity_risk, N = {args.particles} (x M = 10 "
               f"posteriors): median {lat['median_ms']:.1f} ms, p90 {lat['p90_ms']:.1f} ms "

@@ -76,7 +76,7 @@ DEFAULTS = {
 _PROBABILITY = (0.0, 1.0)
 _FILTER_RANGES = {
     'n_particles': (2, 10_000_000), 'n_posteriors': (1, 10_000),
-    'acquisition_particle_factor': (1, 1000), 'min_satellites': (4, 1000),
+    'acquisition_particles': (0, 10_000_000), 'min_satellites': (4, 1000),
     'outlier_prob': _PROBABILITY, 'target_risk': _PROBABILITY, 'risk_delta': _PROBABILITY,
     'resample_ess_fraction': _PROBABILITY, 'camera_elsewhere_prob': _PROBABILITY,
     'elevation_mask_deg': (-90.0, 90.0), 'cn0_mask_dbhz': (0.0, 100.0),

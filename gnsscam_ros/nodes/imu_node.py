@@ -2,9 +2,10 @@
 
 Subscribes ``imu/data`` (sensor_msgs/Imu) and ``odom/twist``
 (geometry_msgs/TwistWithCovarianceStamped, optional); publishes
-``odometry/dead_reckoning`` (nav_msgs/Odometry, frame ``odom``): one planar pose per input
-sample stamp, integrated by :class:`gnsscam_ros.core.motion.DeadReckoner` (the same code an
-offline run uses). Speed comes from the odometry while it is received, else from the
+``odometry/dead_reckoning`` (nav_msgs/Odometry, frame ``odom``): planar poses integrated at
+every input sample stamp and published one per ``output_period_s`` of stamp time (default
+0.1 s: 10 Hz from 100 Hz IMU), by :class:`gnsscam_ros.core.motion.DeadReckoner` (the same
+code an offline run uses). Speed comes from the odometry while it is received, else from the
 integrated forward acceleration; yaw rate from ``yaw_rate_source`` while it is received,
 else the other source.
 
@@ -53,6 +54,9 @@ _DR_DESCRIPTIONS = {
     'speed_error_correlation_s': ('Without odometry, how long an error of the integrated '
                                   'speed persists, for the distance variance [s].',
                                   (0.0, BIG)),
+    'output_period_s': ('Publish one dead-reckoning state per this much stamp time (the first '
+                        'at or after each multiple of it); 0 = one per input sample stamp '
+                        '[s].', (0.0, BIG)),
 }
 
 
