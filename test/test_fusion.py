@@ -75,6 +75,34 @@ def test_camera_log_q_is_normalised_per_set(rng, temperature):
     np.testing.assert_allclose(logsumexp(log_q, axis=1), 0.0, atol=1e-12)
 
 
+def test_camera_log_q_of_k_matches_is_the_direct_softmax_far_from_the_origin(rng):
+    # A cloud 2 km from the map origin and matches around it, one 5 km off: the batched
+    # distances (one matrix product) equal the direct ones, and so does the mixture.
+    offset = np.array([1500.0, -1300.0, 40.0])
+    positions = offset + rng.normal(scale=10.0, size=(3, 500, 3))
+    matches = offset + rng.normal(scale=10.0, size=(4, 3))
+    matches[2, 0] += 5000.0
+    batched = camera_log_q(positions, matches, 5.0, gate_m=20.0)
+    assert batched.shape == (4, 3, 501)
+    for k, match in enumerate(matches):
+        d = np.linalg.norm(positions - match, axis=-1)
+        logits = np.concatenate([-d / 5.0, np.full((3, 1), -20.0 / 5.0 + np.log(500))], -1)
+        np.testing.assert_allclose(batched[k], normalised(logits), rtol=0, atol=1e-9)
+        np.testing.assert_allclose(camera_log_q(positions, match, 5.0, 20.0), batched[k],
+                                   rtol=0, atol=1e-12)
+    log_p = normalised(rng.normal(size=(3, 500)))
+    mixed = fuse_camera(log_p, batched, 5.0, 1e-3)
+    q = np.exp(batched[..., :500])
+    direct = np.log(np.einsum('km,kmn->mn', mixed.alpha, q))
+    np.testing.assert_allclose(mixed.log_q_mix[~mixed.excluded], direct[~mixed.excluded],
+                               rtol=1e-12)
+    # A particle kilometres from every match: every Q_j underflows, the mixture stays finite.
+    lonely = positions.copy()
+    lonely[:, 0] += 20_000.0
+    far = fuse_camera(log_p, camera_log_q(lonely, matches[[0, 1]], 5.0, 20.0), 1e9, 1e-3)
+    assert np.isfinite(far.log_q_mix).all()
+
+
 def test_measurements_moved_to_epoch_with_odometry():
     from gnsscam_ros.core.fusion import CameraMeasurement, measurements_at_epoch
     from gnsscam_ros.core.types import OdometrySeries

@@ -379,9 +379,9 @@ class ParticleFilter:
         if camera and cfg.use_camera:
             # Camera and GNSS distributions share the domain: the particles of each set.
             log_p = joint - logsumexp(joint, axis=1, keepdims=True)
-            log_q = np.stack([camera_log_q(priors[..., POS], c.position_enu_m,
-                                           cfg.camera_temperature_m, cfg.camera_gate_m)
-                              for c in camera])
+            log_q = camera_log_q(priors[..., POS],
+                                 np.array([c.position_enu_m[:3] for c in camera]),
+                                 cfg.camera_temperature_m, cfg.camera_gate_m)
             fusion = fuse_camera(log_p, log_q, cfg.camera_kl_threshold_nats,
                                  cfg.camera_elsewhere_prob)
             joint = joint + fusion.log_q_mix

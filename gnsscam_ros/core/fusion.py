@@ -106,29 +106,47 @@ def measurements_at_epoch(matches: list[CameraMeasurement], odometry: OdometrySe
 
 def camera_log_q(positions_m: np.ndarray, match_enu_m: np.ndarray, temperature_m: float,
                  gate_m: float | None = None) -> np.ndarray:
-    """Per-set log softmax of ``-distance / T`` over the particles.
+    """Per-set log softmax of ``-distance / T`` over the particles, for one or K matches.
 
     The distance is Euclidean in 3D as in the paper: a geotagged database image carries
     its height, which GNSS in a street canyon observes poorly.
 
     Args:
         positions_m: (M, N, 3) particle positions [m].
-        match_enu_m: (3,) matched position at the epoch [m].
+        match_enu_m: (3,) matched position at the epoch, or (K, 3) for K matches [m].
         temperature_m: Softmax temperature T [m].
         gate_m: Gate distance R [m]; None for the paper's plain softmax over particles.
 
     Returns:
-        (M, N + 1) log Q with the "elsewhere" cell last, or (M, N) without a gate. Each
-        row sums to one in probability. The cell weighs as much as N particles at the gate
-        distance (logit ``-R / T + log N``), so the test does not depend on N.
+        (M, N + 1) log Q with the "elsewhere" cell last, or (M, N) without a gate; with K
+        matches a leading K axis. Each row sums to one in probability. The cell weighs as
+        much as N particles at the gate distance (logit ``-R / T + log N``), so the test
+        does not depend on N.
     """
-    diff = positions_m[..., :3] - match_enu_m[:3]
-    logits = -np.sqrt((diff * diff).sum(-1)) / temperature_m
+    pos = np.asarray(positions_m, dtype=float)[..., :3]
+    match = np.asarray(match_enu_m, dtype=float)
+    matches = match.reshape(-1, match.shape[-1])[:, :3]
+    m, n = pos.shape[0], pos.shape[1]
+    # Squared distances |p|^2 - 2 p.c + |c|^2 as one matrix product for all K matches (the
+    # K x M x N array is the costly part at N = 10,000); coordinates relative to the cloud
+    # centre keep the cancellation harmless (|p|^2 is the cloud's spread, not the map's).
+    centre = pos[:, 0, :].mean(axis=0)
+    flat = pos.reshape(-1, 3) - centre
+    rel = matches - centre
+    d2 = rel @ (-2.0 * flat.T)
+    d2 += np.einsum('ij,ij->i', flat, flat)[None, :]
+    d2 += np.einsum('ij,ij->i', rel, rel)[:, None]
+    np.maximum(d2, 0.0, out=d2)
+    logits = np.sqrt(d2, out=d2).reshape(len(matches), m, n)
+    logits *= -1.0 / temperature_m
     if gate_m is not None:
         logits = np.concatenate(
-            [logits, np.full(logits.shape[:-1] + (1,),
-                             -gate_m / temperature_m + np.log(logits.shape[-1]))], axis=-1)
-    return logits - logsumexp(logits, axis=-1, keepdims=True)
+            [logits, np.full(logits.shape[:-1] + (1,), -gate_m / temperature_m + np.log(n))],
+            axis=-1)
+    top = logits.max(axis=-1, keepdims=True)
+    log_norm = top + np.log(np.exp(logits - top).sum(axis=-1, keepdims=True))
+    logits -= log_norm
+    return logits if match.ndim > 1 else logits[0]
 
 
 @dataclass(frozen=True)
@@ -176,8 +194,16 @@ def fuse_camera(log_p: np.ndarray, log_q: np.ndarray, kl_threshold_nats: float,
     kl = (q * (log_q - log_p[None])).sum(-1)
     k = -kl / q.sum(-1) - 1.0
     alpha = np.exp(k - logsumexp(k, axis=0, keepdims=True))       # normalised over j
-    log_q_mix = logsumexp(log_q[..., :n] + np.log(np.maximum(alpha, 1e-300))[..., None],
+    # log sum_j alpha_j Q_j from the Q already at hand; where every Q_j underflows (a
+    # particle kilometres from every match) the log-sum-exp does it exactly.
+    mix = np.einsum('km,kmn->mn', alpha, q[..., :n])
+    with np.errstate(divide='ignore'):
+        log_q_mix = np.log(mix)
+    tiny = mix < 1e-280
+    if tiny.any():
+        exact = logsumexp(log_q[..., :n] + np.log(np.maximum(alpha, 1e-300))[..., None],
                           axis=0)
+        log_q_mix[tiny] = exact[tiny]
     excluded = kl.min(axis=0) > kl_threshold_nats
     log_q_mix[excluded] = 0.0
     return FusionResult(log_q_mix=log_q_mix, alpha=alpha, kl_nats=kl, excluded=excluded)
