@@ -92,6 +92,21 @@ def test_waits_for_a_usable_first_epoch():
     assert result.status == WAITING and not filt.initialised
 
 
+def test_map_origin_far_from_the_first_fix_is_refused_with_the_reason():
+    from gnsscam_ros.core.frames import LocalFrame
+    # An origin left at (0, 0, 0) is thousands of km from the vehicle: the filter would move
+    # particles in a tilted plane. It waits and says why instead.
+    filt = ParticleFilter(config(), frame=LocalFrame(0.0, 0.0, 0.0),
+                          rng=np.random.default_rng(4))
+    result = filt.step(epoch_at([0.0, 0.0, 0.0], stamp_ns=0), None)
+    assert result.status == WAITING and 'check map_origin_llh' in result.reason
+    assert filt.particles is None
+    # 50 km away is still a frame.
+    near = LocalFrame(*FRAME.enu_to_geodetic(np.array([30e3, 40e3, 0.0])))
+    filt = ParticleFilter(config(), frame=near, rng=np.random.default_rng(4))
+    assert filt.step(epoch_at([0.0, 0.0, 0.0], stamp_ns=0), None).status == UPDATED
+
+
 def test_integrity_flag_follows_target_and_alert_limit():
     filt = ParticleFilter(config(inverse_bernoulli='approx'), frame=FRAME,
                           rng=np.random.default_rng(6))

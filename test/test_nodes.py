@@ -259,6 +259,38 @@ def test_params_files_load_through_ros_args(tmp_path):
         rclpy.shutdown(context=ctx)
 
 
+def test_node_spinner_serves_each_node_and_stops_the_group_when_one_fails():
+    from gnsscam_ros.nodes.common import NodeSpinner
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=next_domain_id())
+    ticks = {'a': 0, 'b': 0}
+    a = rclpy.create_node('spin_a', context=ctx)
+    b = rclpy.create_node('spin_b', context=ctx)
+
+    def tick_a():
+        ticks['a'] += 1
+
+    def tick_b():
+        ticks['b'] += 1
+        if ticks['b'] == 5:
+            raise RuntimeError('node b failed')
+
+    a.create_timer(0.01, tick_a)
+    b.create_timer(0.01, tick_b)
+    spinner = NodeSpinner([a, b], ctx)
+    try:
+        started = time.monotonic()
+        spinner.wait()                      # returns once b's callback raised
+        assert time.monotonic() - started < 10.0
+        assert ticks['b'] == 5 and ticks['a'] > 0
+        assert not ctx.ok()                 # the failure shut the group down
+    finally:
+        spinner.stop()
+        a.destroy_node()
+        b.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
 # ========================================================================= harness
 class Graph:
     """Nodes, a probe node and a single-threaded executor in a fresh context."""

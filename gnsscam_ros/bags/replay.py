@@ -923,8 +923,8 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None, 
       that grows with the number of entities it serves: per-node executors keep it
       small). All share one GIL with the replay. ``database`` can pass a loaded map
       database to camera_node.
-    * ``'pipeline'``: ``pipeline_node`` (the four nodes on one multi-threaded executor) in
-      a child process.
+    * ``'pipeline'``: ``pipeline_node`` (the four nodes in one process, one executor
+      thread each) in a child process.
 
     :data:`REPLAY_NODE_PARAMETERS` are applied under ``parameters``.
 
@@ -959,6 +959,7 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None, 
         RuntimeError: A child process died during the replay.
         ValueError: Unknown layout.
     """
+    from ..nodes.common import NodeSpinner
     from .record import BagRecorder
     if layout not in LAYOUTS:
         raise ValueError(f'unknown layout {layout!r}; use one of {LAYOUTS}')
@@ -974,7 +975,7 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None, 
     nodes: list = []
     procs: list = []
     recorder = None
-    executors: list = []
+    spinner = None
     record_summary = None
     try:
         if layout == 'threads':
@@ -995,13 +996,7 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None, 
         if result_bag is not None:
             recorder = BagRecorder(result_bag, topics=record_topics, context=ctx,
                                    namespace=ns, strip_namespace=True)
-        for node in nodes + ([recorder] if recorder is not None else []):
-            executor = SingleThreadedExecutor(context=ctx)
-            executor.add_node(node)
-            thread = threading.Thread(target=_spin, args=(executor,), daemon=True,
-                                      name=f'gnsscam_spin_{node.get_name()}')
-            thread.start()
-            executors.append((executor, thread))
+        spinner = NodeSpinner(nodes + ([recorder] if recorder is not None else []), ctx)
         required = ()
         if recorder is not None:
             wanted = [schema.relative(t.split(':')[0]) for t in (record_topics or [
@@ -1040,9 +1035,8 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None, 
             recorder.abort()
         raise
     finally:
-        for executor, thread in executors:
-            executor.shutdown(timeout_sec=2.0)
-            thread.join(timeout=5.0)
+        if spinner is not None:
+            spinner.stop()
         for node in nodes + ([recorder] if recorder is not None else []):
             node.destroy_node()
         rclpy.try_shutdown(context=ctx)

@@ -32,6 +32,11 @@ UPDATED = 'updated'            # GNSS update applied; integrity computed
 PROPAGATED = 'propagated'      # epoch unusable: motion only, integrity not available
 REJECTED = 'rejected'          # epoch refused (time going backwards): state unchanged
 WAITING = 'waiting'            # no initial fix yet
+#: Farthest a given map frame origin may be from the first fix [m]. The filter moves
+#: particles in the frame's east-north plane and treats its up axis as vertical; 100 km
+#: away they are ~1 degree off the local ones, 6,000 km away (an origin left at 0, 0)
+#: meaningless, so such an origin is a configuration error, not a frame.
+MAX_ORIGIN_DISTANCE_M = 100_000.0
 
 
 @dataclass(frozen=True)
@@ -321,6 +326,14 @@ class ParticleFilter:
                                rejected=check.rejected)
         if self.frame is None:
             self.frame = LocalFrame.from_ecef(fix.ecef_m)
+        distance = float(np.linalg.norm(self.frame.ecef_to_enu(fix.ecef_m)))
+        if distance > MAX_ORIGIN_DISTANCE_M:
+            return EpochResult(
+                stamp_ns=epoch.stamp_ns, status=WAITING, rejected=check.rejected,
+                reason=f'the map frame origin (lat, lon, h) = '
+                       f'{tuple(round(v, 6) for v in self.frame.origin_llh)} is '
+                       f'{distance / 1e3:.0f} km from the first fix (more than '
+                       f'{MAX_ORIGIN_DISTANCE_M / 1e3:.0f} km): check map_origin_llh')
         n = max(cfg.n_particles, cfg.acquisition_particles)
         self.particles = np.empty((n, 4))
         sd = np.array([cfg.init_position_sd_m, cfg.init_position_sd_m, cfg.init_vertical_sd_m])

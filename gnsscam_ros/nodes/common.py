@@ -14,7 +14,7 @@ import numpy as np
 import rclpy
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -228,7 +228,7 @@ def level_worst(*levels: int) -> int:
 
 
 __all__ = ['BIG', 'GnssCamNode', 'NodeStats', 'OK', 'WARN', 'level_worst', 'reliable_qos',
-           'run_node', 'sensor_qos']
+           'run_node', 'sensor_qos', 'NodeSpinner']
 
 
 def run_node(node_class, args=None) -> None:
@@ -244,3 +244,66 @@ def run_node(node_class, args=None) -> None:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+
+
+class NodeSpinner:
+    """Each node on its own single-threaded executor and thread.
+
+    Several nodes in one process (pipeline_node, in-process replays) are served this way
+    rather than by rclpy's ``MultiThreadedExecutor``: in Jazzy that executor re-queues
+    callbacks that are submitted but not yet running and wakes up again at once, a busy
+    loop that kept a whole core at 100 % and slowed every node (ros2/rclpy#1452; measured
+    here: pipeline_node replayed a bag at 1.15x real time, separate processes at 14x). A
+    single-threaded executor per node also keeps each node's callbacks serialised, as in
+    its own process. A node whose callback raises stops the whole group (the error is
+    logged and the context shut down), as its own process would exit.
+
+    The threads spin in short slices and check a stop flag, so that :meth:`stop` joins
+    them *before* it shuts the executors down: an executor torn down while its thread is
+    still waiting on it can crash the process.
+    """
+
+    SLICE_S = 0.1
+
+    def __init__(self, nodes: list, context=None):
+        self.context = context
+        self._stop = threading.Event()
+        self._pairs = []
+        for node in nodes:
+            executor = SingleThreadedExecutor(context=context)
+            executor.add_node(node)
+            thread = threading.Thread(target=self._spin, args=(executor, node), daemon=True,
+                                      name=f'spin_{node.get_name()}')
+            thread.start()
+            self._pairs.append((executor, thread))
+
+    def _ok(self) -> bool:
+        return self.context.ok() if self.context is not None else rclpy.ok()
+
+    def _spin(self, executor, node) -> None:
+        try:
+            while not self._stop.is_set() and self._ok():
+                executor.spin_once(timeout_sec=self.SLICE_S)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        except Exception as err:    # noqa: BLE001 - a node failed: stop the group, loudly
+            if self._ok():
+                node.get_logger().fatal(f'{type(err).__name__}: {err}; shutting down')
+                rclpy.try_shutdown(context=self.context)
+
+    def running(self) -> bool:
+        """True while every thread spins and the context is up."""
+        return self._ok() and all(t.is_alive() for _, t in self._pairs)
+
+    def wait(self) -> None:
+        """Block until Ctrl-C, shutdown or a failed node."""
+        while self.running():
+            time.sleep(self.SLICE_S)
+
+    def stop(self) -> None:
+        """Stop the threads, then shut their executors down."""
+        self._stop.set()
+        for _, thread in self._pairs:
+            thread.join(timeout=10 * self.SLICE_S + 5.0)
+        for executor, _ in self._pairs:
+            executor.shutdown(timeout_sec=1.0)

@@ -1,16 +1,18 @@
 """pipeline_node: gnss_node, camera_node, imu_node and fusion_node in one process.
 
-For single-machine use: the four nodes share a multi-threaded executor (each keeps its own
-name, parameters and topics, so ``--params-file`` files written for the separate
-executables apply unchanged). The filter epoch holds the GIL for most of its run, so on a
-loaded machine separate processes can give lower latency.
+For single-machine use: each of the four nodes spins its own single-threaded executor on
+its own thread (``common.NodeSpinner``; each keeps its own name, parameters and topics,
+so ``--params-file`` files written for the separate executables apply unchanged). They
+share one GIL: the filter epoch holds it for most of its run, so separate processes
+(``ros2 run`` each node) use more cores and replay a bag faster.
 """
 from __future__ import annotations
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 
 from .camera_node import CameraNode
+from .common import NodeSpinner
 from .fusion_node import FusionNode
 from .gnss_node import GnssNode
 from .imu_node import ImuNode
@@ -26,19 +28,16 @@ def make_nodes(**kwargs) -> list:
 def main(args=None) -> None:
     """``ros2 run gnsscam_ros pipeline_node``."""
     rclpy.init(args=args)
-    nodes = []
-    executor = None
+    nodes, spinner = [], None
     try:
         nodes = make_nodes()
-        executor = MultiThreadedExecutor(num_threads=4)
-        for node in nodes:
-            executor.add_node(node)
-        executor.spin()
+        spinner = NodeSpinner(nodes)
+        spinner.wait()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        if executor is not None:
-            executor.shutdown()
+        if spinner is not None:
+            spinner.stop()
         for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()
