@@ -291,6 +291,34 @@ def test_node_spinner_serves_each_node_and_stops_the_group_when_one_fails():
         rclpy.try_shutdown(context=ctx)
 
 
+def test_diagnostics_report_matched_links_for_the_replay(graph):
+    g = graph
+    imu = g.add(ImuNode(context=g.ctx))
+    fusion = g.add(FusionNode(context=g.ctx))
+    reports = g.collect(DiagnosticArray, 'diagnostics')
+    # Before anything is connected the counts exist and say so.
+    assert imu.link_counts()['publishers_imu/data'] == 0
+    g.spin_until(lambda: imu.link_counts()['subscribers_odometry/dead_reckoning'] >= 1
+                 and fusion.link_counts()['publishers_odometry/dead_reckoning'] >= 1,
+                 what='imu_node -> fusion_node matched')
+    links = fusion.link_counts()
+    assert {'publishers_gnss/measurements', 'publishers_camera/matches',
+            'subscribers_integrity_risk', 'subscribers_pose'} <= set(links)
+    assert not any('rosout' in k or 'parameter_events' in k or k.endswith('diagnostics')
+                   for k in links)
+
+    def reported():
+        for msg in reports:
+            for st in msg.status:
+                values = ma.status_values(st)
+                if (st.name == 'fusion_node: status'
+                        and int(values.get('publishers_odometry/dead_reckoning', 0)) >= 1):
+                    return True
+        return False
+
+    g.spin_until(reported, 5.0, 'the link counts in fusion_node diagnostics')
+
+
 # ========================================================================= harness
 class Graph:
     """Nodes, a probe node and a single-threaded executor in a fresh context."""

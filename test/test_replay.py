@@ -101,6 +101,7 @@ def test_replay_through_nodes_equals_offline_evaluation(emulated_bag, tmp_path):
     assert summary.dropped_gnss_epochs == 0
     assert not any(summary.unacknowledged.values()), summary.unacknowledged
     assert set(summary.flow_control.values()) == {'on'}
+    assert summary.start == 'links matched'          # the nodes reported every link
     assert summary.node_diagnostics['fusion_node: status'].get('dropped_epochs', '0') == '0'
     counts = {k: v[1] for k, v in bag_topics(emulated_bag).items()}
     assert summary.published == counts
@@ -221,6 +222,7 @@ def test_rate_scales_the_original_timing(short_bag, ctx):
     assert summary.speed == pytest.approx(2.0, rel=0.15)
     # Nobody listens: flow control is off for every stream, with the reason.
     assert all(v == 'off: no subscriber' for v in summary.flow_control.values())
+    assert summary.start == ''
     fast = BagReplayer(short_bag, rate=0.0, wait_s=0.0, context=ctx)
     try:
         assert fast.play().wall_s < 1.0

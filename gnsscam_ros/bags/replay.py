@@ -56,8 +56,11 @@ to 1e-6 m):
   ``camera/matches`` when both are ready, which would run the epoch without the last
   match);
 * before the first message the replay waits for the graph's internal connections
-  (``FlowRule.via``) and then ``settle_s`` for their endpoints to match
-  (:data:`FRESH_PROCESSES_SETTLE_S` for node processes started with the replay).
+  (``FlowRule.via``) and then until the nodes' diagnostics report every link *matched*
+  at both ends (``GnssCamNode.link_counts``: discovery is not matching, and a message
+  sent before the match is lost). With a fixed 3.5 s delay instead, one of three demo
+  runs here lost fusion_node's first dead-reckoning states and differed from the offline
+  run by metres. Nodes that report no links get ``settle_s`` instead.
 
 A stream whose consumer is absent (no subscriber on the input, or no publisher of its
 acknowledging topic after ``--wait``) is played without flow control. An acknowledgement
@@ -158,20 +161,21 @@ FLOW_RULES: dict[str, FlowRule] = {
 }
 #: Publication order of messages with equal stamps (others after, in bag order).
 TIE_ORDER = (schema.TWIST, schema.IMU, schema.IMAGE, schema.GNSS)
-#: Wait after the graph is connected, for the endpoints to match (discovery of the graph
-#: and matching of the DDS endpoints between two other processes are separate steps, which
-#: the replay cannot observe) [s].
+#: Fallback when the nodes do not report their links (not gnsscam_ros nodes): wait this
+#: long after the graph is connected, for the endpoints to match [s].
 MATCH_SETTLE_S = 0.5
 #: The same for node processes started together with the replay: two participants that
 #: miss each other's first announcements meet at the next periodic one (Fast DDS: every
-#: 3 s). Measured: with 0.5 s, about every second run lost fusion_node's first
-#: dead-reckoning states or camera matches; with 3 s none in 8 runs.
+#: 3 s).
 FRESH_PROCESSES_SETTLE_S = 3.5
 #: Pause before a GNSS epoch whose interval had camera images [s] (see BagReplayer._flow).
 GNSS_GRACE_S = 0.02
 #: Streams that must be acknowledged up to a GNSS epoch's stamp before it is published.
 GNSS_BARRIER = (schema.IMAGE,)
 _MAX_TIMEOUTS = 3              # consecutive ack timeouts before a stream's control goes off
+#: How long to wait for the nodes' first link report (diagnostics, once a second) before
+#: falling back to a fixed settle time [s].
+LINK_REPORT_WAIT_S = 3.0
 
 #: Node parameters for a replay whose time is not wall time (see module doc). The waits stay
 #: finite so that an epoch after the last odometry sample is still processed at the end.
@@ -245,6 +249,10 @@ class ReplaySummary:
             measured by :func:`replay_through_nodes`.
         node_diagnostics: The newest ``diagnostics`` values per status name seen during the
             replay (the nodes' counters: ``dropped_epochs``, ``dropped_frames``, ...).
+        start: How the replay knew the graph was ready: ``'links matched'`` (the nodes
+            reported every link), ``'links not matched'`` (they did not within ``wait``),
+            ``'fixed settle'`` (no link reports) or ``''`` (no flow-controlled stream).
+        start_wait_s: Wall time from the replay's start to its first message [s].
     """
 
     bag: Path
@@ -261,6 +269,8 @@ class ReplaySummary:
     interrupted: bool = False
     cpu_s: dict[str, float] = field(default_factory=dict)
     node_diagnostics: dict[str, dict] = field(default_factory=dict)
+    start: str = ''
+    start_wait_s: float = 0.0
 
     @property
     def bag_span_s(self) -> float:
@@ -291,7 +301,8 @@ class ReplaySummary:
                 'dropped_gnss_epochs': self.dropped_gnss_epochs,
                 'unacknowledged': self.unacknowledged, 'flow_control': self.flow_control,
                 'ack_wait_s': self.ack_wait_s, 'interrupted': self.interrupted,
-                'cpu_s': self.cpu_s, 'node_diagnostics': self.node_diagnostics}
+                'cpu_s': self.cpu_s, 'node_diagnostics': self.node_diagnostics,
+                'start': self.start, 'start_wait_s': self.start_wait_s}
 
     def text(self) -> str:
         """Readable one-paragraph summary."""
@@ -309,6 +320,8 @@ class ReplaySummary:
         off = {k: v for k, v in self.flow_control.items() if v != 'on'}
         if off:
             lines.append(f'flow control off: {off}')
+        if self.start and self.start != 'links matched':
+            lines.append(f'started on {self.start}')
         if self.interrupted:
             lines.append('interrupted')
         return '\n'.join(lines)
@@ -399,6 +412,7 @@ class BagReplayer(Node):
         self._epochs_seen: set[int] = set()
         self._diagnostics: dict[str, dict] = {}
         self._stop = False
+        self._start_mode = ''
         self._bag_pubs: dict[str, object] = {}
         store = schema.typestore()
         for topic, (msgtype, latched) in self._topics.items():
@@ -625,17 +639,73 @@ class BagReplayer(Node):
 
         while missing() and time.monotonic() < deadline and not self._stop:
             time.sleep(0.02)
-        time.sleep(self.settle_s)
         for topic, stream in self._streams.items():
             if self._bag_pubs[topic].get_subscription_count() == 0:
                 stream.enabled, stream.reason = False, 'off: no subscriber'
             elif acks[stream.rule.ack_topic].get_publisher_count() == 0:
                 stream.enabled = False
                 stream.reason = f'off: nobody publishes {stream.rule.ack_topic}'
+        self._start_mode = self._wait_for_links(deadline)
+        if self._start_mode in ('', 'fixed settle'):
+            time.sleep(self.settle_s)
         left = missing()
         if left:
             self.get_logger().warning(f'playing without {", ".join(left)} '
                                       f'(waited {self.wait_s:g} s)')
+
+    def _link_requirements(self) -> list[tuple[str, int]]:
+        """``(diagnostics key, minimum)`` of every link the flow control relies on.
+
+        Each input must be matched at its consumer (``publishers_<input>``), each internal
+        link (``FlowRule.via``) at both ends, and each acknowledging output must reach
+        this node (``subscribers_<ack topic>``); see ``GnssCamNode.link_counts``.
+        """
+        out = []
+        for stream in self._streams.values():
+            if not stream.enabled:
+                continue
+            out.append((f'publishers_{stream.topic}', 1))
+            out.append((f'subscribers_{stream.rule.ack_topic}', 1))
+            for via, subscribers in stream.rule.via:
+                out += [(f'publishers_{via}', 1), (f'subscribers_{via}', subscribers)]
+        return sorted(set(out))
+
+    def _wait_for_links(self, deadline: float) -> str:
+        """Wait until the nodes' diagnostics report every link matched.
+
+        Returns:
+            ``'links matched'``; ``'links not matched'`` at the deadline; ``'fixed
+            settle'`` when no node reports its links within :data:`LINK_REPORT_WAIT_S`
+            (nodes that are not gnsscam_ros's: the caller sleeps ``settle_s``); ``''``
+            when no stream is flow-controlled (the caller sleeps ``settle_s`` too).
+        """
+        wanted = self._link_requirements()
+        if not wanted:
+            return ''
+        first_report = time.monotonic() + LINK_REPORT_WAIT_S
+
+        def unmet() -> list[str] | None:
+            with self._cond:
+                reports = [v for v in self._diagnostics.values()
+                           if any(k.startswith(('publishers_', 'subscribers_')) for k in v)]
+            if not reports:
+                return None
+            return [f'{key} >= {least}' for key, least in wanted
+                    if max(_as_int(r.get(key)) for r in reports) < least]
+
+        while not self._stop:
+            left = unmet()
+            now = time.monotonic()
+            if left == []:
+                return 'links matched'
+            if left is None and now >= first_report:
+                return 'fixed settle'
+            if now >= deadline:
+                self.get_logger().warning('links not matched after '
+                                          f'{self.wait_s:g} s: {", ".join(left or [])}')
+                return 'links not matched'
+            time.sleep(0.05)
+        return ''
 
     def _sleep_until(self, t_wall: float) -> None:
         while not self._stop:
@@ -664,8 +734,10 @@ class BagReplayer(Node):
         summary = ReplaySummary(bag=self.bag, rate=self.rate)
         gnss_stamps: list[int] = []
         try:
+            waiting = time.monotonic()
             self._discover()
             started = time.monotonic()
+            summary.start, summary.start_wait_s = self._start_mode, started - waiting
             try:
                 self._publish_all(summary, gnss_stamps)
                 self._drain()
@@ -791,6 +863,13 @@ class BagReplayer(Node):
                 summary.flow_control[stream.topic] = stream.reason
                 summary.ack_wait_s[stream.topic] = stream.wait_s
             summary.node_diagnostics = {k: dict(v) for k, v in self._diagnostics.items()}
+
+
+def _as_int(value) -> int:
+    try:
+        return int(value)
+    except (TypeError, ValueError):
+        return 0
 
 
 def _latched(conn) -> bool:

@@ -40,6 +40,11 @@ def reliable_qos(depth: int = 10) -> QoSProfile:
                       durability=DurabilityPolicy.VOLATILE)
 
 
+#: Topics every node has (not links of the gnsscam_ros graph).
+_INFRASTRUCTURE_TOPICS = frozenset({'diagnostics', 'rosout', 'parameter_events',
+                                    '/rosout', '/parameter_events'})
+
+
 class NodeStats:
     """Counters and processing times of one node (thread-safe).
 
@@ -204,9 +209,31 @@ class GnssCamNode(Node):
         """``(level, message, extra values)`` of the node's own state (override)."""
         return OK, 'running', {}
 
+    def link_counts(self) -> dict[str, int]:
+        """Matched endpoints of the node's topics, relative to its namespace:
+        ``publishers_<input>`` (publishers a subscription is connected to) and
+        ``subscribers_<output>`` (subscribers a publisher reaches).
+
+        Graph discovery (a node sees another's endpoint) comes before matching (the two
+        endpoints connected); only matching means a message gets through. Another process
+        cannot observe it, so the nodes report it: a bag replay starts once every link of
+        the graph is matched instead of guessing a delay.
+        """
+        prefix = self.get_namespace().rstrip('/') + '/'
+        out = {}
+        for kind, endpoints, count in (
+                ('publishers', self.subscriptions, lambda e: e.get_publisher_count()),
+                ('subscribers', self.publishers, lambda e: e.get_subscription_count())):
+            for endpoint in endpoints:
+                name = endpoint.topic_name
+                rel = name[len(prefix):] if name.startswith(prefix) else name
+                if rel not in _INFRASTRUCTURE_TOPICS:
+                    out[f'{kind}_{rel}'] = int(count(endpoint))
+        return out
+
     def publish_diagnostics(self) -> None:
         level, message, extra = self.diagnostic_summary()
-        values = {**self.stats.values(), **extra}
+        values = {**self.stats.values(), **self.link_counts(), **extra}
         status = make_status(f'{self.get_name()}: status', level, message, values,
                              hardware_id='gnsscam_ros')
         self._diag_pub.publish(make_diagnostic_array(self.now_ns(), [status]))
