@@ -291,6 +291,27 @@ def test_node_spinner_serves_each_node_and_stops_the_group_when_one_fails():
         rclpy.try_shutdown(context=ctx)
 
 
+def test_epochs_wait_for_the_first_dead_reckoning_only_at_the_start(graph):
+    fusion = graph.add(FusionNode(context=graph.ctx, parameter_overrides=overrides(
+        odometry_wait_s=0.2, odometry_timeout_s=1.0)))
+    now = time.monotonic()
+    assert fusion._ready(S, now)                      # first fix: no motion needed
+    fusion.filter.particles = np.zeros((2, 4))        # as if initialised
+    fusion._first_gnss_receipt = now
+    # GNSS has just begun and no dead reckoning has arrived: its first states may be on
+    # their way (another path than the epochs), so the epoch waits for them ...
+    assert not fusion._ready(S, now)
+    assert fusion._ready(S, now - 0.3)           # ... at most odometry_wait_s
+    # GNSS for longer than odometry_timeout_s without any: GNSS-only, no waiting.
+    fusion._first_gnss_receipt = now - 1.5
+    assert fusion._ready(S, now)
+    # Dead reckoning running but behind the epoch: wait; stopped for longer: do not.
+    fusion._last_dr_receipt = now
+    assert not fusion._ready(S, now)
+    fusion._last_dr_receipt = now - 1.5
+    assert fusion._ready(S, now)
+
+
 def test_diagnostics_report_matched_links_for_the_replay(graph):
     g = graph
     imu = g.add(ImuNode(context=g.ctx))

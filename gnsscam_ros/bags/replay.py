@@ -800,6 +800,8 @@ class BagReplayer(Node):
         except BagError:
             raise
         except Exception as err:       # storage errors while iterating (truncated file)
+            if self._stop or not self.context.ok():
+                return                 # Ctrl-C shut the context down during a publish
             raise BagReadError(f'{self.bag}: reading failed: {type(err).__name__}: {err}',
                                path=self.bag) from err
 

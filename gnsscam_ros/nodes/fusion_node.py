@@ -1,8 +1,10 @@
 """fusion_node: the particle filter with integrity risk, one run per GNSS epoch.
 
 Subscribes ``gnss/measurements`` (from gnss_node), ``odometry/dead_reckoning`` (from
-imu_node) and ``camera/matches`` (from camera_node). Each GNSS epoch waits until the dead
-reckoning has reached its stamp (at most ``odometry_wait_s``), then
+imu_node) and ``camera/matches`` (from camera_node). Each GNSS epoch after the first fix
+waits until the dead reckoning has reached its stamp (at most ``odometry_wait_s``; when no
+dead reckoning has ever arrived, only during the first ``odometry_timeout_s`` of GNSS:
+GNSS-only operation waits for nothing after that), then
 ``ParticleFilter.step(epoch, motion, camera)`` runs with the motion of the interval since
 the previous epoch (``core.motion.MotionAccumulator``, the same code as an offline run) and
 the camera matches of that interval moved to the epoch (``core.fusion``).
@@ -217,6 +219,7 @@ class FusionNode(GnssCamNode):
         self._queue: deque = deque()
         self._started = time.monotonic()
         self._last_gnss_receipt: float | None = None
+        self._first_gnss_receipt: float | None = None
         self._last_dr_receipt: float | None = None
         self._last_stale_report = -math.inf
         self._last_epoch_ns: int | None = None
@@ -268,6 +271,8 @@ class FusionNode(GnssCamNode):
             self.warn_rejected('gnss/measurements', err.reason, str(err))
             return
         self._last_gnss_receipt = time.monotonic()
+        if self._first_gnss_receipt is None:
+            self._first_gnss_receipt = self._last_gnss_receipt
         if self._queue and epoch.stamp_ns <= self._queue[-1][0].stamp_ns:
             self.warn_rejected('gnss/measurements', 'out_of_order',
                                f'stamp {epoch.stamp_ns} ns not after the queued epoch')
@@ -331,12 +336,19 @@ class FusionNode(GnssCamNode):
     # --------------------------------------------------------------------- epochs
     def _ready(self, stamp_ns: int, queued_at: float) -> bool:
         newest = self.accumulator.newest_stamp_ns
-        if newest is not None and newest >= stamp_ns:
-            return True
+        if newest is not None and newest >= stamp_ns or not self.filter.initialised:
+            return True          # covered, or the first fix (it needs no motion)
         now = time.monotonic()
-        if self._last_dr_receipt is None or (
-                now - self._last_dr_receipt > self.param('odometry_timeout_s')):
-            return True          # no dead reckoning running: nothing to wait for
+        timeout = self.param('odometry_timeout_s')
+        if self._last_dr_receipt is None:
+            # No dead reckoning yet. Its first states travel another path than the GNSS
+            # epochs (imu_node, not gnss_node) and may arrive after the second epoch: wait
+            # for them as for any state, until GNSS has flowed for odometry_timeout_s
+            # without any (GNSS-only operation: nothing to wait for).
+            if now - (self._first_gnss_receipt or now) > timeout:
+                return True
+        elif now - self._last_dr_receipt > timeout:
+            return True          # the dead reckoning stopped: nothing to wait for
         if now - queued_at >= self.param('odometry_wait_s'):
             self.stats.count('odometry_late')
             return True
