@@ -103,6 +103,7 @@ import os
 import sys
 import threading
 import time
+import traceback
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -889,8 +890,9 @@ def _spin(executor) -> None:
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except Exception:                  # context shut down under the executor
-        pass
+    except Exception:
+        if executor.context.ok():      # a callback failed (not a shutdown): say so, the
+            traceback.print_exc()      # acknowledgements will time out with a warning
 
 
 # ================================================================ through the nodes
