@@ -36,14 +36,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core import integrity
-from ..core.filter import UPDATED, FilterConfig, ParticleFilter
+from ..core.filter import FilterConfig
 from ..core.frames import LocalFrame
 from ..core.fusion import CameraMeasurement
 from ..core.motion import DeadReckoningConfig, MotionAccumulator, dead_reckon
 from ..core.types import Drive, ImuSeries, OdometrySeries, Trajectory
 from .report import format_table, write_json_atomic
-from .runner import RunRecord, accuracy, run_snapshot_baseline, summarize, truth_at
+from .runner import RunRecord, accuracy, run_epochs, run_snapshot_baseline, summarize, truth_at
 
 #: Alert limit of the comparison [m]: the nodes publish the risk at one alert limit
 #: (fusion_node ``alert_limit_m``; extra limits are not a node parameter).
@@ -142,20 +141,12 @@ def offline_run(drive: Drive, config: FilterConfig, seed: int,
         The run record (as :func:`.runner.run_filter`) and the filter's map frame.
     """
     from ..nodes.fusion_node import DEFAULTS, camera_for_epoch, motion_for_epoch
-    frame = LocalFrame(*drive.origin_llh) if drive.origin_llh is not None else None
-    filt = ParticleFilter(config, frame=frame, rng=np.random.default_rng(seed))
     states = dead_reckon(drive.imu, drive.odometry, dr_config)
     acc = MotionAccumulator(DEFAULTS['odometry_buffer_s'])
-    limits = config.alert_limits_m
-    other = integrity.APPROX if config.inverse_bernoulli == integrity.EXACT else integrity.EXACT
-    stamps, estimates, bounds, bounds_other, references = [], [], [], [], []
-    statuses: dict[str, int] = {}
-    camera_alpha: dict[int, float] = {}
-    camera_epochs = camera_excluded = 0
-    truth_enu = None
     nxt = 0
-    start = time.monotonic()
-    for epoch in drive.gnss:
+
+    def inputs(filt, epoch) -> tuple:
+        nonlocal nxt
         # The states fusion_node has when it runs the epoch: up to the first one at or
         # after the epoch (the accumulator forgets states 60 s behind its newest).
         while nxt < len(states) and (not acc.states or acc.newest_stamp_ns < epoch.stamp_ns):
@@ -164,37 +155,9 @@ def offline_run(drive: Drive, config: FilterConfig, seed: int,
         motion = motion_for_epoch(acc, filt, epoch.stamp_ns)
         camera = (camera_for_epoch(camera_matches, acc, filt, epoch.stamp_ns)
                   if camera_matches else None)
-        result = filt.step(epoch, motion, camera)
-        if result.camera_alpha is not None:
-            camera_epochs += 1
-            camera_excluded += int(result.camera_excluded)
-            camera_alpha.update(zip(result.camera_frame_ids, result.camera_alpha.tolist()))
-        statuses[result.status] = statuses.get(result.status, 0) + 1
-        if result.status != UPDATED or drive.truth is None:
-            continue
-        if truth_enu is None:
-            truth_enu = filt.frame.ecef_to_enu(drive.truth.ecef_m)
-        truth = np.array([np.interp(epoch.stamp_ns, drive.truth.stamp_ns, truth_enu[:, j])
-                          for j in range(3)])
-        stamps.append(epoch.stamp_ns)
-        estimates.append(result.position_enu_m)
-        bounds.append(result.risk.risk_bound)
-        bounds_other.append(integrity.risk_bound(
-            result.risk.empirical_risk, result.risk.kl_nats, config.n_posteriors,
-            config.risk_delta, other).risk_bound)
-        references.append(integrity.hazard_mass(filt.posteriors[..., :3],
-                                                filt.posterior_log_w, truth, limits,
-                                                config.horizontal_risk))
-    stamps_arr = np.array(stamps, dtype=np.int64)
-    record = RunRecord(
-        stamp_ns=stamps_arr, estimate_enu_m=np.array(estimates).reshape(-1, 3),
-        truth_enu_m=(truth_at(drive, filt.frame, stamps_arr) if stamps else np.zeros((0, 3))),
-        risk_bound={config.inverse_bernoulli: np.array(bounds).reshape(-1, len(limits)),
-                    other: np.array(bounds_other).reshape(-1, len(limits))},
-        reference_risk=np.array(references).reshape(-1, len(limits)), alert_limits_m=limits,
-        statuses=statuses, seconds=time.monotonic() - start, camera_alpha=camera_alpha,
-        camera_excluded_epochs=camera_excluded, camera_epochs=camera_epochs)
-    return record, filt.frame
+        return motion, camera
+
+    return run_epochs(drive, config, seed, inputs)
 
 
 def node_series(result_bag: Path, frame: LocalFrame) -> dict:

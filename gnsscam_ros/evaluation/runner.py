@@ -69,6 +69,9 @@ def run_filter(drive: Drive, config: FilterConfig, seed: int = 0, progress: bool
                camera_matches: list[CameraMeasurement] | None = None) -> RunRecord:
     """Run the particle filter over a drive; truth is used only for scoring.
 
+    The motion of each interval integrates the odometry (``integrate_odometry``); the
+    camera matches are moved to the epoch with it.
+
     Args:
         drive: The data.
         config: Filter parameters.
@@ -80,6 +83,36 @@ def run_filter(drive: Drive, config: FilterConfig, seed: int = 0, progress: bool
     Returns:
         Per-epoch estimates, truth, risk bounds (configured and other inverse method) and
         reference risks for every alert limit of the configuration.
+    """
+    def inputs(filt: ParticleFilter, epoch) -> tuple:
+        motion, camera = None, None
+        if filt.last_stamp_ns is not None and epoch.stamp_ns > filt.last_stamp_ns:
+            if drive.odometry is not None:
+                motion = integrate_odometry(drive.odometry, filt.last_stamp_ns,
+                                            epoch.stamp_ns)
+            if camera_matches and filt.last_result is not None:
+                camera = measurements_at_epoch(camera_matches, drive.odometry,
+                                               filt.last_stamp_ns, epoch.stamp_ns,
+                                               filt.last_result.yaw_rad)
+        return motion, camera
+
+    return run_epochs(drive, config, seed, inputs, progress)[0]
+
+
+def run_epochs(drive: Drive, config: FilterConfig, seed: int, inputs,
+               progress: bool = False) -> tuple[RunRecord, LocalFrame]:
+    """The filter over every GNSS epoch of a drive, scored against its truth.
+
+    Args:
+        drive: The data.
+        config: Filter parameters.
+        seed: Seed of the filter's random generator.
+        inputs: ``inputs(filter, epoch) -> (motion, camera)``, the other arguments of
+            ``ParticleFilter.step`` for the epoch (called once per epoch, in order).
+        progress: Show progress on stderr.
+
+    Returns:
+        The run record and the filter's map frame.
     """
     frame = LocalFrame(*drive.origin_llh) if drive.origin_llh is not None else None
     filt = ParticleFilter(config, frame=frame, rng=np.random.default_rng(seed))
@@ -93,15 +126,7 @@ def run_filter(drive: Drive, config: FilterConfig, seed: int = 0, progress: bool
     camera_alpha: dict[int, float] = {}
     camera_epochs = camera_excluded = 0
     for i, epoch in enumerate(drive.gnss):
-        motion, camera = None, None
-        if filt.last_stamp_ns is not None and epoch.stamp_ns > filt.last_stamp_ns:
-            if drive.odometry is not None:
-                motion = integrate_odometry(drive.odometry, filt.last_stamp_ns,
-                                            epoch.stamp_ns)
-            if camera_matches and filt.last_result is not None:
-                camera = measurements_at_epoch(camera_matches, drive.odometry,
-                                               filt.last_stamp_ns, epoch.stamp_ns,
-                                               filt.last_result.yaw_rad)
+        motion, camera = inputs(filt, epoch)
         result = filt.step(epoch, motion, camera)
         if result.camera_alpha is not None:
             camera_epochs += 1
@@ -126,7 +151,7 @@ def run_filter(drive: Drive, config: FilterConfig, seed: int = 0, progress: bool
                                                 config.horizontal_risk))
     seconds = time.monotonic() - start
     stamps_arr = np.array(stamps, dtype=np.int64)
-    return RunRecord(
+    record = RunRecord(
         stamp_ns=stamps_arr, estimate_enu_m=np.array(estimates).reshape(-1, 3),
         truth_enu_m=(truth_at(drive, filt.frame, stamps_arr) if stamps else np.zeros((0, 3))),
         risk_bound={config.inverse_bernoulli: np.array(bounds).reshape(-1, len(limits)),
@@ -134,6 +159,7 @@ def run_filter(drive: Drive, config: FilterConfig, seed: int = 0, progress: bool
         reference_risk=np.array(references).reshape(-1, len(limits)), alert_limits_m=limits,
         statuses=statuses, seconds=seconds, camera_alpha=camera_alpha,
         camera_excluded_epochs=camera_excluded, camera_epochs=camera_epochs)
+    return record, filt.frame
 
 
 def run_snapshot_baseline(drive: Drive, frame: LocalFrame,
