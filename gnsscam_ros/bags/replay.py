@@ -118,6 +118,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 
 from msg_adapters import MessageError, parse_integrity_risk, status_values
 
+from ..nodes.common import NodeSpinner, stop_process
 from . import schema
 from .errors import BagError, BagReadError, BagTypeError
 from .read import header_stamp_ns, open_bag
@@ -1042,7 +1043,6 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None, 
         RuntimeError: A child process died during the replay.
         ValueError: Unknown layout.
     """
-    from ..nodes.common import NodeSpinner
     from .record import BagRecorder
     if layout not in LAYOUTS:
         raise ValueError(f'unknown layout {layout!r}; use one of {LAYOUTS}')
@@ -1124,7 +1124,7 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None, 
             node.destroy_node()
         rclpy.try_shutdown(context=ctx)
         for proc, _ in procs:
-            _stop_process(proc)
+            stop_process(proc)
 
 
 def _start_node_processes(params: dict[str, dict], domain: int,
@@ -1155,7 +1155,7 @@ def _start_node_processes(params: dict[str, dict], domain: int,
             stderr.close()
     except BaseException:
         for proc, _ in procs:
-            _stop_process(proc)
+            stop_process(proc)
         raise
     return procs
 
@@ -1172,19 +1172,6 @@ def _process_cpu_s(pid: int) -> float:
         return (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
     except (OSError, ValueError, IndexError):
         return math.nan
-
-
-def _stop_process(proc) -> int:
-    """SIGINT (as Ctrl-C), then SIGKILL after 20 s; the exit status."""
-    import signal
-    import subprocess
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-    try:
-        return proc.wait(timeout=20)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        return proc.wait()
 
 
 # ============================================================================ CLI

@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -37,6 +36,7 @@ from sensor_msgs.msg import Image, Imu, PointCloud2
 
 import msg_adapters as ma
 from gnsscam_ros.datasets.emulated import make_emulated_drive
+from gnsscam_ros.nodes.common import stop_process
 
 RELIABLE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2000,
                       reliability=ReliabilityPolicy.RELIABLE)
@@ -68,16 +68,6 @@ def _env(domain: int, log_dir: str) -> dict:
     env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
                ROS_LOG_DIR=log_dir, OPENBLAS_NUM_THREADS='1')
     return env
-
-
-def _stop(proc: subprocess.Popen) -> int:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-    try:
-        return proc.wait(timeout=30)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        return proc.wait()
 
 
 # ============================================================================ latency
@@ -186,7 +176,7 @@ def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: f
                                      for s in m.status), 5.0, 'fusion diagnostics')
     finally:
         probe.close()
-        rc = _stop(proc)
+        rc = stop_process(proc, timeout_s=30.0)
     lat = [1e3 * (received[s] - sent[s]) for s in sorted(sent)][1:]  # 0: initialisation
     fusion = {}
     for m in diagnostics:
@@ -311,7 +301,7 @@ def bench_camera(fps: float = 30.0, seconds: float = 5.0, n_database: int = 60,
                                                   'processing_mean_ms')}
     finally:
         probe.close()
-        out['exit_code'] = _stop(proc)
+        out['exit_code'] = stop_process(proc, timeout_s=30.0)
     out['pinned_cpu'] = cpu
     return out
 

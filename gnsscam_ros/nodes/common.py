@@ -255,7 +255,7 @@ def level_worst(*levels: int) -> int:
 
 
 __all__ = ['BIG', 'GnssCamNode', 'NodeStats', 'OK', 'WARN', 'level_worst', 'reliable_qos',
-           'run_node', 'sensor_qos', 'NodeSpinner']
+           'run_node', 'sensor_qos', 'NodeSpinner', 'stop_process']
 
 
 def run_node(node_class, args=None) -> None:
@@ -334,3 +334,17 @@ class NodeSpinner:
             thread.join(timeout=10 * self.SLICE_S + 5.0)
         for executor, _ in self._pairs:
             executor.shutdown(timeout_sec=1.0)
+
+
+def stop_process(proc, timeout_s: float = 20.0) -> int:
+    """Stop a node's child process as Ctrl-C does (SIGINT), SIGKILL after ``timeout_s``;
+    its exit status."""
+    import signal
+    import subprocess
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        return proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        return proc.wait()
