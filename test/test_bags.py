@@ -350,7 +350,10 @@ def test_cli_interrupted_process_leaves_no_partial_bag(tmp_path, sig):
     proc = subprocess.Popen(
         # Invoked the way the gnsscam_convert console script does.
         [sys.executable, '-c', 'import sys; from gnsscam_ros.bags.convert_cli import main; '
-         'sys.exit(main())', 'emulated', '--seed', '1', '--duration-s', '60', '--out',
+         # 240 s of drive (~20 s to convert): long enough that the signal always lands
+         # mid-way, even when this process is slow to see the first file (60 s once
+         # finished first on a loaded machine).
+         'sys.exit(main())', 'emulated', '--seed', '1', '--duration-s', '240', '--out',
          str(out)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
