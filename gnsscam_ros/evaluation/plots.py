@@ -8,8 +8,12 @@ import matplotlib
 matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402  (backend must be chosen first)
 import numpy as np  # noqa: E402
+from matplotlib.colors import LogNorm  # noqa: E402
+
+from .report import stanford_counts  # noqa: E402  (pure counting, importable without plots)
 
 ERROR_HIGHLIGHT_M = 10.0
+LOG_FLOOR_M = 0.1          # log axes cannot show 0; errors/PLs below this sit on the edge
 
 
 def _save(fig, path: Path) -> Path:
@@ -65,3 +69,159 @@ def risk_plot(path: Path, title: str, time_s: np.ndarray, bound: np.ndarray,
     ax.set_title(title)
     ax.legend(loc='upper right', fontsize=8)
     return _save(fig, path)
+
+
+def _decade_above(value: float) -> float:
+    return 10.0 ** np.ceil(np.log10(value))
+
+
+def stanford_diagram(path: Path, title: str, error_m: np.ndarray,
+                     protection_level_m: np.ndarray, alert_limit_m: float,
+                     valid: np.ndarray | None = None) -> dict[str, int]:
+    """Stanford diagram of the integrity output: error against protection level, log-log.
+
+    Epochs are binned in a 2D histogram with logarithmic cells (colour = epochs per cell),
+    which stays readable with 10^5 epochs where a scatter turns into a blot. Values below
+    ``LOG_FLOOR_M`` are drawn at the floor. Epochs without a finite PL are drawn in a
+    separate top row labelled "no PL" and counted as unavailable. The diagonal PL = error
+    and the alert limit lines split the plane into the regions of
+    :func:`~gnsscam_ros.evaluation.report.stanford_counts`, each labelled with its count.
+
+    Args:
+        path: Output PNG.
+        title: Figure title.
+        error_m: (T,) horizontal position error [m].
+        protection_level_m: (T,) horizontal protection level [m]; inf/NaN = none.
+        alert_limit_m: Horizontal alert limit [m].
+        valid: Optional (T,) bool mask of epochs to use (e.g. those with ground truth);
+            by default every epoch, and then every error must be finite.
+
+    Returns:
+        The region counts of the drawn epochs (keys of ``report.STANFORD_KEYS``).
+    """
+    err = np.asarray(error_m, dtype=float).ravel()
+    pl = np.asarray(protection_level_m, dtype=float).ravel()
+    if valid is not None:
+        keep = np.asarray(valid, dtype=bool).ravel()
+        if not (keep.size == err.size == pl.size):
+            raise ValueError(f'valid ({keep.size}), error ({err.size}) and protection '
+                             f'level ({pl.size}) differ in length')
+        err, pl = err[keep], pl[keep]
+    counts = stanford_counts(err, pl, alert_limit_m)   # also validates the inputs
+
+    no_pl = ~np.isfinite(pl)
+    # Axis range: whole decades, at least one decade either side of the alert limit so
+    # every region has room for its label.
+    lo = min(LOG_FLOOR_M, alert_limit_m / 10.0)
+    finite = np.concatenate([err, pl[~no_pl], [alert_limit_m * 10.0]])
+    hi = _decade_above(max(finite.max(), lo * 10.0))
+    per_decade = 10
+    decades = int(round(np.log10(hi / lo)))
+    edges = np.logspace(np.log10(lo), np.log10(hi), decades * per_decade + 1)
+    # One extra row above the top edge holds the epochs without a PL.
+    top = edges[-1] * (edges[1] / edges[0]) ** 4
+    y_edges = np.append(edges, top)
+    x = np.clip(err, lo, hi)
+    y = np.where(no_pl, np.sqrt(hi * top), np.clip(pl, lo, hi))
+    hist, _, _ = np.histogram2d(x, y, bins=[edges, y_edges])
+
+    fig, ax = plt.subplots(figsize=(7, 6))
+    ax.set_xscale('log')
+    ax.set_yscale('log')
+    if hist.any():
+        mesh = ax.pcolormesh(edges, y_edges, np.ma.masked_equal(hist.T, 0), cmap='viridis',
+                             norm=LogNorm(vmin=1, vmax=max(hist.max(), 2)))
+        fig.colorbar(mesh, ax=ax, label='epochs per cell')
+    al = alert_limit_m
+    ax.plot([lo, hi], [lo, hi], color='k', lw=1)
+    ax.axvline(al, color='k', lw=1, ls='--')
+    ax.axhline(al, color='k', lw=1, ls='--')
+    ax.axhline(hi, color='0.4', lw=0.8)
+    ax.text(hi / 1.1, np.sqrt(hi * top), 'no PL', ha='right', va='center', fontsize=7,
+            color='0.3', bbox=dict(facecolor='white', alpha=0.85, lw=0))
+
+    def share(key):
+        n = counts[key]
+        return f'{n} ({n / counts["epochs"]:.1%})' if counts['epochs'] else '0'
+
+    # Labels in the region corners farthest from the diagonal, where few epochs fall.
+    pad = 10 ** (0.05 * np.log10(hi / lo))     # a small margin, as a factor on log axes
+    labels = [
+        (lo * pad, al / pad, 'left', 'top', f'nominal\n{share("nominal")}', 'tab:green'),
+        (al / pad, lo * pad, 'right', 'bottom', f'MI\n{share("mi")}', 'tab:orange'),
+        (hi / pad, lo * pad, 'right', 'bottom', f'HMI\n{share("hmi")}', 'tab:red'),
+        (lo * pad, hi / pad, 'left', 'top',
+         f'unavailable\n{share("unavailable")}\nof which no PL: {counts["no_pl"]}', '0.3'),
+        (hi / pad, al * pad, 'right', 'bottom',
+         f'unavailable & MI\n{share("unavailable_mi")}', 'tab:purple'),
+    ]
+    for tx, ty, ha, va, text, colour in labels:
+        ax.text(tx, ty, text, ha=ha, va=va, fontsize=8, color=colour,
+                bbox=dict(facecolor='white', alpha=0.85, edgecolor=colour, lw=0.6))
+    ax.set_xlim(lo, hi)
+    ax.set_ylim(lo, top)
+    ax.set_xlabel('horizontal position error [m]')
+    ax.set_ylabel('horizontal protection level [m]')
+    ax.set_title(f'{title}\nAL {al:g} m, {counts["epochs"]} epochs', fontsize=10)
+    _save(fig, Path(path))
+    return counts
+
+
+def error_pl_timeline(path: Path, title: str, time_s: np.ndarray, error_m: np.ndarray,
+                      protection_level_m: np.ndarray, alert_limit_m: float,
+                      integrity_levels: np.ndarray | None = None) -> Path:
+    """Horizontal error and protection level over time, log y.
+
+    A log axis keeps 1 m errors and 1000 m PLs readable on one plot; values below
+    ``LOG_FLOOR_M`` sit on the floor. Epochs without a finite PL are shaded grey. With
+    ``integrity_levels``, epochs the flag called 'OK' while the error exceeded the alert
+    limit (the failures integrity is about) are marked red.
+
+    Args:
+        path: Output PNG.
+        title: Figure title.
+        time_s: (T,) epoch times [s].
+        error_m: (T,) horizontal position error [m]; NaN = no ground truth (a gap).
+        protection_level_m: (T,) horizontal protection level [m]; inf/NaN = none.
+        alert_limit_m: Horizontal alert limit [m].
+        integrity_levels: Optional (T,) strings 'OK' / 'ERROR' / 'STALE'.
+    """
+    t = np.asarray(time_s, dtype=float).ravel()
+    err = np.asarray(error_m, dtype=float).ravel()
+    pl = np.asarray(protection_level_m, dtype=float).ravel()
+    if not (t.size == err.size == pl.size):
+        raise ValueError(f'time ({t.size}), error ({err.size}) and protection level '
+                         f'({pl.size}) differ in length')
+    no_pl = ~np.isfinite(pl)
+    fig, ax = plt.subplots(figsize=(10, 3.5))
+    ax.set_yscale('log')
+    # One artist for all the no-PL spans (thousands of axvspans would be slow).
+    ax.fill_between(t, 0, 1, where=no_pl, step='mid', color='0.85', lw=0,
+                    transform=ax.get_xaxis_transform(),
+                    label=f'no PL ({no_pl.mean() if t.size else 0:.0%})')
+    ax.plot(t, np.where(no_pl, np.nan, np.clip(pl, LOG_FLOOR_M, None)),
+            color='tab:orange', lw=1, label='protection level')
+    ax.plot(t, np.clip(err, LOG_FLOOR_M, None), color='tab:blue', lw=1,
+            label='horizontal error')       # drawn last: the error is what is judged
+    ax.axhline(alert_limit_m, color='0.3', ls='--', lw=0.8,
+               label=f'alert limit {alert_limit_m:g} m')
+    if integrity_levels is not None:
+        levels = np.asarray(integrity_levels).ravel()
+        if levels.size != t.size:
+            raise ValueError(f'integrity_levels ({levels.size}) and time ({t.size}) '
+                             'differ in length')
+        with np.errstate(invalid='ignore'):
+            missed = (levels == 'OK') & (err > alert_limit_m)   # NaN error: not a miss
+        ax.scatter(t[missed], np.clip(err[missed], LOG_FLOOR_M, None), s=10,
+                   color='tab:red', zorder=3,
+                   label=f'flag OK, error > AL ({int(missed.sum())})')
+    # Bottom at the decade below the smallest value: no empty decades down to the floor.
+    shown = np.concatenate([err, pl, [alert_limit_m]])
+    shown = shown[np.isfinite(shown) & (shown > 0)]
+    ax.set_ylim(bottom=max(LOG_FLOOR_M, 10.0 ** np.floor(np.log10(shown.min()))))
+    ax.set_xlabel('time [s]')
+    ax.set_ylabel('horizontal [m]')
+    ax.set_title(title)
+    # Outside the axes: inside, it hides the epochs it describes.
+    ax.legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=8)
+    return _save(fig, Path(path))

@@ -87,3 +87,116 @@ def integrity_rows(label: str, integrity: dict) -> list[list]:
 
 INTEGRITY_HEADERS = ['run', 'AL [m]', 'P_FA', 'P_MI', 'fail ratio', 'fail err [m]',
                      'bound gap', 'err>AL/epochs']
+
+
+def write_csv_atomic(path: Path, header: list[str], rows, force: bool = False) -> Path:
+    """Write a CSV table via a temporary file and an atomic rename.
+
+    Same policy as :func:`write_json_atomic`. Floats are written with ``repr`` so that
+    reading them back gives the identical value; None and NaN become an empty field, which
+    spreadsheet and pandas readers take as missing. Infinities stay ``inf``/``-inf``
+    (``float()`` reads them back).
+
+    Args:
+        path: Output CSV.
+        header: Column names.
+        rows: Iterable of sequences, each as long as ``header`` (may be a generator; it is
+            consumed while writing).
+        force: Replace an existing ``path``.
+
+    Raises:
+        OutputExistsError: ``path`` exists and ``force`` is False.
+        ValueError: A row's length differs from the header's (nothing is written).
+    """
+    import csv
+    path = Path(path)
+    if path.exists() and not force:
+        raise OutputExistsError(f'{path} exists; pass --force to replace it')
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', dir=path.parent)
+    try:
+        # newline='': the csv module writes its own line endings.
+        with os.fdopen(fd, 'w', encoding='utf-8', newline='') as handle:
+            writer = csv.writer(handle)
+            writer.writerow(header)
+            for number, row in enumerate(rows, start=1):
+                cells = [_csv_cell(value) for value in row]
+                if len(cells) != len(header):
+                    raise ValueError(f'{path}: row {number} has {len(cells)} fields, '
+                                     f'the header {len(header)}')
+                writer.writerow(cells)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _csv_cell(value) -> str:
+    """One CSV field: None/NaN empty, floats exact (repr), numpy scalars as plain values."""
+    if value is None:
+        return ''
+    if hasattr(value, 'item') and not hasattr(value, '__len__'):
+        value = value.item()          # numpy scalar: repr would read 'np.float64(...)'
+    if isinstance(value, float):
+        return '' if value != value else repr(value)   # NaN is the only x != x
+    return str(value)
+
+
+STANFORD_KEYS = ('epochs', 'nominal', 'mi', 'hmi', 'unavailable', 'unavailable_mi',
+                 'no_pl')
+
+
+def stanford_counts(error_m, protection_level_m, alert_limit_m: float) -> dict[str, int]:
+    """Epoch counts per region of the Stanford (integrity) diagram.
+
+    Standard definitions (as in the WAAS/EGNOS Stanford-ESA plots), with PE the horizontal
+    position error and PL the horizontal protection level, both [m], AL the alert limit:
+
+    - ``nominal``: PE <= PL <= AL (normal operation).
+    - ``mi``: PL < PE <= AL (misleading information, still within the alert limit).
+    - ``hmi``: PL <= AL < PE (hazardously misleading information).
+    - ``unavailable``: PL > AL and PE <= PL (system unavailable, bound holds).
+    - ``unavailable_mi``: PL > AL and PE > PL (unavailable and misleading).
+
+    The five regions partition the epochs: they sum to ``epochs``. An epoch with a
+    non-finite PL (inf or NaN: no PL was available) counts as PL = inf, i.e. as
+    ``unavailable``; ``no_pl`` counts those epochs again (a subset of ``unavailable``).
+
+    Args:
+        error_m: (T,) horizontal position error [m]; must be finite (select the epochs
+            with ground truth before calling).
+        protection_level_m: (T,) horizontal protection level [m]; inf/NaN = none.
+        alert_limit_m: Horizontal alert limit [m], finite and > 0.
+
+    Returns:
+        Plain ints (JSON-ready) under the keys of ``STANFORD_KEYS``.
+
+    Raises:
+        ValueError: Shapes differ, an error is not finite, or the alert limit is invalid.
+    """
+    import numpy as np
+    err = np.asarray(error_m, dtype=float).ravel()
+    pl = np.asarray(protection_level_m, dtype=float).ravel()
+    if err.shape != pl.shape:
+        raise ValueError(f'error ({err.size}) and protection level ({pl.size}) differ in '
+                         'length')
+    if not np.all(np.isfinite(err)):
+        # Dropping them silently would make every ratio built on these counts lie.
+        raise ValueError('non-finite position error; select epochs with ground truth')
+    if not (np.isfinite(alert_limit_m) and alert_limit_m > 0):
+        raise ValueError(f'alert limit must be finite and > 0, got {alert_limit_m!r}')
+    no_pl = ~np.isfinite(pl)
+    pl = np.where(no_pl, np.inf, pl)       # NaN compares False everywhere: make it inf
+    bounded = err <= pl
+    available = pl <= alert_limit_m
+    within = err <= alert_limit_m
+    return {
+        'epochs': int(err.size),
+        'nominal': int(np.sum(available & bounded)),
+        'mi': int(np.sum(available & ~bounded & within)),
+        'hmi': int(np.sum(available & ~within)),   # PE > AL >= PL implies PE > PL
+        'unavailable': int(np.sum(~available & bounded)),
+        'unavailable_mi': int(np.sum(~available & ~bounded)),
+        'no_pl': int(np.sum(no_pl)),
+    }
