@@ -4,6 +4,7 @@ report, QoS profiles, and the Jazzy ``main()``."""
 from __future__ import annotations
 
 import math
+import sys
 import threading
 import time
 from collections import deque
@@ -255,11 +256,40 @@ def level_worst(*levels: int) -> int:
 
 
 __all__ = ['BIG', 'GnssCamNode', 'NodeStats', 'OK', 'WARN', 'level_worst', 'reliable_qos',
-           'run_node', 'sensor_qos', 'NodeSpinner', 'stop_process']
+           'run_node', 'sensor_qos', 'NodeSpinner', 'stop_process', 'wants_help',
+           'print_node_help']
+
+
+def wants_help(args=None) -> bool:
+    """True when ``-h`` or ``--help`` is given before any ``--ros-args`` (``args`` as
+    ``rclpy.init`` takes them; None: ``sys.argv``)."""
+    argv = list(sys.argv[1:] if args is None else args)
+    if '--ros-args' in argv:
+        argv = argv[:argv.index('--ros-args')]
+    return any(a in ('-h', '--help') for a in argv)
+
+
+def print_node_help(executable: str, doc: str | None, configs: tuple[str, ...]) -> None:
+    """Usage of a node executable: how to pass ROS arguments, what it does, its configs."""
+    files = ' '.join(f'--params-file config/{c}.yaml' for c in configs)
+    print(f'usage: {executable} [--ros-args [--params-file FILE] [-p NAME:=VALUE] '
+          '[-r FROM:=TO] ...]\n')
+    print((doc or '').strip())
+    print('\nParameters (meaning, unit, default, range) are documented in '
+          + ', '.join(f'config/{c}.yaml' for c in configs)
+          + ' (installed under share/gnsscam_ros/config).')
+    print(f'Example: {executable} --ros-args {files}')
 
 
 def run_node(node_class, args=None) -> None:
-    """The Jazzy ``main()`` of a single-node executable (ros2/demos talker pattern)."""
+    """The Jazzy ``main()`` of a single-node executable (ros2/demos talker pattern).
+
+    ``-h``/``--help`` (before ``--ros-args``) prints the usage and returns.
+    """
+    if wants_help(args):
+        name = node_class.__module__.rsplit('.', 1)[-1]
+        print_node_help(name, sys.modules[node_class.__module__].__doc__, (name,))
+        return
     rclpy.init(args=args)
     node = None
     try:

@@ -12,7 +12,7 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 
 from .camera_node import CameraNode
-from .common import NodeSpinner
+from .common import NodeSpinner, print_node_help, wants_help
 from .fusion_node import FusionNode
 from .gnss_node import GnssNode
 from .imu_node import ImuNode
@@ -27,6 +27,10 @@ def make_nodes(**kwargs) -> list:
 
 def main(args=None) -> None:
     """``ros2 run gnsscam_ros pipeline_node``."""
+    if wants_help(args):
+        print_node_help('pipeline_node', __doc__,
+                        ('gnss_node', 'imu_node', 'camera_node', 'fusion_node'))
+        return
     rclpy.init(args=args)
     nodes, spinner = [], None
     try:
