@@ -627,6 +627,8 @@ def test_malformed_messages_are_refused_and_counted(graph, drive):
     assert imu.stats.get('published_dead_reckoning') == 1
 
     # Camera: empty image, wrong encoding, wrong size, out-of-order stamp; good frames match.
+    # A refused frame is answered with an empty camera/matches (its stamp); only the
+    # out-of-order one gets no answer (camera/matches stays in stamp order).
     good = ma.array_to_image(images[1], e1.stamp_ns)
     empty = Image(height=0, width=0, encoding='bgr8', step=0)
     empty.header.stamp = ma.ns_to_stamp(e1.stamp_ns + 1)
@@ -635,13 +637,22 @@ def test_malformed_messages_are_refused_and_counted(graph, drive):
     short = ma.array_to_image(images[1], e1.stamp_ns + 3)
     short.data = bytes(short.data)[:-10]
     older = ma.array_to_image(images[2], e0.stamp_ns)
-    for msg in (good, empty, wrong_enc, short, older, good):
+    good_again = ma.array_to_image(images[1], e1.stamp_ns + 4)
+    answers = g.collect(PointCloud2, 'camera/matches')
+    g.spin_until(lambda: cam.pub.get_subscription_count() >= 2, what='the answers collector')
+    for msg in (good, empty, wrong_enc, short, older, good_again):
         send(pub_cam, msg, cam, 'received_images')
-        g.spin_until(lambda: cam.stats.get('published_matches') + cam.stats.rejected_total
+        g.spin_until(lambda: cam.stats.get('published_matches')
+                     + cam.stats.rejected.get('out_of_order', 0)
                      + cam.stats.get('dropped_frames') >= cam.stats.get('received_images'),
                      what='the matcher')
     assert cam.stats.rejected == {'empty': 1, 'encoding': 1, 'size': 1, 'out_of_order': 1}
-    assert cam.stats.get('published_matches') == 2
+    assert cam.stats.get('published_matches') == 5
+    assert cam.stats.get('frames_without_match') == 3
+    g.spin_until(lambda: len(answers) == 5, what='the answers')
+    assert [ma.stamp_to_ns(m.header.stamp) - e1.stamp_ns for m in answers] == [0, 1, 2, 3, 4]
+    widths = [m.width for m in answers]
+    assert widths[1:4] == [0, 0, 0] and widths[0] > 0 and widths[4] > 0, widths
 
     # fusion: malformed internal streams.
     bad_dr = ma.dead_reckoning_to_odometry(DeadReckoningState(e1.stamp_ns + 5, 0, 0, 0, 0, 0,
@@ -748,6 +759,31 @@ def test_integrity_is_stale_without_gnss_and_never_a_stale_ok(graph, drive):
 
 
 # =============================================================== camera keeps up
+def test_camera_without_database_answers_every_frame_with_empty_matches(graph):
+    """No map database (the default): each frame is refused and answered with an empty
+    camera/matches of its stamp, which fusion_node takes as a frame without a match (a
+    replay takes it as the acknowledgement of the image)."""
+    g = graph
+    cam = g.add(CameraNode(context=g.ctx))
+    fusion = g.add(FusionNode(context=g.ctx, parameter_overrides=overrides(n_particles=100)))
+    pub = g.publisher(Image, 'camera/image_raw')
+    answers = g.collect(PointCloud2, 'camera/matches')
+    g.connect(pub)
+    g.spin_until(lambda: cam.pub.get_subscription_count() >= 2, what='camera/matches readers')
+    image = synthetic_scene(0, seed=3)
+    stamps = [S + k * S // 10 for k in range(5)]
+    for stamp in stamps:
+        pub.publish(ma.array_to_image(image, stamp))
+        g.spin_until(lambda: len(answers) > stamps.index(stamp), what='the answer')
+    assert [ma.stamp_to_ns(m.header.stamp) for m in answers] == stamps
+    assert all(m.width == 0 and m.header.frame_id == 'map' for m in answers)
+    assert all(len(ma.pointcloud2_to_matches(m)) == 0 for m in answers)
+    assert cam.stats.rejected == {'no_database': 5}
+    assert cam.stats.get('frames_without_match') == 5
+    g.spin_until(lambda: fusion.stats.get('camera_without_match') == 5, what='fusion')
+    assert not fusion.stats.rejected and fusion.camera_buffer == []
+
+
 def test_camera_drops_the_oldest_frames_and_counts_them(graph):
     g = graph
     images = [synthetic_scene(i, seed=4) for i in range(4)]

@@ -350,3 +350,85 @@ def test_clis_stop_cleanly_on_sigint(emulated_bag, tmp_path):
     counts = {k: v[1] for k, v in bag_topics(tmp_path / 'rec').items()}
     assert 0 < counts['/imu/data'] < 4001          # part of the drive, and a valid bag
     assert not any(p.name.startswith('.rec') for p in tmp_path.iterdir())
+
+
+# ============================================== default nodes without a map database
+def test_default_camera_bag_flows_through_a_default_pipeline_node(tmp_path):
+    """Issue 14: a converted emulated bag (camera included, as gnsscam_convert does by
+    default) replayed into pipeline_node with its defaults (camera_node without a map
+    database). camera_node answers every frame with an empty camera/matches, so the
+    replay's flow control is never held up waiting for matches (it once waited 3 x 30 s
+    and the GNSS epochs waited behind it), and every epoch gets a verdict."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from gnsscam_ros.bags.convert_cli import main as convert_main
+    from msg_adapters import STALE, parse_integrity_risk
+    bag = tmp_path / 'bag'
+    assert convert_main(['emulated', '--seed', '3', '--duration-s', '8', '--out', str(bag),
+                         '--quiet']) == 0
+    counts = {k: v[1] for k, v in bag_topics(bag).items()}
+    frames, epochs = counts['/camera/image_raw'], counts['/gnss/pseudoranges']
+    assert frames >= 70 and epochs == 9
+    dom = domain()
+    env = _env(tmp_path, dom)
+    probe_ctx = Context()
+    rclpy.init(context=probe_ctx, domain_id=dom)
+    probe = rclpy.create_node('independent_listener', context=probe_ctx)
+    verdicts = []
+    listener = probe.create_subscription(
+        DiagnosticArray, 'integrity_risk', lambda m: verdicts.append(parse_integrity_risk(m)),
+        100)
+    executor = rclpy.executors.SingleThreadedExecutor(context=probe_ctx)
+    executor.add_node(probe)
+    import threading
+    spin = threading.Thread(target=executor.spin, daemon=True)
+    spin.start()
+    pipeline = subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.nodes.pipeline'], env=env,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        # The listener must be matched before the first verdict (volatile topic).
+        deadline = time.monotonic() + 60.0
+        while listener.get_publisher_count() == 0:
+            assert pipeline.poll() is None, pipeline.communicate()[1]
+            assert time.monotonic() < deadline, 'pipeline_node never published integrity_risk'
+            time.sleep(0.05)
+        replay = subprocess.run([sys.executable, '-m', 'gnsscam_ros.bags.replay', str(bag),
+                                 '--rate', '4', '--wait', '60', '--json',
+                                 str(tmp_path / 'replay.json')],
+                                env=env, capture_output=True, text=True, timeout=600)
+        assert replay.returncode == 0, replay.stderr
+        deadline = time.monotonic() + 10.0
+        while len({v.epoch_stamp_ns for v in verdicts if not v.stale}) < epochs - 1:
+            assert time.monotonic() < deadline, [(v.epoch_stamp_ns, v.level_name)
+                                                 for v in verdicts]
+            time.sleep(0.05)
+    finally:
+        pipeline.send_signal(signal.SIGINT)
+        try:
+            _, pipeline_err = pipeline.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            pipeline.kill()
+            _, pipeline_err = pipeline.communicate()
+        executor.shutdown()
+        spin.join(timeout=5)
+        probe.destroy_node()
+        rclpy.try_shutdown(context=probe_ctx)
+    assert pipeline.returncode == 0, pipeline_err
+    import json
+    summary = json.loads((tmp_path / 'replay.json').read_text())
+    # Not held up: every image acknowledged (no 30 s timeouts), flow control stayed on.
+    assert summary['published']['/camera/image_raw'] == frames
+    assert summary['unacknowledged'] == {'gnss/pseudoranges': 0, 'camera/image_raw': 0,
+                                         'imu/data': 0, 'odom/twist': 0}
+    assert set(summary['flow_control'].values()) == {'on'}
+    assert 'no camera/matches' not in replay.stderr
+    # Every GNSS epoch produced an integrity_risk, and a valid verdict (not STALE) for all
+    # but the first fix, seen by an independent listener.
+    assert summary['gnss_epochs'] == summary['gnss_epochs_processed'] == epochs
+    assert summary['dropped_gnss_epochs'] == 0
+    valid = {v.epoch_stamp_ns for v in verdicts if v.level != STALE}
+    assert len(valid) >= epochs - 1
+    # The frames were refused for want of a database and answered, not matched.
+    camera = summary['node_diagnostics']['camera_node: status']
+    assert int(camera['rejected_no_database']) > 0
+    assert int(camera['frames_without_match']) > 0
+    assert int(summary['node_diagnostics']['fusion_node: status']['camera_without_match']) > 0

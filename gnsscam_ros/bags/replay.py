@@ -37,11 +37,16 @@ input                  acknowledged by                   window (messages in fli
 =====================  ================================  ====================================
 
 Acknowledgements are monotone in stamp: a later acknowledgement covers every earlier
-message (a refused image is covered by the next match). With the GNSS window of one epoch,
-fusion_node's GNSS queue never holds more than one epoch: **no epoch can be dropped**, and
-the replay reports per epoch whether its ``integrity_risk`` came back
-(``gnss_epochs_processed``). The filter runs epoch k while the replay already feeds the IMU
-of the next interval, so the replay goes as fast as the slowest node.
+message. camera_node answers every frame it takes, an unmatched or unmatchable one (no map
+database, a refused image) with an empty ``camera/matches`` of the frame's stamp, so a
+default camera_node without a database acknowledges images as fast as they come; a frame
+lost on the way or dropped from camera_node's queue is covered by the next answer.
+
+With the GNSS window of one epoch, fusion_node's GNSS queue never holds more than one
+epoch: **no epoch can be dropped**, and the replay reports per epoch whether its
+``integrity_risk`` came back (``gnss_epochs_processed``). The filter runs epoch k while the
+replay already feeds the IMU of the next interval, so the replay goes as fast as the
+slowest node.
 
 **Same input, same order as an offline run.** So that the nodes compute exactly what an
 offline run of the same data computes (``evaluation.demo.offline_run``; the tests check it
@@ -66,7 +71,7 @@ A stream whose consumer is absent (no subscriber on the input, or no publisher o
 acknowledging topic after ``--wait``) is played without flow control. An acknowledgement
 that does not come within ``--ack-timeout`` seconds is counted as unacknowledged; after
 three in a row on one stream its flow control is switched off with a warning (e.g. a
-camera_node without a map database refuses every frame).
+camera node that never answers).
 
 **Node parameters for replay.** Some node timeouts are in wall time, which a replay at
 ``R != 1`` does not follow, and fusion_node's ``camera/matches`` queue (10) is shorter than

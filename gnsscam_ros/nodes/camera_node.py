@@ -9,6 +9,14 @@ bounded queue of ``queue_size`` frames: when images arrive faster than they can 
 the *oldest* waiting frame is dropped and counted, so the node always works on recent
 images and never builds an unbounded backlog. Empty images, unsupported encodings, wrong
 buffer sizes and stamps older than the last matched image are refused and counted.
+
+Every frame taken from the queue is answered on ``camera/matches``: a frame that cannot be
+matched (no map database, a refused image, a matcher error) gets an *empty* cloud with its
+stamp, as does a frame without any database match. Downstream, fusion_node counts it as a
+camera frame without a match, and a flow-controlled replay (``bags.replay``) takes it as
+the acknowledgement of the image instead of waiting for one that never comes. Only frames
+older than the last answered one get no answer, so that ``camera/matches`` stays in stamp
+order (a later answer covers them).
 """
 from __future__ import annotations
 
@@ -148,29 +156,36 @@ class CameraNode(GnssCamNode):
                 self.process(msg)
             except Exception as err:     # keep matching: one bad frame must not stop it
                 self.warn_rejected('camera/image_raw', 'error', repr(err))
+                self._answer_unmatched(msg)
 
     def process(self, msg: Image) -> CameraMatches | None:
-        """Match one frame and publish its top-k (None when refused)."""
+        """Match one frame and publish its top-k.
+
+        Returns:
+            The published matches: empty for a frame without a match or one that cannot
+            be matched (no database, refused image); None for a frame older than the last
+            answered one (refused, nothing published).
+        """
         with self.stats.timed():
-            if self.database is None:
-                self.warn_rejected('camera/image_raw', 'no_database',
-                                   'no map database loaded (database_path)')
-                return None
             stamp_ns = stamp_to_ns(msg.header.stamp)
             if self._last_stamp_ns is not None and stamp_ns < self._last_stamp_ns:
                 self.warn_rejected('camera/image_raw', 'out_of_order',
                                    f'stamp {stamp_ns} ns before {self._last_stamp_ns}')
                 return None
+            if self.database is None:
+                self.warn_rejected('camera/image_raw', 'no_database',
+                                   'no map database loaded (database_path)')
+                return self._answer_unmatched(msg)
             try:
                 image, encoding = image_to_array(msg)
                 found = self.database.query(image, top_k=int(self.param('top_k')),
                                             encoding='rgb8' if encoding == 'rgb8' else 'bgr8')
             except MessageError as err:
                 self.warn_rejected('camera/image_raw', err.reason, str(err))
-                return None
+                return self._answer_unmatched(msg)
             except VisionError as err:
                 self.warn_rejected('camera/image_raw', 'vision', str(err))
-                return None
+                return self._answer_unmatched(msg)
             self._last_stamp_ns = stamp_ns
             idx = np.array([m.index for m in found], dtype=np.int64)
             matches = CameraMatches(
@@ -182,6 +197,21 @@ class CameraNode(GnssCamNode):
             if not len(matches):
                 self.stats.count('frames_without_match')
             return matches
+
+    def _answer_unmatched(self, msg: Image) -> CameraMatches | None:
+        """Publish an empty ``camera/matches`` with the frame's stamp (the frame yields no
+        match); nothing for a frame older than the last answered one."""
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        if self._last_stamp_ns is not None and stamp_ns < self._last_stamp_ns:
+            return None
+        self._last_stamp_ns = stamp_ns
+        matches = CameraMatches(stamp_ns=stamp_ns, position_m=np.zeros((0, 3)),
+                                score=np.zeros(0), image_id=np.zeros(0, dtype=np.int64),
+                                frame_id=self.param('map_frame_id'))
+        self.pub.publish(matches_to_pointcloud2(matches))
+        self.stats.count('published_matches')
+        self.stats.count('frames_without_match')
+        return matches
 
     # ---------------------------------------------------------------- housekeeping
     def diagnostic_summary(self):
