@@ -2,13 +2,16 @@
 
 ``integrity_risk`` carries one status (design.md §3):
 
-* level ``OK`` (0): integrity sufficient, the risk bound is at most the target risk;
+* level ``OK`` (0): integrity sufficient, the protection level is within the alert limit
+  (so the risk bound at the alert limit is at most the target risk) and no input is missing;
   ``ERROR`` (2): insufficient (alarm); ``STALE`` (3): no valid solution (no GNSS for too
   long, an epoch without a GNSS update, or before the first fix). A consumer must treat
   anything but OK as "do not trust the position".
 * values ``risk_bound``, ``empirical_risk``, ``divergence_risk``, ``alert_limit_m``,
-  ``target_risk``, ``epoch_stamp`` (integer ns of the GNSS epoch), optionally
-  ``protection_level_m``, plus informational extras (``status``, ``n_satellites``, ...).
+  ``target_risk``, ``epoch_stamp`` (integer ns of the GNSS epoch), ``protection_level_m``
+  (the smallest radius whose bound meets the target; ``inf`` when none does, ``nan`` when
+  stale), plus informational extras (``status``, ``n_satellites``, ``motion_unknown_s``,
+  ...).
   Floats are written with ``repr`` so they parse back exactly; unknown values are ``nan``.
 """
 from __future__ import annotations
@@ -129,6 +132,11 @@ def integrity_risk_to_msg(risk: IntegrityRisk) -> DiagnosticArray:
                                  and risk.risk_bound <= risk.target_risk):
         raise MessageError(f'level OK needs a finite bound <= target, got {risk.risk_bound}',
                            'value')
+    if risk.level == OK and risk.protection_level_m is not None and not (
+            math.isfinite(risk.protection_level_m)
+            and risk.protection_level_m <= risk.alert_limit_m):
+        raise MessageError(f'level OK needs a finite protection level <= the alert limit, '
+                           f'got {risk.protection_level_m}', 'value')
     values = {k: float(getattr(risk, k)) for k in _FLOAT_KEYS}
     values['epoch_stamp'] = '' if risk.epoch_stamp_ns is None else int(risk.epoch_stamp_ns)
     if risk.protection_level_m is not None:

@@ -32,9 +32,10 @@ import msg_adapters as ma
 from gnsscam_ros.core.filter import PROPAGATED, UPDATED, FilterConfig, ParticleFilter
 from gnsscam_ros.core.frames import LocalFrame
 from gnsscam_ros.core.gnss import check_epoch
-from gnsscam_ros.core.motion import (IMU, ODOMETRY, DeadReckoner, DeadReckoningConfig,
-                                     DeadReckoningState, MotionAccumulator, dead_reckon,
-                                     integrate_odometry, motion_between)
+from gnsscam_ros.core.motion import (ADDED, IMU, ODOMETRY, OUT_OF_ORDER, DeadReckoner,
+                                     DeadReckoningConfig, DeadReckoningState,
+                                     MotionAccumulator, dead_reckon, integrate_odometry,
+                                     motion_between)
 from gnsscam_ros.core.types import GnssEpoch, ImuSeries, OdometrySeries
 from gnsscam_ros.datasets.emulated import make_emulated_drive
 from gnsscam_ros.nodes import camera_node, fusion_node, gnss_node, imu_node
@@ -196,10 +197,14 @@ def test_motion_between_inverts_a_step_and_accumulator_overlaps():
     assert m.distance_m == pytest.approx(2.0) and m.dyaw_rad == pytest.approx(0.2)
     assert m.distance_var_m2 == pytest.approx(0.5) and m.dyaw_var_rad2 == pytest.approx(0.2)
     acc = MotionAccumulator()
-    assert acc.add(s0) and acc.add(s1) and not acc.add(s0)
+    assert [acc.add(s0), acc.add(s1), acc.add(s0)] == [ADDED, ADDED, OUT_OF_ORDER]
     half = acc.increment(S // 4, 3 * S // 4)
     assert half.distance_m == pytest.approx(1.0) and half.dt_s == pytest.approx(0.5)
-    assert acc.increment(2 * S, 3 * S).distance_m == 0.0
+    assert half.unknown_s == 0.0
+    # Beyond the newest state the motion is unknown, not a standstill.
+    beyond = acc.increment(2 * S, 3 * S)
+    assert beyond.distance_m == 0.0 and beyond.unknown_s == pytest.approx(1.0)
+    assert acc.increment(S // 2, 2 * S).unknown_s == pytest.approx(1.0)
     with pytest.raises(ValueError):
         acc.increment(S, 0)
 
@@ -749,7 +754,13 @@ def test_integrity_is_stale_without_gnss_and_never_a_stale_ok(graph, drive):
                              for m in risks), what='the last epoch')
     during = [ma.parse_integrity_risk(m) for m in risks[n_before:]]
     assert any(r.level in (ma.OK, ma.ERROR) for r in during)
-    assert any(r.integrity_ok for r in during), [r.level for r in during]
+    # No dead reckoning at all: the motion is unknown, so never OK, and the message says
+    # why (even with a target that the bound alone would meet).
+    updated = [r for r in during if r.extra.get('status') == 'updated']
+    assert len(updated) >= 2 and all(r.level == ma.ERROR for r in updated)
+    assert all('motion unknown' in r.message and float(r.extra['motion_unknown_s']) > 0
+               for r in updated[1:])             # the first fix has no interval
+    assert all(math.isfinite(r.protection_level_m) for r in updated)
     n_stop = len(risks)
     g.spin_until(lambda: len(risks) >= n_stop + 3, what='stale reports after GNSS stopped')
     after = [ma.parse_integrity_risk(m) for m in risks[n_stop:]]

@@ -15,6 +15,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from . import gnss, integrity
+from .bias import BiasHypotheses, BiasModel
 from .fusion import CameraMeasurement, camera_log_q, fuse_camera
 from .frames import LocalFrame
 from .particles import (POS, YAW, MotionIncrement, effective_sample_size, motion_samples,
@@ -26,6 +27,11 @@ from .types import GnssEpoch
 PARTICLE_RAIM = 'particle_raim'
 ROBUST = 'robust'
 LIKELIHOODS = (PARTICLE_RAIM, ROBUST)
+
+# Bias models of the posteriors behind the risk bound (core.bias).
+BIAS_CN0 = 'cn0'         # Gauss-Markov bias per satellite, size from C/N0 (default)
+BIAS_NONE = 'none'       # motion perturbations only (the paper's construction)
+BIAS_MODELS = (BIAS_CN0, BIAS_NONE)
 
 # Epoch outcomes.
 UPDATED = 'updated'            # GNSS update applied; integrity computed
@@ -45,7 +51,14 @@ class FilterConfig:
 
     Attributes:
         n_particles: Particles per posterior N.
-        n_posteriors: Motion samples M (posteriors per epoch).
+        n_posteriors: Posteriors M behind the risk bound and the protection level. With
+            the exact inverse Bernoulli the bound can never fall below
+            ``1 - exp(-log((M + 1) / delta) / M)``: 0.375 for M = 10, 0.037 for M = 200
+            (delta = 0.1). Bias hypotheses make extra posteriors cheap (no likelihood).
+        n_motion_samples: Motion samples drawn around the odometry and weighed by the
+            measurements (the estimate is the best of them); posterior j uses sample
+            ``j mod n_motion_samples`` and its own bias hypothesis. With
+            ``bias_model = 'none'`` every posterior has its own sample (this is ignored).
         measurement_var_m2: Pseudorange variance [m^2] (paper Table 1: 10).
         use_reported_variance: Use max(measurement_var_m2, the receiver's variance).
         propagation_var_m2: Horizontal position process noise per axis per second [m^2/s]
@@ -84,7 +97,19 @@ class FilterConfig:
         alert_limit_m: Alert limit of the integrity flag [m].
         target_risk: Integrity is insufficient when the risk bound exceeds this.
         risk_delta: Confidence parameter delta of the bound.
-        inverse_bernoulli: 'exact' (bisection) or 'approx' (the paper's closed form).
+        inverse_bernoulli: 'exact' (bisection) or 'approx' (the paper's closed form, which
+            collapses to 0 when no posterior mass is hazardous: reproduction only).
+        bias_model: 'cn0' (each posterior carries a Gauss-Markov pseudorange bias per
+            satellite, its size from C/N0, propagated into the estimate; core.bias) or
+            'none' (posteriors differ by motion perturbations only, as in the paper).
+        bias_floor_m: Bias standard deviation at high C/N0 [m] (smartLoc fit).
+        bias_cn0_sigma_m: C/N0-dependent bias standard deviation at the reference C/N0 [m].
+        bias_cn0_ref_dbhz: Reference C/N0 of the bias model [dB-Hz].
+        bias_unknown_cn0_sigma_m: Bias standard deviation when C/N0 is unknown [m].
+        bias_correlation_time_s: Correlation time of the biases [s] (smartLoc: ~50 s).
+        max_speed_mps: Fastest the vehicle may move while its motion is unknown (dead
+            reckoning lost or reset) [m/s]: the set spreads by this speed times the gap.
+        max_yaw_rate_rps: Fastest heading change while the motion is unknown [rad/s].
         horizontal_risk: Alert limits on horizontal error (True) or 3D error.
         extra_alert_limits_m: Further alert limits whose risk is computed (evaluation).
         use_camera: Fuse camera matches when they are given (False = Particle RAIM only).
@@ -98,7 +123,8 @@ class FilterConfig:
     """
 
     n_particles: int = 1000
-    n_posteriors: int = 10
+    n_posteriors: int = 200
+    n_motion_samples: int = 10
     measurement_var_m2: float = 10.0
     use_reported_variance: bool = True
     propagation_var_m2: float = 0.3
@@ -123,6 +149,14 @@ class FilterConfig:
     target_risk: float = 0.1
     risk_delta: float = 0.1
     inverse_bernoulli: str = integrity.EXACT
+    bias_model: str = BIAS_CN0
+    bias_floor_m: float = 2.5
+    bias_cn0_sigma_m: float = 9.5
+    bias_cn0_ref_dbhz: float = 30.0
+    bias_unknown_cn0_sigma_m: float = 20.0
+    bias_correlation_time_s: float = 50.0
+    max_speed_mps: float = 40.0
+    max_yaw_rate_rps: float = 1.0
     horizontal_risk: bool = True
     extra_alert_limits_m: tuple = ()
     use_camera: bool = True
@@ -139,6 +173,10 @@ class FilterConfig:
             problems.append('acquisition_particles must be >= 0')
         if self.n_posteriors < 1:
             problems.append('n_posteriors must be >= 1')
+        if self.n_motion_samples < 1:
+            problems.append('n_motion_samples must be >= 1')
+        if self.bias_model not in BIAS_MODELS:
+            problems.append(f'bias_model must be one of {BIAS_MODELS}')
         for name in ('measurement_var_m2', 'alert_limit_m', 'camera_temperature_m',
                      'camera_kl_threshold_nats', 'camera_gate_m'):
             if not getattr(self, name) > 0.0:
@@ -146,7 +184,9 @@ class FilterConfig:
         for name in ('propagation_var_m2', 'vertical_propagation_var_m2',
                      'yaw_propagation_var_rad2',
                      'motion_perturbation_scale', 'error_correlation_time_s',
-                     'heading_acquisition_m'):
+                     'heading_acquisition_m', 'bias_floor_m', 'bias_cn0_sigma_m',
+                     'bias_unknown_cn0_sigma_m', 'bias_correlation_time_s',
+                     'max_speed_mps', 'max_yaw_rate_rps'):
             if not getattr(self, name) >= 0.0:
                 problems.append(f'{name} must be >= 0')
         if self.likelihood not in LIKELIHOODS:
@@ -176,6 +216,20 @@ class FilterConfig:
         extra = [a for a in self.extra_alert_limits_m if a != self.alert_limit_m]
         return np.array([self.alert_limit_m, *extra], dtype=float)
 
+    @property
+    def motion_sample_count(self) -> int:
+        """Motion samples weighed per epoch (every posterior's own without bias model)."""
+        if self.bias_model == BIAS_NONE:
+            return self.n_posteriors
+        return min(self.n_motion_samples, self.n_posteriors)
+
+    @property
+    def bias(self) -> BiasModel:
+        return BiasModel(floor_m=self.bias_floor_m, cn0_sigma_m=self.bias_cn0_sigma_m,
+                         cn0_ref_dbhz=self.bias_cn0_ref_dbhz,
+                         unknown_cn0_sigma_m=self.bias_unknown_cn0_sigma_m,
+                         correlation_time_s=self.bias_correlation_time_s)
+
 
 @dataclass
 class EpochResult:
@@ -191,7 +245,13 @@ class EpochResult:
         chosen: Index of the chosen posterior.
         total_log_lik: (M,) total log-likelihood of each posterior.
         risk: Risk bound for ``config.alert_limits_m`` (None when not updated).
-        integrity_ok: Bound at the flag's alert limit <= target risk (False when unknown).
+        protection_level_m: Horizontal (or 3D, see ``horizontal_risk``) protection level:
+            the smallest radius around the estimate whose risk bound is at most the target
+            [m]; inf when none is, None when not updated.
+        integrity_ok: The solution is an update, its motion is known, and the protection
+            level is within the alert limit (False when unknown).
+        integrity_reason: Why integrity is not OK ('' when it is).
+        motion_unknown_s: Part of the interval without dead reckoning [s].
         n_satellites: Satellites used in the update.
         rejected: ``{reason: count}`` of satellites dropped by the checks.
         gamma: (k,) mixture weights of the chosen posterior.
@@ -212,7 +272,10 @@ class EpochResult:
     chosen: int = -1
     total_log_lik: np.ndarray | None = None
     risk: integrity.RiskBound | None = None
+    protection_level_m: float | None = None
     integrity_ok: bool = False
+    integrity_reason: str = ''
+    motion_unknown_s: float = 0.0
     n_satellites: int = 0
     rejected: dict = field(default_factory=dict)
     gamma: np.ndarray | None = None
@@ -240,8 +303,11 @@ class ParticleFilter:
         self.rng = rng if rng is not None else np.random.default_rng()
         self.particles: np.ndarray | None = None        # (N, 4) chosen set
         self.log_w: np.ndarray | None = None            # (N,)
-        self.posteriors: np.ndarray | None = None       # (M, N, 4) of the last epoch
-        self.posterior_log_w: np.ndarray | None = None  # (M, N)
+        self.posteriors: np.ndarray | None = None       # (S, N, 4) motion samples, last epoch
+        self.posterior_log_w: np.ndarray | None = None  # (S, N)
+        # The M posteriors of the last update as the risk bound saw them.
+        self.posterior_set: integrity.PosteriorSet | None = None
+        self.bias = BiasHypotheses(config.bias, config.n_posteriors, self.rng)
         self.last_stamp_ns: int | None = None
         self.distance_since_init_m = 0.0
         self.last_result: EpochResult | None = None
@@ -253,6 +319,8 @@ class ParticleFilter:
     def set_parameters(self, **changes) -> None:
         """Change parameters between epochs (validated; the old ones stay on error)."""
         new = replace(self.config, **changes)
+        if (new.bias != self.config.bias or new.n_posteriors != self.config.n_posteriors):
+            self.bias = BiasHypotheses(new.bias, new.n_posteriors, self.rng)
         if new.n_particles != self.config.n_particles and self.initialised:
             idx = systematic_resample(self.log_w, self.rng)
             idx = self.rng.choice(idx, size=new.n_particles, replace=True)
@@ -267,8 +335,8 @@ class ParticleFilter:
 
         Args:
             epoch: The pseudoranges of the epoch.
-            motion: Motion since the previous epoch (None: no odometry, stand still and let
-                the process noise spread the set).
+            motion: Motion since the previous epoch; None: no dead reckoning at all, the
+                motion is unknown (see ``MotionIncrement.unknown_s``).
             camera: Camera matches of the images since the previous epoch, moved to this
                 epoch (``fusion.match_at_epoch``); None or empty for GNSS only.
 
@@ -286,13 +354,20 @@ class ParticleFilter:
             return self._initialise(epoch, check)
         dt_s = (epoch.stamp_ns - self.last_stamp_ns) * 1e-9
         if motion is None:
-            motion = MotionIncrement.stationary(dt_s)
-        distance, dyaw = motion_samples(motion, cfg.n_posteriors,
+            motion = MotionIncrement.unknown(dt_s)
+        distance, dyaw = motion_samples(motion, cfg.motion_sample_count,
                                         cfg.motion_perturbation_scale, self.rng)
+        # Over a gap in the dead reckoning the vehicle may be anywhere its maximum speed
+        # takes it: one standard deviation per axis is that distance (and likewise for the
+        # heading), so the protection level grows with the gap.
+        gap_m2 = (cfg.max_speed_mps * motion.unknown_s) ** 2
         priors = propagate(self.particles, distance, dyaw, motion.dup_m,
                            np.array([cfg.propagation_var_m2, cfg.propagation_var_m2,
-                                     cfg.vertical_propagation_var_m2]) * dt_s,
-                           cfg.yaw_propagation_var_rad2 * dt_s, self.rng)
+                                     cfg.vertical_propagation_var_m2]) * dt_s
+                           + np.array([gap_m2, gap_m2, 0.0]),
+                           cfg.yaw_propagation_var_rad2 * dt_s
+                           + (cfg.max_yaw_rate_rps * motion.unknown_s) ** 2, self.rng)
+        self._motion_unknown_s = float(motion.unknown_s)
         self.last_stamp_ns = epoch.stamp_ns
         self.distance_since_init_m += abs(motion.distance_m)
         prep = None
@@ -345,7 +420,8 @@ class ParticleFilter:
         self.log_w = np.full(n, -np.log(n))
         self.last_stamp_ns = epoch.stamp_ns
         # Evaluate the first epoch's measurements on the fresh set.
-        priors = np.repeat(self.particles[None], cfg.n_posteriors, axis=0)
+        priors = np.repeat(self.particles[None], cfg.motion_sample_count, axis=0)
+        self._motion_unknown_s = 0.0
         centre, cov = weighted_mean_cov(self.particles[:, POS], self.log_w)
         prep = gnss.prepare_epoch(epoch.subset(check.keep), self.frame, centre,
                                   cfg.measurement_var_m2, cfg.use_reported_variance)
@@ -361,7 +437,9 @@ class ParticleFilter:
         result = EpochResult(stamp_ns=epoch.stamp_ns, status=PROPAGATED, reason=check.reason,
                              position_enu_m=mean, covariance_m2=cov,
                              yaw_rad=self._circular_mean(self.particles[:, YAW], self.log_w),
-                             chosen=0, rejected=check.rejected, integrity_ok=False)
+                             chosen=0, rejected=check.rejected, integrity_ok=False,
+                             integrity_reason=f'no GNSS update: {check.reason}',
+                             motion_unknown_s=self._motion_unknown_s)
         self.last_result = result
         return result
 
@@ -386,7 +464,8 @@ class ParticleFilter:
         else:
             lik = gnss.robust_log_likelihood(z, log_sigma, cfg.outlier_prob,
                                              cfg.outlier_range_m, inlier_share=False)
-        log_lik = lik.log_lik * self._evidence_weight(dt_s)
+        evidence = self._evidence_weight(dt_s)
+        log_lik = lik.log_lik * evidence
         joint = self.log_w[None, :] + log_lik
         fusion = None
         if camera and cfg.use_camera:
@@ -401,7 +480,13 @@ class ParticleFilter:
         total = logsumexp(joint, axis=1)
         post_log_w = joint - total[:, None]
         chosen = int(np.argmax(total))
-        result = self._finish(epoch, check, priors, post_log_w, chosen, total)
+        # What the update weighed each satellite with, for the bias hypotheses: tempering
+        # times the chosen set's inlier probability over the variance.
+        inlier = gnss.robust_inlier_probability(z[chosen], log_sigma, cfg.outlier_prob,
+                                                cfg.outlier_range_m, post_log_w[chosen])
+        weights = evidence * inlier / prep.sigma_m ** 2
+        result = self._finish(epoch, check, priors, post_log_w, chosen, total,
+                              (prep, weights))
         if fusion is not None:
             result.camera_frame_ids = tuple(c.frame_id for c in camera)
             result.camera_alpha = fusion.alpha[:, chosen]
@@ -416,22 +501,23 @@ class ParticleFilter:
         return result
 
     def _finish(self, epoch: GnssEpoch, check: gnss.GnssCheck, priors: np.ndarray,
-                post_log_w: np.ndarray, chosen: int, total: np.ndarray) -> EpochResult:
+                post_log_w: np.ndarray, chosen: int, total: np.ndarray,
+                update: tuple) -> EpochResult:
         """Estimate, integrity risk and resampling, shared by every update path."""
         cfg = self.config
         m, n = post_log_w.shape
         pos = priors[..., POS]
         mean, cov = weighted_mean_cov(pos[chosen], post_log_w[chosen])
-        # KL(pi_t || pi_t-1) between Gaussian fits of the pooled posteriors and priors.
-        pooled = pos.reshape(-1, 3)
-        post_mean, post_cov = weighted_mean_cov(pooled, (post_log_w - np.log(m)).reshape(-1))
-        prior_log_w = np.broadcast_to(self.log_w - np.log(m), (m, n)).reshape(-1)
-        prior_mean, prior_cov = weighted_mean_cov(pooled, prior_log_w)
-        kl = integrity.gaussian_kl(post_mean, post_cov, prior_mean, prior_cov)
-        limits = cfg.alert_limits_m
-        empirical = integrity.hazard_mass(pos, post_log_w, mean, limits, cfg.horizontal_risk)
-        risk = integrity.risk_bound(empirical, kl, m, cfg.risk_delta, cfg.inverse_bernoulli,
-                                    limits)
+        risk, level = self._integrity(pos, post_log_w, chosen, mean, cov, epoch.stamp_ns,
+                                      update)
+        limit = float(cfg.alert_limits_m[0])
+        if self._motion_unknown_s > 0.0:
+            reason = (f'dead reckoning missing for {self._motion_unknown_s:.2f} s of this '
+                      f'interval: motion unknown')
+        elif not level <= limit:
+            reason = f'protection level {level:.1f} m above the alert limit {limit:g} m'
+        else:
+            reason = ''
         ess = float(effective_sample_size(post_log_w[chosen]))
         particles, log_w = priors[chosen], post_log_w[chosen]
         acquired = self.distance_since_init_m >= cfg.heading_acquisition_m
@@ -448,11 +534,65 @@ class ParticleFilter:
         result = EpochResult(
             stamp_ns=epoch.stamp_ns, status=UPDATED, position_enu_m=mean, covariance_m2=cov,
             yaw_rad=self._circular_mean(priors[chosen, :, YAW], post_log_w[chosen]),
-            chosen=chosen, total_log_lik=total, risk=risk,
-            integrity_ok=bool(risk.risk_bound[0] <= cfg.target_risk),
+            chosen=chosen, total_log_lik=total, risk=risk, protection_level_m=level,
+            integrity_ok=not reason, integrity_reason=reason,
+            motion_unknown_s=self._motion_unknown_s,
             rejected=check.rejected, ess=ess, resampled=bool(resampled))
         self.last_result = result
         return result
+
+    def _integrity(self, pos: np.ndarray, post_log_w: np.ndarray, chosen: int,
+                   mean: np.ndarray, cov: np.ndarray, stamp_ns: int,
+                   update: tuple) -> tuple[integrity.RiskBound, float]:
+        """Risk bound at the alert limits and protection level over the M posteriors.
+
+        Args:
+            pos: (S, N, 3) particle positions of the motion samples [m].
+            post_log_w: (S, N) their posterior log-weights.
+            chosen: The chosen motion sample.
+            mean: (3,) the estimate [m].
+            cov: (3, 3) the chosen posterior's covariance [m^2].
+            stamp_ns: Epoch time [ns].
+            update: ``(prepared epoch, (k,) update weights)`` of the GNSS update.
+        """
+        cfg = self.config
+        s, n = post_log_w.shape
+        index = np.arange(cfg.n_posteriors) % s
+        stride = max(n // cfg.n_particles, 1)
+        if stride > 1:
+            # Heading acquisition holds more particles than the working size; the bound
+            # sees an evenly thinned set of the working size (the sets are in no order).
+            pos, post_log_w = pos[:, ::stride], post_log_w[:, ::stride]
+            post_log_w = post_log_w - logsumexp(post_log_w, axis=1, keepdims=True)
+            prior_log_w = self.log_w[::stride] - logsumexp(self.log_w[::stride])
+        else:
+            prior_log_w = self.log_w
+        prior_offsets = self.bias.offsets_m.copy()
+        if cfg.bias_model == BIAS_NONE or update is None:
+            offsets = prior_offsets
+        else:
+            prep, weights = update
+            line = prep.sv_enu_m - mean
+            line /= np.linalg.norm(line, axis=1, keepdims=True)
+            _, prior_cov = weighted_mean_cov(pos[chosen], prior_log_w)
+            offsets = self.bias.update(
+                self.bias.biases_at(stamp_ns, prep.sv_key, prep.cn0_dbhz), line, weights,
+                prep.sys_index, prep.n_systems, prior_cov, cov).copy()
+        posteriors = integrity.PosteriorSet(pos, post_log_w, index, offsets,
+                                            cfg.horizontal_risk)
+        priors = integrity.PosteriorSet(pos, np.broadcast_to(prior_log_w, post_log_w.shape),
+                                        index, prior_offsets, cfg.horizontal_risk)
+        # KL(pi_t || pi_t-1) between Gaussian fits of the pooled posteriors and priors.
+        kl = integrity.gaussian_kl(*posteriors.pooled_moments(), *priors.pooled_moments())
+        limits = cfg.alert_limits_m
+        dist_w = posteriors.distances(mean)
+        risk = integrity.risk_bound(posteriors.hazard_mass(mean, limits, dist_w), kl,
+                                    cfg.n_posteriors, cfg.risk_delta, cfg.inverse_bernoulli,
+                                    limits)
+        q_max = integrity.max_empirical_risk(cfg.target_risk, risk.epsilon,
+                                             cfg.inverse_bernoulli)
+        self.posterior_set = posteriors
+        return risk, posteriors.protection_level(mean, q_max, dist_w)
 
     def _evidence_weight(self, dt_s: float) -> float:
         """Tempering exponent of this epoch's GNSS log-likelihood.

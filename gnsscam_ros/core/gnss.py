@@ -85,6 +85,8 @@ class PreparedEpoch:
         sigma_m: (k,) measurement standard deviations [m].
         sys_index: (k,) constellation index 0..S-1 (one clock each).
         n_systems: Number of distinct constellations S.
+        sv_key: (k,) ``system * 1000 + sv_id``, one key per satellite across epochs.
+        cn0_dbhz: (k,) carrier-to-noise density ratios [dB-Hz] (NaN when unknown).
     """
 
     sv_enu_m: np.ndarray
@@ -92,6 +94,8 @@ class PreparedEpoch:
     sigma_m: np.ndarray
     sys_index: np.ndarray
     n_systems: int
+    sv_key: np.ndarray
+    cn0_dbhz: np.ndarray
 
 
 def prepare_epoch(epoch: GnssEpoch, frame: LocalFrame, rx_enu_m: np.ndarray,
@@ -120,7 +124,10 @@ def prepare_epoch(epoch: GnssEpoch, frame: LocalFrame, rx_enu_m: np.ndarray,
     _, sys_index = np.unique(epoch.system[multi], return_inverse=True)
     return PreparedEpoch(sv_enu_m=frame.ecef_to_enu(sv_ecef), pr_m=epoch.pr_m[multi].copy(),
                          sigma_m=np.sqrt(var), sys_index=sys_index,
-                         n_systems=int(sys_index.max()) + 1 if sys_index.size else 0)
+                         n_systems=int(sys_index.max()) + 1 if sys_index.size else 0,
+                         sv_key=(epoch.system[multi].astype(np.int64) * 1000
+                                 + epoch.sv_id[multi].astype(np.int64)),
+                         cn0_dbhz=np.asarray(epoch.cn0_dbhz[multi], dtype=float))
 
 
 def ranges(positions_m: np.ndarray, sv_m: np.ndarray) -> np.ndarray:
@@ -225,6 +232,26 @@ def particle_raim_log_likelihood(z: np.ndarray, log_sigma: np.ndarray, prior_log
     scale = gamma * np.exp(-log_sigma)[None, :]
     log_lik = a_max[..., 0] + np.log(np.einsum('mnk,mk->mn', e, scale)) - LOG_SQRT_2PI
     return GnssLikelihood(log_lik=log_lik, gamma=gamma)
+
+
+def robust_inlier_probability(z: np.ndarray, log_sigma: np.ndarray, outlier_prob: float,
+                              outlier_range_m: float, log_w: np.ndarray) -> np.ndarray:
+    """Posterior probability that each satellite is an inlier, under the robust model,
+    averaged over one weighted particle set.
+
+    Args:
+        z: (N, k) normalised residuals of the set.
+        log_sigma: (k,) log standard deviations.
+        outlier_prob: Outlier probability eps.
+        outlier_range_m: Width of the uniform outlier density [m].
+        log_w: (N,) normalised log-weights.
+
+    Returns:
+        (k,) probabilities in [0, 1].
+    """
+    dens = np.exp(-0.5 * z * z) * ((1.0 - outlier_prob) * np.exp(-log_sigma - LOG_SQRT_2PI))
+    inlier = dens / (dens + outlier_prob / outlier_range_m)
+    return np.exp(log_w) @ inlier
 
 
 def robust_log_likelihood(z: np.ndarray, log_sigma: np.ndarray, outlier_prob: float,

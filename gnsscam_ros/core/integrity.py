@@ -1,12 +1,25 @@
-"""Integrity risk bound (paper §6, from Particle RAIM), reference risk and the flag.
+"""Integrity risk bound (paper §6, from Particle RAIM), protection level and reference risk.
 
 ``bound = R_M + D_Ber^-1(R_M, eps)`` with ``eps = (KL(pi_t || pi_t-1) + log((M+1)/delta)) / M``:
 ``R_M`` is the empirical risk over the M posteriors (the mass of each posterior beyond the
 alert limit from the estimate), the KL divergence is between Gaussian approximations of the
 posterior and the prior, and ``D_Ber^-1(q, eps)`` is the ``t`` with ``kl(q || q + t) = eps``.
+
+Protection level. With ``R_M(r)`` the empirical risk at radius ``r``, the bound
+``B(r) = R_M(r) + D_Ber^-1(R_M(r), eps)`` is non-increasing in ``r``: ``R_M(r)`` (a tail
+mass) is, and ``q + D_Ber^-1(q, eps)`` grows with ``q`` (the upper confidence limit of a
+larger empirical risk is larger). So ``B(r) <= target`` exactly when ``R_M(r) <= q_max``,
+where ``q_max`` is the largest empirical risk whose bound is still the target
+(:func:`max_empirical_risk`, one scalar bisection), and the protection level, the smallest
+``r`` with ``B(r) <= target``, is the radius beyond which at most ``q_max`` of the pooled
+posterior mass lies: a weighted quantile of the pooled distances
+(:func:`PosteriorSet.protection_level`, one sort of the M * N distances). With the exact
+inverse ``q_max`` is 0 when ``eps >= -log(1 - target)`` (even an empirical risk of 0 has a
+bound ``1 - exp(-eps)`` above the target): no radius certifies and the level is infinite.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,6 +71,72 @@ def inverse_bernoulli_approx(q, eps) -> np.ndarray:
     """
     q = np.asarray(q, dtype=float)
     return np.sqrt(2.0 * np.asarray(eps, dtype=float) * q * (1.0 - q))
+
+
+def upper_risk(q, eps, method: str = EXACT) -> np.ndarray:
+    """The bound ``q + D_Ber^-1(q, eps)`` for the given inverse, clipped to 1."""
+    if method == EXACT:
+        gap = inverse_bernoulli_exact(q, eps)
+    elif method == APPROX:
+        gap = inverse_bernoulli_approx(q, eps)
+    else:
+        raise ValueError(f'unknown inverse Bernoulli method {method!r}; use {INVERSE_METHODS}')
+    return np.minimum(np.asarray(q, dtype=float) + gap, 1.0)
+
+
+def _bernoulli_kl_scalar(q: float, p: float) -> float:
+    """``kl(q || p)`` for scalars in [0, 1) [nats] (the per-epoch path: no numpy)."""
+    out = q * math.log(q / p) if q > 0.0 else 0.0
+    return out + ((1.0 - q) * math.log((1.0 - q) / (1.0 - p)) if q < 1.0 else 0.0)
+
+
+def max_empirical_risk(target: float, eps: float, method: str = EXACT,
+                       iterations: int = 60) -> float:
+    """Largest empirical risk ``q`` whose bound ``q + D_Ber^-1(q, eps)`` is at most ``target``.
+
+    Exact inverse: the bound of ``q`` is the ``p >= q`` with ``kl(q || p) = eps``, and
+    ``kl(q || p)`` grows with ``p``, so the bound is at most ``target`` exactly when
+    ``kl(q || target) >= eps``; ``kl(q || target)`` falls as ``q`` rises to ``target``, so
+    ``q_max`` is the root of ``kl(q || target) = eps`` on ``[0, target]`` (scalar bisection,
+    60 halvings reach double precision), or 0 when ``kl(0 || target) = -log(1 - target)``
+    is already below ``eps``. Paper approximation: ``q + sqrt(2 eps q (1 - q)) = target``
+    is a quadratic in ``q``; its smaller root.
+
+    Args:
+        target: Target risk in (0, 1).
+        eps: Divergence budget [nats], >= 0.
+        method: 'exact' or 'approx'.
+
+    Returns:
+        ``q_max`` in [0, target]; 0 when even ``q = 0`` is bounded above the target.
+    """
+    t, eps = float(target), max(float(eps), 0.0)
+    if method == APPROX:
+        # (1 + 2 eps) q^2 - 2 (t + eps) q + t^2 = 0
+        a, b = 1.0 + 2.0 * eps, t + eps
+        return float(min(max((b - math.sqrt(max(b * b - a * t * t, 0.0))) / a, 0.0), t))
+    if method != EXACT:
+        raise ValueError(f'unknown inverse Bernoulli method {method!r}; use {INVERSE_METHODS}')
+    if -math.log1p(-t) < eps:
+        return 0.0
+    lo, hi = 0.0, t
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        if _bernoulli_kl_scalar(mid, t) >= eps:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+def divergence_budget(kl_nats: float, n_posteriors: int, delta: float) -> float:
+    """``eps = (KL + log((M + 1) / delta)) / M`` [nats] (paper §6)."""
+    return float((max(kl_nats, 0.0) + np.log((n_posteriors + 1) / delta)) / n_posteriors)
+
+
+def certifiable_target(n_posteriors: int, delta: float, kl_nats: float = 0.0) -> float:
+    """Smallest target risk the exact bound can ever meet: ``1 - exp(-eps)`` (at R_M = 0)."""
+    return float(1.0 - np.exp(-divergence_budget(kl_nats, n_posteriors, delta)))
 
 
 def gaussian_kl(mean0: np.ndarray, cov0: np.ndarray, mean1: np.ndarray, cov1: np.ndarray,
@@ -132,7 +211,7 @@ def risk_bound(empirical: np.ndarray, kl_nats: float, n_posteriors: int, delta: 
     Args:
         empirical: (A,) empirical risks R_M.
         kl_nats: KL(pi_t || pi_t-1) >= 0.
-        n_posteriors: M, the number of motion samples.
+        n_posteriors: M, the number of posteriors behind the empirical risk.
         delta: Confidence parameter in (0, 1].
         method: 'exact' (bisection) or 'approx' (the paper's closed form).
         alert_limits_m: (A,) limits, carried along for reporting.
@@ -140,7 +219,7 @@ def risk_bound(empirical: np.ndarray, kl_nats: float, n_posteriors: int, delta: 
     if method not in INVERSE_METHODS:
         raise ValueError(f'unknown inverse Bernoulli method {method!r}; use {INVERSE_METHODS}')
     empirical = np.asarray(empirical, dtype=float)
-    eps = (max(kl_nats, 0.0) + np.log((n_posteriors + 1) / delta)) / n_posteriors
+    eps = divergence_budget(kl_nats, n_posteriors, delta)
     if method == EXACT:
         divergence = inverse_bernoulli_exact(empirical, eps)
     else:
@@ -151,3 +230,112 @@ def risk_bound(empirical: np.ndarray, kl_nats: float, n_posteriors: int, delta: 
                      divergence_risk=divergence,
                      risk_bound=np.minimum(empirical + divergence, 1.0), kl_nats=kl_nats,
                      epsilon=float(eps))
+
+
+@dataclass(frozen=True)
+class PosteriorSet:
+    """The M posteriors of one epoch, as the risk bound sees them.
+
+    Posterior ``j`` is the particle set of motion sample ``motion_index[j]`` with its
+    weights, displaced by ``-offsets_m[j]``: the error its bias hypothesis would have put
+    into the estimate (``core.bias``), so the set says where the true position may lie
+    relative to the estimate. Without bias hypotheses every offset is zero and each
+    posterior has its own motion sample (the paper's construction). Positions are shared
+    across posteriors of the same motion sample, so the M * N particles are never copied.
+
+    Attributes:
+        positions_m: (S, N, 3) particle positions of the S motion samples [m].
+        log_w: (S, N) normalised log-weights.
+        motion_index: (M,) motion sample of each posterior.
+        offsets_m: (M, 3) estimate error of each posterior's hypothesis [m].
+        horizontal: Measure horizontal (east-north) distance; else 3D.
+    """
+
+    positions_m: np.ndarray
+    log_w: np.ndarray
+    motion_index: np.ndarray
+    offsets_m: np.ndarray
+    horizontal: bool = True
+
+    @property
+    def n_posteriors(self) -> int:
+        return int(self.motion_index.shape[0])
+
+    def distances(self, centre_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distances (M, N) of every posterior's particles from ``centre_m`` and their
+        weights (M, N), each row summing to one."""
+        dims = 2 if self.horizontal else 3
+        # Relative coordinates are small, so single precision is ample (and halves the
+        # traffic of the M * N arrays).
+        rel = (self.positions_m[..., :dims] - np.asarray(centre_m, dtype=float)[:dims]
+               ).astype(np.float32)
+        # Particles of posterior j sit at x - o_j: rel_j = (x - centre) - o_j.
+        rel = rel[self.motion_index] - self.offsets_m[:, None, :dims].astype(np.float32)
+        dist = np.sqrt(np.einsum('mnd,mnd->mn', rel, rel))
+        return dist, np.exp(self.log_w[self.motion_index])
+
+    def hazard_mass(self, centre_m: np.ndarray, radii_m, dist_w: tuple | None = None
+                    ) -> np.ndarray:
+        """Mean over the M posteriors of the mass at or beyond each radius, (A,).
+
+        With the estimate as centre this is the empirical risk ``R_M``; with the true
+        position it is the reference risk (evaluation only). ``dist_w``: the result of
+        :meth:`distances` for this centre, when already at hand.
+        """
+        dist, w = self.distances(centre_m) if dist_w is None else dist_w
+        radii = np.atleast_1d(np.asarray(radii_m, dtype=float))
+        # A is small (1-3): one weighted count per radius, no sort needed.
+        masses = np.array([(w * (dist >= r)).sum() for r in radii]) / dist.shape[0]
+        return np.clip(masses, 0.0, 1.0)
+
+    def protection_level(self, centre_m: np.ndarray, q_max: float,
+                         dist_w: tuple | None = None) -> float:
+        """Smallest radius around ``centre_m`` with at most ``q_max`` pooled mass beyond it.
+
+        Args:
+            centre_m: (3,) the estimate [m].
+            q_max: Largest admissible empirical risk (:func:`max_empirical_risk`).
+            dist_w: The result of :meth:`distances` for this centre, when at hand.
+
+        Returns:
+            The radius [m]; ``inf`` when ``q_max`` is 0 and the posteriors do not all sit
+            at the centre, i.e. when no radius can be certified.
+        """
+        if not q_max > 0.0:
+            return float('inf')
+        dist, w = self.distances(centre_m) if dist_w is None else dist_w
+        dist, w = dist.ravel(), w.ravel() / dist.shape[0]
+        # Only the far tail matters (q_max is a few per cent): partition off the farthest
+        # candidates, check that they hold more than q_max, and sort just those.
+        n = dist.shape[0]
+        count = min(n, int(8 * q_max * n) + 256)
+        while True:
+            if count < n:
+                part = np.argpartition(dist, n - count)[n - count:]
+                d_tail, w_tail = dist[part], w[part]
+                if w_tail.sum() <= q_max:     # too few (heavy weights in the tail): widen
+                    count = min(n, 4 * count)
+                    continue
+            else:
+                d_tail, w_tail = dist, w
+            break
+        order = np.argsort(d_tail)
+        d, w = d_tail[order], w_tail[order]
+        # tail[k] = mass at or beyond d[k]; R_M(r) for d[k-1] < r <= d[k] is tail[k]. The
+        # level is the smallest d[k-1] whose strict tail (tail[k]) is within q_max.
+        tail = np.cumsum(w[::-1])[::-1]
+        k = int(np.searchsorted(-tail, -q_max, side='left'))
+        return float(d[k - 1]) if k > 0 else 0.0
+
+    def pooled_moments(self) -> tuple[np.ndarray, np.ndarray]:
+        """Mean (3,) and covariance (3, 3) of the pooled (equal-share) mixture of the M
+        posteriors, from the per-sample moments (no M * N copy)."""
+        w = np.exp(self.log_w)
+        means = np.einsum('sn,snd->sd', w, self.positions_m)
+        centred = self.positions_m - means[:, None, :]
+        covs = np.einsum('sn,snd,sne->sde', w, centred, centred)
+        component_means = means[self.motion_index] - self.offsets_m
+        mean = component_means.mean(axis=0)
+        spread = component_means - mean
+        cov = covs[self.motion_index].mean(axis=0) + spread.T @ spread / len(spread)
+        return mean, cov

@@ -384,20 +384,36 @@ def motion_between(s0: DeadReckoningState, s1: DeadReckoningState) -> MotionIncr
                            dyaw_var_rad2=max(s1.yaw_var_rad2 - s0.yaw_var_rad2, 0.0))
 
 
+#: Outcomes of :meth:`MotionAccumulator.add`.
+ADDED, OUT_OF_ORDER, RESET = 'added', 'out_of_order', 'reset'
+#: Slack on the accumulated variances before a decrease counts as a restart [m^2, rad^2].
+RESET_VARIANCE_SLACK = 1e-9
+
+
 class MotionAccumulator:
     """Buffer of dead-reckoning states that answers "how did the vehicle move from t0 to t1".
 
     fusion_node adds every ``odometry/dead_reckoning`` state and asks for the motion of each
     GNSS interval; an offline run does the same with the states of :func:`dead_reckon`.
 
+    A dead reckoner that restarts (imu_node restarted) begins again at the odom origin with
+    zero accumulated variance: the step from its last state to the new one is not motion.
+    :meth:`add` detects it (an accumulated variance that shrinks, or a step faster than
+    ``max_speed_mps``) and leaves that interval uncovered, so the filter treats it as
+    unknown motion instead of a jump.
+
     Args:
         max_age_s: States older than this behind the newest are dropped [s].
+        max_speed_mps: A step between consecutive states faster than this is a reset [m/s].
     """
 
-    def __init__(self, max_age_s: float = 60.0):
+    def __init__(self, max_age_s: float = 60.0, max_speed_mps: float = 40.0):
         self.max_age_s = float(max_age_s)
+        self.max_speed_mps = float(max_speed_mps)
         self.states: list[DeadReckoningState] = []
-        # One segment per pair of consecutive states: (t0_ns, t1_ns, MotionIncrement).
+        self.resets = 0
+        # One segment per pair of consecutive states of one run of the dead reckoner:
+        # (t0_ns, t1_ns, MotionIncrement).
         self._segments: list[tuple[int, int, MotionIncrement]] = []
 
     @property
@@ -405,29 +421,57 @@ class MotionAccumulator:
         """Stamp of the newest state (None when empty)."""
         return self.states[-1].stamp_ns if self.states else None
 
-    def add(self, state: DeadReckoningState) -> bool:
-        """Append a state; returns False (and ignores it) when it is not the newest."""
+    def is_reset(self, prev: DeadReckoningState, state: DeadReckoningState) -> bool:
+        """Whether ``state`` starts a new run of the dead reckoner rather than follow
+        ``prev``: its accumulated variances shrank, or it is farther than the maximum
+        speed allows."""
+        if (state.distance_var_m2 < prev.distance_var_m2 - RESET_VARIANCE_SLACK
+                or state.yaw_var_rad2 < prev.yaw_var_rad2 - RESET_VARIANCE_SLACK):
+            return True
+        dt_s = (state.stamp_ns - prev.stamp_ns) * 1e-9
+        step_m = float(np.hypot(state.x_m - prev.x_m, state.y_m - prev.y_m))
+        return step_m > self.max_speed_mps * dt_s + 1.0
+
+    def add(self, state: DeadReckoningState) -> str:
+        """Append a state.
+
+        Returns:
+            ``ADDED``; ``OUT_OF_ORDER`` (ignored) when it is not the newest; ``RESET`` when
+            it starts a new run of the dead reckoner (kept, but the interval from the
+            previous state is left uncovered).
+        """
         if self.states and state.stamp_ns <= self.states[-1].stamp_ns:
-            return False
+            return OUT_OF_ORDER
+        outcome = ADDED
         if self.states:
             prev = self.states[-1]
-            self._segments.append((prev.stamp_ns, state.stamp_ns, motion_between(prev, state)))
+            if self.is_reset(prev, state):
+                outcome = RESET
+                self.resets += 1
+            else:
+                self._segments.append((prev.stamp_ns, state.stamp_ns,
+                                       motion_between(prev, state)))
         self.states.append(state)
         horizon = state.stamp_ns - int(self.max_age_s * 1e9)
         k = 0
         while k + 1 < len(self.states) and self.states[k + 1].stamp_ns <= horizon:
             k += 1
         if k:
+            first = self.states[k].stamp_ns
             del self.states[:k]
-            del self._segments[:k]
-        return True
+            j = 0
+            while j < len(self._segments) and self._segments[j][0] < first:
+                j += 1
+            del self._segments[:j]
+        return outcome
 
     def increment(self, t0_ns: int, t1_ns: int) -> MotionIncrement:
         """Motion over ``[t0_ns, t1_ns]``: the sum of the overlapping segments.
 
         A segment that overlaps partly contributes in proportion to the overlap (constant
-        speed and yaw rate within it). Time outside the buffered states contributes no
-        motion (the vehicle is taken as standing; the caller decides whether to wait).
+        speed and yaw rate within it). Time no segment covers (before the first state,
+        after the newest, across a reset) is reported as ``unknown_s``: the caller's filter
+        treats it as unknown motion; whether to wait for more states is the caller's call.
 
         Raises:
             ValueError: ``t1_ns < t0_ns``.
@@ -435,16 +479,20 @@ class MotionAccumulator:
         if t1_ns < t0_ns:
             raise ValueError(f'interval ends before it starts: {t0_ns} > {t1_ns}')
         distance = dyaw = distance_var = dyaw_var = 0.0
+        covered_ns = 0
         for a, b, seg in self._segments:
             if b <= t0_ns or a >= t1_ns:
                 continue
-            f = (min(b, t1_ns) - max(a, t0_ns)) / (b - a)
+            overlap = min(b, t1_ns) - max(a, t0_ns)
+            covered_ns += overlap
+            f = overlap / (b - a)
             distance += f * seg.distance_m
             dyaw += f * seg.dyaw_rad
             distance_var += f * seg.distance_var_m2
             dyaw_var += f * seg.dyaw_var_rad2
         return MotionIncrement(dt_s=(t1_ns - t0_ns) * 1e-9, distance_m=distance, dyaw_rad=dyaw,
-                               distance_var_m2=distance_var, dyaw_var_rad2=dyaw_var)
+                               distance_var_m2=distance_var, dyaw_var_rad2=dyaw_var,
+                               unknown_s=max(t1_ns - t0_ns - covered_ns, 0) * 1e-9)
 
     def odometry_series(self, t0_ns: int, t1_ns: int) -> OdometrySeries:
         """Speed and yaw-rate samples of the states in ``[t0_ns, t1_ns]`` and the last one

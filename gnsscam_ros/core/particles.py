@@ -26,6 +26,8 @@ class MotionIncrement:
         distance_var_m2: Variance of ``distance_m`` [m^2].
         dyaw_var_rad2: Variance of ``dyaw_rad`` [rad^2].
         dup_m: Height change [m] (0 for planar odometry).
+        unknown_s: Part of ``dt_s`` not covered by dead reckoning (lost, or reset) [s]:
+            over it the vehicle may have moved anywhere its maximum speed allows.
     """
 
     dt_s: float
@@ -34,12 +36,19 @@ class MotionIncrement:
     distance_var_m2: float
     dyaw_var_rad2: float
     dup_m: float = 0.0
+    unknown_s: float = 0.0
 
     @classmethod
     def stationary(cls, dt_s: float) -> 'MotionIncrement':
-        """No measured motion (no odometry): the propagation noise alone spreads the set."""
+        """Measured standstill: the propagation noise alone spreads the set."""
         return cls(dt_s=dt_s, distance_m=0.0, dyaw_rad=0.0, distance_var_m2=0.0,
                    dyaw_var_rad2=0.0)
+
+    @classmethod
+    def unknown(cls, dt_s: float) -> 'MotionIncrement':
+        """No dead reckoning for the whole interval: the motion is unknown."""
+        return cls(dt_s=dt_s, distance_m=0.0, dyaw_rad=0.0, distance_var_m2=0.0,
+                   dyaw_var_rad2=0.0, unknown_s=max(dt_s, 0.0))
 
 
 def normalize_log_weights(log_w: np.ndarray) -> np.ndarray:

@@ -28,6 +28,8 @@ class RunRecord:
     risk_bound: dict            # method -> (T, A)
     reference_risk: np.ndarray  # (T, A)
     alert_limits_m: np.ndarray
+    protection_level_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,)
+    integrity_ok: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     statuses: dict = field(default_factory=dict)
     seconds: float = 0.0
     camera_alpha: dict = field(default_factory=dict)   # frame_id -> mixture weight alpha*
@@ -119,6 +121,7 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int, inputs,
     limits = config.alert_limits_m
     other = integrity.APPROX if config.inverse_bernoulli == integrity.EXACT else integrity.EXACT
     stamps, estimates, bounds, bounds_other, references = [], [], [], [], []
+    levels, oks = [], []
     statuses: dict[str, int] = {}
     bar = Progress(f'filter {drive.name}', len(drive.gnss), progress)
     start = time.monotonic()
@@ -146,9 +149,9 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int, inputs,
         bounds_other.append(integrity.risk_bound(
             result.risk.empirical_risk, result.risk.kl_nats, config.n_posteriors,
             config.risk_delta, other).risk_bound)
-        references.append(integrity.hazard_mass(filt.posteriors[..., :3],
-                                                filt.posterior_log_w, truth, limits,
-                                                config.horizontal_risk))
+        references.append(filt.posterior_set.hazard_mass(truth, limits))
+        levels.append(result.protection_level_m)
+        oks.append(result.integrity_ok)
     seconds = time.monotonic() - start
     stamps_arr = np.array(stamps, dtype=np.int64)
     record = RunRecord(
@@ -157,6 +160,8 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int, inputs,
         risk_bound={config.inverse_bernoulli: np.array(bounds).reshape(-1, len(limits)),
                     other: np.array(bounds_other).reshape(-1, len(limits))},
         reference_risk=np.array(references).reshape(-1, len(limits)), alert_limits_m=limits,
+        protection_level_m=np.array(levels, dtype=float),
+        integrity_ok=np.array(oks, dtype=bool),
         statuses=statuses, seconds=seconds, camera_alpha=camera_alpha,
         camera_excluded_epochs=camera_excluded, camera_epochs=camera_epochs)
     return record, filt.frame

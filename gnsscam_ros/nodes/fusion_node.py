@@ -37,7 +37,7 @@ from gnsscam_ros.core.filter import (PROPAGATED, REJECTED, UPDATED, EpochResult,
                                      ParticleFilter)
 from gnsscam_ros.core.frames import LocalFrame
 from gnsscam_ros.core.fusion import CameraMeasurement, measurements_at_epoch
-from gnsscam_ros.core.motion import MotionAccumulator
+from gnsscam_ros.core.motion import OUT_OF_ORDER, RESET, MotionAccumulator
 from gnsscam_ros.core.types import GnssEpoch
 from msg_adapters import (ERROR, OK, STALE, WARN, CameraMatches, GeodeticFix, IntegrityRisk,
                           MessageError, PoseEstimate, fix_to_navsatfix, integrity_risk_to_msg,
@@ -78,6 +78,7 @@ DEFAULTS = {
 _PROBABILITY = (0.0, 1.0)
 _FILTER_RANGES = {
     'n_particles': (2, 10_000_000), 'n_posteriors': (1, 10_000),
+    'n_motion_samples': (1, 10_000),
     'acquisition_particles': (0, 10_000_000), 'min_satellites': (4, 1000),
     'outlier_prob': _PROBABILITY, 'target_risk': _PROBABILITY, 'risk_delta': _PROBABILITY,
     'resample_ess_fraction': _PROBABILITY, 'camera_elsewhere_prob': _PROBABILITY,
@@ -213,7 +214,8 @@ class FusionNode(GnssCamNode):
         frame = LocalFrame(*self.param('map_origin_llh')) if self.param(
             'use_map_origin') else None
         self.filter = ParticleFilter(self._filter_config({}), frame=frame, rng=rng)
-        self.accumulator = MotionAccumulator(self.param('odometry_buffer_s'))
+        self.accumulator = MotionAccumulator(self.param('odometry_buffer_s'),
+                                             self.filter.config.max_speed_mps)
         self.camera_buffer: list[CameraMeasurement] = []
         self._camera_count = 0
         self._queue: deque = deque()
@@ -291,10 +293,19 @@ class FusionNode(GnssCamNode):
         except MessageError as err:
             self.warn_rejected('odometry/dead_reckoning', err.reason, str(err))
             return
-        if not self.accumulator.add(state):
+        outcome = self.accumulator.add(state)
+        if outcome == OUT_OF_ORDER:
             self.warn_rejected('odometry/dead_reckoning', 'out_of_order',
                                f'stamp {state.stamp_ns} ns not after the previous state')
             return
+        if outcome == RESET:
+            # A restarted dead reckoner begins again at its origin: the step is not
+            # motion. The interval stays uncovered and the filter treats it as unknown.
+            self.stats.count('dead_reckoning_resets')
+            self.get_logger().warning(
+                f'dead reckoning reset at {state.stamp_ns} ns (restarted imu_node?): the '
+                'motion across it is treated as unknown, integrity ERROR until the '
+                'protection level recovers')
         self._last_dr_receipt = time.monotonic()
         if self._queue:
             self.process_ready()
@@ -388,25 +399,34 @@ class FusionNode(GnssCamNode):
                                     f'{result.reason}', result)
         risk = result.risk
         bound = float(risk.risk_bound[0])
-        ok = bool(result.integrity_ok)
+        level = float(result.protection_level_m)
+        # OK needs every piece of evidence: the filter's verdict (motion known, PL within
+        # the alert limit) and the bound it implies.
+        ok = bool(result.integrity_ok) and bound <= cfg.target_risk
         extra = {'status': result.status, 'n_satellites': result.n_satellites,
                  'kl_nats': float(risk.kl_nats), 'epsilon': float(risk.epsilon),
-                 'inverse_bernoulli': cfg.inverse_bernoulli}
+                 'inverse_bernoulli': cfg.inverse_bernoulli,
+                 'motion_unknown_s': float(result.motion_unknown_s),
+                 'dead_reckoning_resets': int(self.accumulator.resets)}
         for a in range(1, len(risk.alert_limits_m)):
             extra[f'risk_bound_{risk.alert_limits_m[a]:g}m'] = float(risk.risk_bound[a])
         if result.camera_alpha is not None:
             extra['camera_images'] = len(result.camera_frame_ids)
             extra['camera_excluded'] = bool(result.camera_excluded)
-        verdict = 'sufficient' if ok else 'insufficient'
+        limit = float(risk.alert_limits_m[0])
+        if ok:
+            message = (f'integrity sufficient: protection level {level:.1f} m <= alert limit '
+                       f'{limit:g} m (risk bound {bound:.3g} <= {cfg.target_risk:g})')
+        else:
+            why = result.integrity_reason or (f'risk bound {bound:.3g} > target '
+                                              f'{cfg.target_risk:g}')
+            message = f'integrity insufficient: {why}'
         return IntegrityRisk(
-            stamp_ns=result.stamp_ns, level=OK if ok else ERROR,
-            message=f'integrity {verdict}: risk bound {bound:.3g} '
-                    f'{"<=" if ok else ">"} target {cfg.target_risk:g} at '
-                    f'{float(risk.alert_limits_m[0]):g} m',
+            stamp_ns=result.stamp_ns, level=OK if ok else ERROR, message=message,
             risk_bound=bound, empirical_risk=float(risk.empirical_risk[0]),
             divergence_risk=float(risk.divergence_risk[0]),
-            alert_limit_m=float(risk.alert_limits_m[0]), target_risk=float(cfg.target_risk),
-            epoch_stamp_ns=int(result.stamp_ns), extra=extra)
+            alert_limit_m=limit, target_risk=float(cfg.target_risk),
+            epoch_stamp_ns=int(result.stamp_ns), protection_level_m=level, extra=extra)
 
     def _stale_risk(self, stamp_ns: int, message: str,
                     result: EpochResult | None = None) -> IntegrityRisk:
@@ -417,7 +437,7 @@ class FusionNode(GnssCamNode):
                              risk_bound=math.nan, empirical_risk=math.nan,
                              divergence_risk=math.nan, alert_limit_m=float(cfg.alert_limit_m),
                              target_risk=float(cfg.target_risk), epoch_stamp_ns=epoch,
-                             extra=extra)
+                             protection_level_m=math.nan, extra=extra)
 
     def publish_integrity(self, risk: IntegrityRisk) -> None:
         self.pub_integrity.publish(integrity_risk_to_msg(risk))
@@ -452,12 +472,20 @@ class FusionNode(GnssCamNode):
                   'n_particles': self.filter.config.n_particles,
                   'alert_limit_m': self.filter.config.alert_limit_m,
                   'target_risk': self.filter.config.target_risk}
+        values['dead_reckoning_resets'] = self.accumulator.resets
         if self.last_result is not None:
             values['last_status'] = self.last_result.status
+            values['protection_level_m'] = (math.nan if self.last_result.protection_level_m
+                                            is None else self.last_result.protection_level_m)
+            values['motion_unknown_s'] = self.last_result.motion_unknown_s
         if since_gnss > self.param('gnss_timeout_s'):
             return WARN, f'stale input: no GNSS for {since_gnss:.1f} s', values
         if since_dr > self.param('odometry_timeout_s'):
-            return WARN, 'no dead reckoning: propagating without motion', values
+            return WARN, ('no dead reckoning: motion unknown, the protection level grows '
+                          'and integrity is ERROR'), values
+        if self.last_result is not None and self.last_result.motion_unknown_s > 0.0:
+            return WARN, ('dead reckoning did not cover the last interval (lost or reset): '
+                          'integrity ERROR'), values
         return OK, 'running', values
 
 
