@@ -32,6 +32,13 @@ How the bag maps onto the offline quantities:
   offline runner averages the M posteriors instead, so failure ratio, failure error and
   bound gap are close to, not identical with, an offline run; RMSE, P_FA and P_MI only
   depend on estimate, bound and truth and are the same.
+* **Protection level**: ``protection_level_m`` of each OK/ERROR verdict (a missing or NaN
+  value counts as no PL, i.e. inf); ``protection_level`` holds
+  :func:`.metrics.protection_level_metrics` at the verdicts' alert limit, with the flag's
+  own OK (level OK) for ``flag_ok``.
+* **Per-epoch rows** (:func:`evaluate_result_bag_epochs`, ``--epochs-csv``): one per GNSS
+  epoch of the dataset bag when it has GNSS, else per epoch named by an
+  ``integrity_risk`` message; an epoch without an OK/ERROR verdict is STALE.
 """
 from __future__ import annotations
 
@@ -49,8 +56,8 @@ from ..core.filter import FilterConfig
 from ..core.frames import LocalFrame
 from ..core.integrity import hazard_mass
 from ..core.types import Drive, Trajectory
-from .metrics import integrity_metrics
-from .runner import accuracy, run_snapshot_baseline, truth_at
+from .metrics import integrity_metrics, protection_level_metrics
+from .runner import EpochTable, accuracy, empty_epoch_table, run_snapshot_baseline, truth_at
 
 _EXTRA_BOUND = re.compile(r'^risk_bound_(.+)m$')
 _LEVELS = {0: 'OK', 1: 'WARN', 2: 'ERROR', 3: 'STALE'}
@@ -113,11 +120,84 @@ def _bounds(risk) -> dict[float, float]:
     return out
 
 
+def _pl(risk) -> float:
+    """The protection level of a verdict, NaN when it carries none."""
+    value = getattr(risk, 'protection_level_m', None)
+    return math.nan if value is None else float(value)
+
+
+def _epoch_table(res: ResultBag, verdicts: dict, frame: LocalFrame, est_stamps: np.ndarray,
+                 est_enu: np.ndarray, truth_drive: Drive, gnss_drive: Drive | None
+                 ) -> EpochTable:
+    """One row per GNSS epoch (see the module docstring)."""
+    if gnss_drive is not None:
+        stamps = sorted({int(e.stamp_ns) for e in gnss_drive.gnss})
+    elif res.integrity:
+        stamps = sorted({int(r.epoch_stamp_ns if r.epoch_stamp_ns is not None else r.stamp_ns)
+                         for r in res.integrity})
+    else:
+        stamps = sorted(int(s) for s in est_stamps)
+    if not stamps:
+        return empty_epoch_table()
+    stale = {}
+    for r in res.integrity:
+        key = int(r.epoch_stamp_ns if r.epoch_stamp_ns is not None else r.stamp_ns)
+        if r.stamp_ns == key:          # the epoch's own report, not a periodic one
+            stale[key] = r
+    est_index = {int(s): i for i, s in enumerate(est_stamps)}
+    n = len(stamps)
+    enu = np.full((n, 3), np.nan)
+    pl, bound = np.full(n, np.nan), np.full(n, np.nan)
+    levels, status, reason = (np.empty(n, dtype=object) for _ in range(3))
+    sats = np.zeros(n, dtype=int)
+    for k, s in enumerate(stamps):
+        if s in est_index:
+            enu[k] = est_enu[est_index[s]]
+        v = verdicts.get(s)
+        if v is not None:
+            pl[k], bound[k] = _pl(v), float(v.risk_bound)
+            levels[k] = _LEVELS.get(v.level, str(v.level))
+        else:
+            levels[k] = 'STALE'
+            v = stale.get(s)
+        status[k] = '' if v is None else str(v.extra.get('status', ''))
+        reason[k] = '' if v is None else v.message
+        try:
+            sats[k] = int(float(v.extra.get('n_satellites', 0))) if v is not None else 0
+        except ValueError:
+            sats[k] = 0
+    stamps_arr = np.array(stamps, dtype=np.int64)
+    lat, lon, height = (np.full(n, np.nan) for _ in range(3))
+    have = np.all(np.isfinite(enu), axis=1)
+    if have.any():
+        la, lo, h = frame.enu_to_geodetic(enu[have])
+        lat[have], lon[have], height[have] = la, lo, h
+    truth = truth_at(truth_drive, frame, stamps_arr)
+    err = np.hypot(enu[:, 0] - truth[:, 0], enu[:, 1] - truth[:, 1])
+    return EpochTable(stamp_ns=stamps_arr, status=status, reason=reason, estimate_enu_m=enu,
+                      lat_deg=lat, lon_deg=lon, height_m=height, protection_level_m=pl,
+                      risk_bound=bound, integrity=levels, horizontal_error_m=err,
+                      satellites=sats)
+
+
 def evaluate_result_bag(result_bag: str | Path, truth_bag: str | Path | None = None,
                         namespace: str = '/', origin_llh: tuple | None = None,
                         horizontal_risk: bool | None = None,
                         measurement_var_m2: float | None = None) -> dict:
     """Accuracy and integrity metrics of a recorded run (the offline evaluation's keys).
+
+    See :func:`evaluate_result_bag_epochs` (this is its dictionary).
+    """
+    return evaluate_result_bag_epochs(result_bag, truth_bag, namespace, origin_llh,
+                                      horizontal_risk, measurement_var_m2)[0]
+
+
+def evaluate_result_bag_epochs(result_bag: str | Path, truth_bag: str | Path | None = None,
+                               namespace: str = '/', origin_llh: tuple | None = None,
+                               horizontal_risk: bool | None = None,
+                               measurement_var_m2: float | None = None
+                               ) -> tuple[dict, EpochTable]:
+    """Accuracy and integrity metrics of a recorded run, and its per-epoch rows.
 
     Args:
         result_bag: Bag with ``integrity_risk`` and ``fix`` or ``pose`` (optionally
@@ -135,9 +215,11 @@ def evaluate_result_bag(result_bag: str | Path, truth_bag: str | Path | None = N
     Returns:
         ``rmse_2d_m``, ``rmse_3d_m``, ``epochs``, ``p50_2d_m``, ``p95_2d_m``, ``max_2d_m``,
         ``integrity`` (by alert limit, :func:`.metrics.integrity_metrics`),
-        ``integrity_by_inverse_bernoulli``, ``statuses`` (integrity levels), ``filter_seconds``
-        (None), ``baseline_wls`` (None values without GNSS), ``rmse_2d_ratio_to_wls`` and
-        ``bag`` (sources, counts, origin).
+        ``integrity_by_inverse_bernoulli``, ``protection_level``
+        (:func:`.metrics.protection_level_metrics`), ``statuses`` (integrity levels),
+        ``filter_seconds`` (None), ``baseline_wls`` (None values without GNSS),
+        ``rmse_2d_ratio_to_wls`` and ``bag`` (sources, counts, origin); and the
+        :class:`.runner.EpochTable` of every GNSS epoch.
 
     Raises:
         BagReadError, BagTypeError: Unreadable bag or wrong topic type (file/topic named).
@@ -231,6 +313,13 @@ def evaluate_result_bag(result_bag: str | Path, truth_bag: str | Path | None = N
     method = methods.pop() if len(methods) == 1 else 'published'
     out['integrity'] = by_limit
     out['integrity_by_inverse_bernoulli'] = {method: by_limit}
+    main_limits = {float(verdicts[s].alert_limit_m) for s in stamps if s in verdicts}
+    main_limit = (main_limits.pop() if len(main_limits) == 1
+                  else limits[0] if limits else defaults.alert_limit_m)
+    pl = np.array([_pl(verdicts[s]) if s in verdicts else math.nan for s in stamps],
+                  dtype=float)
+    ok = np.array([s in verdicts and verdicts[s].level == 0 for s in stamps], dtype=bool)
+    out['protection_level'] = protection_level_metrics(err, pl, main_limit, integrity_ok=ok)
     levels: dict[str, int] = {}
     for risk in res.integrity:
         name = _LEVELS.get(risk.level, str(risk.level))
@@ -253,4 +342,5 @@ def evaluate_result_bag(result_bag: str | Path, truth_bag: str | Path | None = N
                   'reference_risk_source': sources, 'unmatched_verdicts': unmatched,
                   'origin_llh': None if origin is None else list(origin),
                   'horizontal_risk': horizontal, 'topics': res.topics}
-    return out
+    table = _epoch_table(res, verdicts, frame, est_stamps, est_enu, truth_drive, gnss_drive)
+    return out, table

@@ -4,6 +4,13 @@ Examples::
 
     gnsscam_eval smartloc ../shared/data/smartloc --json out.json
     gnsscam_eval emulated --faults 6 --bias-m 100 --seed 3 --json out.json
+    gnsscam_eval smartloc ../shared/data/smartloc --epochs-csv epochs.csv --plots plots/
+
+``--epochs-csv FILE`` writes one row per GNSS epoch (updated or not; columns
+``runner.EpochTable.CSV_COLUMNS``: ``stamp_ns`` the input's time, the estimate in WGS84
+``lat_deg``/``lon_deg``/``height_m``, ``protection_level_m`` (empty when none),
+``risk_bound``, ``integrity`` OK/ERROR/STALE, ``horizontal_error_m``, ...). ``--plots DIR``
+writes the Stanford diagram and the error/protection-level timeline of the run.
 """
 from __future__ import annotations
 
@@ -14,9 +21,10 @@ from pathlib import Path
 from ..core import integrity
 from ..core.filter import LIKELIHOODS, FilterConfig
 from ..datasets.errors import DatasetError
-from .evaluate import evaluate_drive
+from .evaluate import evaluate_drive_record
 from .report import (INTEGRITY_HEADERS, OutputExistsError, format_table, integrity_rows,
-                     write_json_atomic)
+                     protection_level_headers, protection_level_rows, stanford_line,
+                     write_csv_atomic, write_json_atomic)
 
 EXIT_OK, EXIT_USAGE, EXIT_INPUT, EXIT_OUTPUT = 0, 2, 3, 4
 DEFAULT_ALERT_LIMITS_M = (8.0, 16.0)
@@ -69,6 +77,15 @@ def print_result(label: str, result: dict, out=None) -> None:
     for method, by_limit in result['integrity_by_inverse_bernoulli'].items():
         rows += integrity_rows(f'{label} ({method})', by_limit)
     print(format_table(INTEGRITY_HEADERS, rows), file=out)
+    pl = result.get('protection_level')
+    if pl is not None:
+        print(file=out)
+        print("Protection level (MI: error > PL; avail: PL <= AL; err>AL|PL<=AL and "
+              "err>AL|OK: epochs with the error above the alert limit among those "
+              "available / flagged OK):", file=out)
+        print(format_table(protection_level_headers(pl), protection_level_rows(label, pl)),
+              file=out)
+        print(stanford_line(pl), file=out)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -109,6 +126,14 @@ def build_parser() -> argparse.ArgumentParser:
     bag.add_argument('--namespace', default='/', help='namespace of the recorded topics')
     bag.add_argument('--origin', type=float, nargs=3, metavar=('LAT', 'LON', 'ALT'),
                      help='map frame origin, when no bag has map/origin')
+    for p in (smart, emu, bag):
+        p.add_argument('--epochs-csv', type=Path, metavar='FILE',
+                       help='write one row per GNSS epoch (estimate in WGS84, protection '
+                       'level, risk bound, integrity OK/ERROR/STALE, error)')
+        p.add_argument('--plots', type=Path, metavar='DIR',
+                       help='write the Stanford diagram and the error/PL timeline here')
+    camp.add_argument('--epochs-csv', type=Path, metavar='DIR',
+                      help='write one per-epoch CSV per run (seed, case, method) into DIR')
     for p in (smart, emu, camp, bag):
         p.add_argument('--json', type=Path, help='write the metrics as JSON')
         p.add_argument('--force', action='store_true', help='replace an existing --json')
@@ -116,8 +141,39 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def write_result(args: argparse.Namespace, result: dict) -> int:
-    """Write ``--json`` when asked; the exit code of the command."""
+def write_result(args: argparse.Namespace, result: dict, epochs=None, label: str = 'run',
+                 alert_limit_m: float = DEFAULT_ALERT_LIMITS_M[0]) -> int:
+    """Write ``--epochs-csv``, ``--plots`` and ``--json`` when asked; the exit code.
+
+    Args:
+        args: The command line.
+        result: The evaluation JSON (``plots`` and ``epochs_csv`` are added to it).
+        epochs: The run's ``runner.EpochTable``.
+        label: Run name (figure titles and file names).
+        alert_limit_m: Alert limit of the figures [m].
+    """
+    if getattr(args, 'epochs_csv', None) is not None and epochs is not None:
+        try:
+            write_csv_atomic(args.epochs_csv, list(epochs.CSV_COLUMNS), epochs.csv_rows(),
+                             force=args.force)
+        except (OSError, OutputExistsError) as err:
+            print(f'gnsscam_eval: cannot write {args.epochs_csv}: {err}', file=sys.stderr)
+            return EXIT_OUTPUT
+        result['epochs_csv'] = {'path': str(args.epochs_csv), 'rows': len(epochs)}
+        print(f'\nwrote {args.epochs_csv} ({len(epochs)} GNSS epochs)')
+    if getattr(args, 'plots', None) is not None and epochs is not None:
+        from .plots import integrity_plots
+        name = ''.join(c if c.isalnum() or c in '-_.' else '_' for c in label)
+        try:
+            paths = integrity_plots(args.plots, name, label, epochs.stamp_ns,
+                                    epochs.horizontal_error_m, epochs.protection_level_m,
+                                    epochs.integrity, alert_limit_m)
+        except OSError as err:
+            print(f'gnsscam_eval: cannot write plots into {args.plots}: {err}',
+                  file=sys.stderr)
+            return EXIT_OUTPUT
+        result['plots'] = [str(p) for p in paths]
+        print('wrote ' + ', '.join(str(p) for p in paths))
     if args.json is not None:
         try:
             write_json_atomic(args.json, result, force=args.force)
@@ -131,25 +187,34 @@ def write_result(args: argparse.Namespace, result: dict) -> int:
 def run_bag_command(args: argparse.Namespace) -> int:
     """``gnsscam_eval bag``: the offline metrics computed from a recorded result bag."""
     from ..bags.errors import BagError
-    from .bag_eval import evaluate_result_bag
+    from .bag_eval import evaluate_result_bag_epochs
     try:
-        result = evaluate_result_bag(args.result_bag, args.truth, namespace=args.namespace,
-                                     origin_llh=tuple(args.origin) if args.origin else None)
+        result, epochs = evaluate_result_bag_epochs(
+            args.result_bag, args.truth, namespace=args.namespace,
+            origin_llh=tuple(args.origin) if args.origin else None)
     except (BagError, ValueError) as err:
         print(f'gnsscam_eval: {err}', file=sys.stderr)
         return EXIT_INPUT
-    print_result(Path(args.result_bag).name, result)
-    return write_result(args, result)
+    label = Path(args.result_bag).name
+    print_result(label, result)
+    limit = result.get('protection_level', {}).get('alert_limit_m', DEFAULT_ALERT_LIMITS_M[0])
+    return write_result(args, result, epochs, label, limit)
 
 
 def run_campaign_command(args: argparse.Namespace) -> int:
     """``gnsscam_eval campaign``: run, print Tables 2-4, write JSON and plots."""
     from .campaign import campaign_config, campaign_tables, run_campaign
+    if args.epochs_csv is not None and args.epochs_csv.exists() and any(
+            args.epochs_csv.iterdir()) and not args.force:
+        print(f'gnsscam_eval: {args.epochs_csv} is not empty; pass --force to write into it',
+              file=sys.stderr)
+        return EXIT_OUTPUT
     result = run_campaign(seeds=tuple(args.seeds),
                           base=campaign_config(n_particles=args.particles),
                           methods=tuple(args.methods), workers=args.workers,
                           cache_dir=args.cache, plots_dir=args.plots,
-                          progress=not args.quiet)
+                          progress=not args.quiet, epochs_dir=args.epochs_csv,
+                          force=args.force)
     print(campaign_tables(result['cases']))
     alpha = result['camera_mean_alpha']
     if alpha:
@@ -177,9 +242,11 @@ def load_drive(args: argparse.Namespace):
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.json is not None and args.json.exists() and not args.force:
-        print(f'gnsscam_eval: {args.json} exists; pass --force to replace it', file=sys.stderr)
-        return EXIT_OUTPUT
+    for path in (args.json, None if args.command == 'campaign' else args.epochs_csv):
+        if path is not None and path.exists() and not args.force:
+            print(f'gnsscam_eval: {path} exists; pass --force to replace it',
+                  file=sys.stderr)
+            return EXIT_OUTPUT
     if args.command == 'campaign':
         return run_campaign_command(args)
     if args.command == 'bag':
@@ -190,12 +257,13 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(err))
     try:
         drive = load_drive(args)
-        result = evaluate_drive(drive, config, seed=args.seed, progress=not args.quiet)
+        result, record = evaluate_drive_record(drive, config, seed=args.seed,
+                                               progress=not args.quiet)
     except (DatasetError, ValueError) as err:
         print(f'gnsscam_eval: {err}', file=sys.stderr)
         return EXIT_INPUT
     print_result(drive.name, result)
-    return write_result(args, result)
+    return write_result(args, result, record.epochs, drive.name, config.alert_limit_m)
 
 
 if __name__ == '__main__':

@@ -6,7 +6,7 @@ from dataclasses import asdict
 from ..core.filter import FilterConfig
 from ..core.frames import LocalFrame
 from ..core.types import Drive
-from .runner import accuracy, run_filter, run_snapshot_baseline, summarize, truth_at
+from .runner import RunRecord, accuracy, run_filter, run_snapshot_baseline, summarize, truth_at
 
 
 def evaluate_drive(drive: Drive, config: FilterConfig, seed: int = 0,
@@ -15,11 +15,19 @@ def evaluate_drive(drive: Drive, config: FilterConfig, seed: int = 0,
 
     Returns:
         The evaluation JSON: ``rmse_2d_m``, ``rmse_3d_m``, ``epochs``, ``integrity`` keyed by
-        alert limit, ``baseline_wls`` and the configuration used.
+        alert limit, ``protection_level`` (:func:`.metrics.protection_level_metrics`),
+        ``baseline_wls`` and the configuration used.
 
     Raises:
         ValueError: The drive has no ground truth.
     """
+    return evaluate_drive_record(drive, config, seed, progress)[0]
+
+
+def evaluate_drive_record(drive: Drive, config: FilterConfig, seed: int = 0,
+                          progress: bool = False) -> tuple[dict, RunRecord]:
+    """:func:`evaluate_drive` and the run record (its ``epochs`` table: one row per GNSS
+    epoch)."""
     if drive.truth is None:
         raise ValueError(f'{drive.name}: no ground truth, nothing to evaluate against')
     record = run_filter(drive, config, seed=seed, progress=progress)
@@ -36,4 +44,4 @@ def evaluate_drive(drive: Drive, config: FilterConfig, seed: int = 0,
                          if isinstance(v, (str, int, float, bool)) or v is None}}
     out['config'] = asdict(config)
     out['seed'] = seed
-    return out
+    return out, record

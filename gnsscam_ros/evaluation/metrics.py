@@ -11,10 +11,30 @@ Definitions, per epoch with a GNSS update, for one alert limit AL:
 * failure: the risk bound is below the reference risk (computed with ground truth);
   failure ratio = #failures / #epochs; failure error = mean position error over the
   failures (None when there are none); bound gap = mean of (bound - reference risk).
+
+Protection level (PL: the smallest radius around the estimate whose risk bound is within
+the target risk; inf when there is none), per epoch with a GNSS update, error measured like
+the PL (horizontal by default):
+
+* misleading information (MI): error > PL; MI rate = #MI / #epochs (an inf PL is never MI).
+* availability at AL: share of epochs with PL <= AL (what the flag needs to say OK).
+* HMI given available at AL (``hmi_given_available``): among the epochs with PL <= AL,
+  the share whose error exceeds AL, i.e. how often "OK by the PL" was hazardously wrong.
+* flag OK with error > AL (``flag_ok``, at the configured alert limit, from the filter's
+  own verdict, which also needs known motion): among the epochs the flag said OK, the
+  share whose error exceeds the alert limit.
+* PL median and 95th percentile: order statistics with inf (and a missing PL, NaN) counted
+  as inf, so they are inf when that many epochs have no finite PL.
+* Stanford counts at the configured alert limit: ``report.stanford_counts``.
 """
 from __future__ import annotations
 
 import numpy as np
+
+from .report import stanford_counts
+
+#: Alert limits whose availability every evaluation reports [m].
+AVAILABILITY_LIMITS_M = (8.0, 16.0, 25.0, 50.0)
 
 
 def rmse(errors_m: np.ndarray) -> float:
@@ -65,3 +85,80 @@ def integrity_metrics(error_m: np.ndarray, risk_bound: np.ndarray, reference_ris
         'mean_risk_bound': float(risk_bound.mean()) if n else None,
         'mean_reference_risk': float(reference_risk.mean()) if n else None,
     }
+
+
+def percentile_with_inf(values: np.ndarray, q: float) -> float | None:
+    """Linear-interpolation percentile where inf (and NaN, taken as inf) count as inf.
+
+    ``np.percentile`` gives NaN when it interpolates towards inf; here the result is inf as
+    soon as an inf value takes part. None for no values.
+    """
+    v = np.asarray(values, dtype=float).ravel()
+    if not v.size:
+        return None
+    v = np.sort(np.where(np.isnan(v), np.inf, v))
+    pos = q / 100.0 * (v.size - 1)
+    lo, hi = int(np.floor(pos)), int(np.ceil(pos))
+    if not np.isfinite(v[hi]):
+        return float('inf')
+    return float(v[lo] + (v[hi] - v[lo]) * (pos - lo))
+
+
+def protection_level_metrics(error_m: np.ndarray, protection_level_m: np.ndarray,
+                             alert_limit_m: float,
+                             availability_limits_m=AVAILABILITY_LIMITS_M,
+                             integrity_ok: np.ndarray | None = None) -> dict:
+    """Protection-level metrics of a run (see the module docstring).
+
+    Args:
+        error_m: (T,) finite position errors measured like the PL [m].
+        protection_level_m: (T,) protection levels [m]; inf or NaN = none.
+        alert_limit_m: The configured alert limit (Stanford counts, ``flag_ok``) [m].
+        availability_limits_m: Alert limits of ``availability`` and
+            ``hmi_given_available`` (the configured one is always added) [m].
+        integrity_ok: Optional (T,) verdicts of the filter (``EpochResult.integrity_ok``).
+
+    Returns:
+        ``epochs``, ``mi_epochs``, ``mi_rate``, ``no_pl_epochs``, ``median_m``, ``p95_m``,
+        ``availability`` and ``available_epochs`` keyed by alert limit as a string ("8"),
+        ``hmi_given_available`` keyed the same way (``rate``, ``hmi_epochs``,
+        ``available_epochs``), ``alert_limit_m``, ``stanford`` (counts at it) and, with
+        ``integrity_ok``, ``flag_ok`` (``ok_epochs``, ``error_above_al_epochs``,
+        ``error_above_al_rate``). Rates are None without epochs.
+    """
+    err = np.asarray(error_m, dtype=float).ravel()
+    pl = np.asarray(protection_level_m, dtype=float).ravel()
+    if err.shape != pl.shape:
+        raise ValueError(f'error ({err.size}) and protection level ({pl.size}) differ in '
+                         'length')
+    pl = np.where(np.isnan(pl), np.inf, pl)
+    n = int(err.size)
+    mi = int(np.sum(err > pl))
+    limits = sorted({float(a) for a in availability_limits_m} | {float(alert_limit_m)})
+    availability, available, hmi = {}, {}, {}
+    for limit in limits:
+        key = f'{limit:g}'
+        ok = pl <= limit
+        n_ok = int(ok.sum())
+        n_hmi = int(np.sum(ok & (err > limit)))
+        availability[key] = _rate(n_ok, n)
+        available[key] = n_ok
+        hmi[key] = {'rate': _rate(n_hmi, n_ok), 'hmi_epochs': n_hmi, 'available_epochs': n_ok}
+    out = {
+        'epochs': n, 'mi_epochs': mi, 'mi_rate': _rate(mi, n),
+        'no_pl_epochs': int(np.sum(~np.isfinite(pl))),
+        'median_m': percentile_with_inf(pl, 50), 'p95_m': percentile_with_inf(pl, 95),
+        'availability': availability, 'available_epochs': available,
+        'hmi_given_available': hmi, 'alert_limit_m': float(alert_limit_m),
+        'stanford': stanford_counts(err, pl, alert_limit_m),
+    }
+    if integrity_ok is not None:
+        flag = np.asarray(integrity_ok, dtype=bool).ravel()
+        if flag.shape != err.shape:
+            raise ValueError(f'integrity_ok ({flag.size}) and error ({err.size}) differ in '
+                             'length')
+        n_ok = int(flag.sum())
+        bad = int(np.sum(flag & (err > alert_limit_m)))
+        out['flag_ok'] = {'ok_epochs': n_ok, 'error_above_al_epochs': bad,
+                          'error_above_al_rate': _rate(bad, n_ok)}
+    return out

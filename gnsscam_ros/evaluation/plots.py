@@ -225,3 +225,43 @@ def error_pl_timeline(path: Path, title: str, time_s: np.ndarray, error_m: np.nd
     # Outside the axes: inside, it hides the epochs it describes.
     ax.legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=8)
     return _save(fig, Path(path))
+
+
+def integrity_plots(folder: Path, name: str, title: str, stamp_ns: np.ndarray,
+                    error_m: np.ndarray, protection_level_m: np.ndarray,
+                    integrity_levels: np.ndarray, alert_limit_m: float) -> list[Path]:
+    """The Stanford diagram and the error/PL timeline of one run, from its epoch rows.
+
+    Writes ``<folder>/stanford_<name>.png`` (the updated epochs, i.e. level OK or ERROR,
+    with a finite error) and ``<folder>/error_pl_<name>.png`` (every epoch; STALE ones
+    have no PL).
+
+    Args:
+        folder: Output folder (created).
+        name: File name part.
+        title: Figure title.
+        stamp_ns: (E,) epoch stamps [ns].
+        error_m: (E,) horizontal error [m], NaN without truth/estimate.
+        protection_level_m: (E,) PL [m], NaN/inf = none.
+        integrity_levels: (E,) 'OK' / 'ERROR' / 'STALE'.
+        alert_limit_m: Alert limit [m].
+
+    Returns:
+        The PNG paths (the Stanford diagram only when some epoch qualifies).
+    """
+    folder = Path(folder)
+    stamps = np.asarray(stamp_ns, dtype=np.int64).ravel()
+    err = np.asarray(error_m, dtype=float).ravel()
+    pl = np.asarray(protection_level_m, dtype=float).ravel()
+    levels = np.asarray(integrity_levels).astype(str).ravel()
+    paths = []
+    updated = (levels != 'STALE') & np.isfinite(err)
+    if updated.any():
+        stanford_diagram(folder / f'stanford_{name}.png', title, err, pl, alert_limit_m,
+                         valid=updated)
+        paths.append(folder / f'stanford_{name}.png')
+    if stamps.size:
+        t_s = (stamps - stamps[0]) * 1e-9
+        paths.append(error_pl_timeline(folder / f'error_pl_{name}.png', title, t_s, err, pl,
+                                       alert_limit_m, levels))
+    return paths

@@ -15,7 +15,9 @@ def write_json_atomic(path: Path, data, force: bool = False) -> Path:
     """Write JSON to ``path`` via a temporary file and an atomic rename.
 
     A crash or Ctrl-C never leaves a half-written file, and an existing file is replaced
-    only with ``force``.
+    only with ``force``. Infinite floats (e.g. a protection level that does not exist) are
+    written as the strings ``"inf"``/``"-inf"`` (strict JSON has no infinity; ``float()``
+    reads them back); NaN is refused.
 
     Raises:
         OutputExistsError: ``path`` exists and ``force`` is False.
@@ -27,7 +29,8 @@ def write_json_atomic(path: Path, data, force: bool = False) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', dir=path.parent)
     try:
         with os.fdopen(fd, 'w', encoding='utf-8') as handle:
-            json.dump(data, handle, indent=2, allow_nan=False, default=_jsonable)
+            json.dump(_finite_json(data), handle, indent=2, allow_nan=False,
+                      default=_jsonable)
             handle.write('\n')
         os.replace(tmp, path)
     except BaseException:
@@ -50,6 +53,19 @@ def write_npz_atomic(path: Path, **arrays) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def _finite_json(value):
+    """``value`` with every infinite float (also in numpy arrays) as "inf"/"-inf"."""
+    if isinstance(value, dict):
+        return {k: _finite_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_json(v) for v in value]
+    if hasattr(value, 'tolist') and not isinstance(value, (str, bytes)):
+        return _finite_json(value.tolist())
+    if isinstance(value, float) and value in (float('inf'), float('-inf')):
+        return 'inf' if value > 0 else '-inf'
+    return value
 
 
 def _jsonable(value):
@@ -83,6 +99,32 @@ def integrity_rows(label: str, integrity: dict) -> list[list]:
     return [[label, limit, m['p_fa'], m['p_mi'], m['failure_ratio'], m['failure_error_m'],
              m['bound_gap'], f"{m['faults']}/{m['epochs']}"]
             for limit, m in integrity.items()]
+
+
+def protection_level_rows(label: str, pl: dict) -> list[list]:
+    """One row of the protection-level table (:func:`protection_level_headers`)."""
+    key = f"{pl['alert_limit_m']:g}"
+    hmi = pl['hmi_given_available'][key]
+    flag = pl.get('flag_ok')
+    return [[label, pl['epochs'], pl['mi_rate'], pl['median_m'], pl['p95_m']]
+            + [pl['availability'][k] for k in pl['availability']]
+            + [f"{hmi['hmi_epochs']}/{hmi['available_epochs']}",
+               f"{flag['error_above_al_epochs']}/{flag['ok_epochs']}" if flag else None]]
+
+
+def protection_level_headers(pl: dict) -> list[str]:
+    """Headers of the protection-level table of a ``protection_level`` block."""
+    key = f"{pl['alert_limit_m']:g}"
+    return (['run', 'epochs', 'MI rate', 'PL p50 [m]', 'PL p95 [m]']
+            + [f'avail {k} m' for k in pl['availability']]
+            + [f'err>{key}|PL<={key}', f'err>{key}|OK'])
+
+
+def stanford_line(pl: dict) -> str:
+    """The Stanford counts of a ``protection_level`` block, on one line."""
+    st = pl['stanford']
+    return (f"Stanford at AL {pl['alert_limit_m']:g} m: " + ', '.join(
+        f'{k} {st[k]}' for k in STANFORD_KEYS))
 
 
 INTEGRITY_HEADERS = ['run', 'AL [m]', 'P_FA', 'P_MI', 'fail ratio', 'fail err [m]',

@@ -15,12 +15,70 @@ from ..core.gnss import check_epoch
 from ..core.motion import integrate_odometry
 from ..core.snapshot import solve_snapshot
 from ..core.types import Drive
-from .metrics import integrity_metrics, rmse
+from .metrics import integrity_metrics, protection_level_metrics, rmse
+
+
+@dataclass
+class EpochTable:
+    """One row per GNSS epoch of a run, updated or not (the ``--epochs-csv`` content).
+
+    Attributes:
+        stamp_ns: (E,) epoch stamps (the input's time) [ns].
+        status: (E,) filter status ('updated', 'propagated', 'rejected', 'waiting').
+        reason: (E,) why the epoch was not an update, or why integrity is not OK.
+        estimate_enu_m: (E, 3) estimate in the map frame [m]; NaN while there is none.
+        lat_deg, lon_deg, height_m: (E,) the estimate in WGS84; NaN while there is none.
+        protection_level_m: (E,) PL [m] (inf: none within reach); NaN when not updated.
+        risk_bound: (E,) risk bound at the configured alert limit; NaN when not updated.
+        integrity: (E,) 'OK' (``EpochResult.integrity_ok``), 'ERROR' (updated, not OK) or
+            'STALE' (not updated).
+        horizontal_error_m: (E,) horizontal error against the truth; NaN without truth or
+            estimate.
+        satellites: (E,) satellites used in the update.
+    """
+
+    stamp_ns: np.ndarray
+    status: np.ndarray
+    reason: np.ndarray
+    estimate_enu_m: np.ndarray
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    height_m: np.ndarray
+    protection_level_m: np.ndarray
+    risk_bound: np.ndarray
+    integrity: np.ndarray
+    horizontal_error_m: np.ndarray
+    satellites: np.ndarray
+
+    CSV_COLUMNS = ('stamp_ns', 'lat_deg', 'lon_deg', 'height_m', 'protection_level_m',
+                   'risk_bound', 'integrity', 'horizontal_error_m', 'status', 'reason',
+                   'east_m', 'north_m', 'up_m', 'satellites')
+
+    def __len__(self) -> int:
+        return int(self.stamp_ns.size)
+
+    def csv_rows(self):
+        """Rows under ``CSV_COLUMNS`` (NaN cells are written empty)."""
+        for k in range(len(self)):
+            e, n, u = (float(v) for v in self.estimate_enu_m[k])
+            yield [int(self.stamp_ns[k]), float(self.lat_deg[k]), float(self.lon_deg[k]),
+                   float(self.height_m[k]), float(self.protection_level_m[k]),
+                   float(self.risk_bound[k]), str(self.integrity[k]),
+                   float(self.horizontal_error_m[k]), str(self.status[k]),
+                   str(self.reason[k]), e, n, u, int(self.satellites[k])]
+
+
+def empty_epoch_table() -> EpochTable:
+    z = np.zeros(0)
+    return EpochTable(np.zeros(0, np.int64), np.zeros(0, str), np.zeros(0, str),
+                      np.zeros((0, 3)), z, z, z, z, z, np.zeros(0, str), z,
+                      np.zeros(0, int))
 
 
 @dataclass
 class RunRecord:
-    """Per-epoch arrays of one filter run (only epochs with a GNSS update)."""
+    """Per-epoch arrays of one filter run (only epochs with a GNSS update and truth);
+    ``epochs`` holds one row for every GNSS epoch."""
 
     stamp_ns: np.ndarray
     estimate_enu_m: np.ndarray
@@ -35,6 +93,7 @@ class RunRecord:
     camera_alpha: dict = field(default_factory=dict)   # frame_id -> mixture weight alpha*
     camera_excluded_epochs: int = 0
     camera_epochs: int = 0
+    epochs: EpochTable = field(default_factory=empty_epoch_table)
 
 
 def truth_at(drive: Drive, frame: LocalFrame, stamps_ns: np.ndarray) -> np.ndarray:
@@ -128,6 +187,7 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int, inputs,
     truth_enu = None
     camera_alpha: dict[int, float] = {}
     camera_epochs = camera_excluded = 0
+    rows = []       # every epoch: (stamp, status, reason, enu, PL, bound, level, sats)
     for i, epoch in enumerate(drive.gnss):
         motion, camera = inputs(filt, epoch)
         result = filt.step(epoch, motion, camera)
@@ -137,6 +197,7 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int, inputs,
             camera_alpha.update(zip(result.camera_frame_ids, result.camera_alpha.tolist()))
         statuses[result.status] = statuses.get(result.status, 0) + 1
         bar.update(i + 1)
+        rows.append(_epoch_row(result))
         if result.status != UPDATED or drive.truth is None:
             continue
         if truth_enu is None:
@@ -163,8 +224,50 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int, inputs,
         protection_level_m=np.array(levels, dtype=float),
         integrity_ok=np.array(oks, dtype=bool),
         statuses=statuses, seconds=seconds, camera_alpha=camera_alpha,
-        camera_excluded_epochs=camera_excluded, camera_epochs=camera_epochs)
+        camera_excluded_epochs=camera_excluded, camera_epochs=camera_epochs,
+        epochs=_epoch_table(rows, filt.frame, drive))
     return record, filt.frame
+
+
+def _epoch_row(result) -> tuple:
+    updated = result.status == UPDATED
+    enu = (np.full(3, np.nan) if result.position_enu_m is None
+           else np.asarray(result.position_enu_m, dtype=float))
+    pl = (float(result.protection_level_m) if updated and result.protection_level_m
+          is not None else np.nan)
+    bound = (float(result.risk.risk_bound[0]) if updated and result.risk is not None
+             else np.nan)
+    level = 'STALE' if not updated else ('OK' if result.integrity_ok else 'ERROR')
+    reason = result.reason if not updated else result.integrity_reason
+    return (int(result.stamp_ns), result.status, reason or '', enu, pl, bound, level,
+            int(result.n_satellites))
+
+
+def _epoch_table(rows: list[tuple], frame: LocalFrame | None, drive: Drive) -> EpochTable:
+    """The per-epoch table of a run: WGS84 estimates and the horizontal error."""
+    if not rows:
+        return empty_epoch_table()
+    stamps = np.array([r[0] for r in rows], dtype=np.int64)
+    enu = np.array([r[3] for r in rows], dtype=float).reshape(-1, 3)
+    lat = lon = height = np.full(len(rows), np.nan)
+    if frame is not None:
+        have = np.all(np.isfinite(enu), axis=1)
+        lat, lon, height = (np.full(len(rows), np.nan) for _ in range(3))
+        if have.any():
+            la, lo, h = frame.enu_to_geodetic(enu[have])
+            lat[have], lon[have], height[have] = la, lo, h
+    err = np.full(len(rows), np.nan)
+    if drive.truth is not None and frame is not None and len(drive.truth):
+        truth = truth_at(drive, frame, stamps)
+        err = np.hypot(enu[:, 0] - truth[:, 0], enu[:, 1] - truth[:, 1])
+    return EpochTable(
+        stamp_ns=stamps, status=np.array([r[1] for r in rows], dtype=object),
+        reason=np.array([r[2] for r in rows], dtype=object), estimate_enu_m=enu,
+        lat_deg=lat, lon_deg=lon, height_m=height,
+        protection_level_m=np.array([r[4] for r in rows], dtype=float),
+        risk_bound=np.array([r[5] for r in rows], dtype=float),
+        integrity=np.array([r[6] for r in rows], dtype=object), horizontal_error_m=err,
+        satellites=np.array([r[7] for r in rows], dtype=int))
 
 
 def run_snapshot_baseline(drive: Drive, frame: LocalFrame,
@@ -214,6 +317,9 @@ def summarize(record: RunRecord, config: FilterConfig) -> dict:
             for a, limit in enumerate(record.alert_limits_m)}
     out['integrity'] = by_method[config.inverse_bernoulli]
     out['integrity_by_inverse_bernoulli'] = by_method
+    out['protection_level'] = protection_level_metrics(
+        err, record.protection_level_m, config.alert_limit_m,
+        integrity_ok=record.integrity_ok if record.integrity_ok.size == err.size else None)
     out['statuses'] = record.statuses
     out['filter_seconds'] = record.seconds
     return out
