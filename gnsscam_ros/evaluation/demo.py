@@ -18,7 +18,9 @@ real smartLoc run (no camera), in one command and without a ROS install:
    data with the nodes' dead reckoning and camera handling, no ROS graph) and the snapshot
    WLS baseline; the largest difference between the nodes' and the offline estimates
    shows that the replay path changes nothing;
-5. figures (trajectory; risk bound against the reference risk) go next to the JSON.
+5. figures (trajectory; risk bound against the reference risk; for the nodes and the
+   offline run each a Stanford diagram and the error with the protection level over
+   time, the nodes' PL taken from the recorded ``integrity_risk``) go next to the JSON.
 
 Everything lands in a new folder ``<out>/demo-<UTC time>/`` (a suffix is added if it
 exists: nothing is ever overwritten). The time of every stage and the replay speed (x real
@@ -41,7 +43,7 @@ from ..core.frames import LocalFrame
 from ..core.fusion import CameraMeasurement
 from ..core.motion import DeadReckoningConfig, MotionAccumulator, dead_reckon
 from ..core.types import Drive, ImuSeries, OdometrySeries, Trajectory
-from .report import format_table, write_json_atomic
+from .report import format_table, stanford_line, write_json_atomic
 from .runner import RunRecord, accuracy, run_epochs, run_snapshot_baseline, summarize, truth_at
 
 #: Alert limit of the comparison [m]: the nodes publish the risk at one alert limit
@@ -164,16 +166,18 @@ def node_series(result_bag: Path, frame: LocalFrame) -> dict:
     """Per-epoch estimates (from ``fix``, in ``frame``) and risk bounds of a result bag.
 
     Returns:
-        ``{'stamp_ns': (E,), 'estimate_enu_m': (E, 3), 'risk_bound': (E,)}`` for the
-        epochs with an OK/ERROR verdict and a fix.
+        ``{'stamp_ns': (E,), 'estimate_enu_m': (E, 3), 'risk_bound': (E,),
+        'protection_level_m': (E,) (NaN when a verdict carries none)}`` for the epochs
+        with an OK/ERROR verdict and a fix.
     """
     import pymap3d
 
     from ..bags.read import read_results
     res = read_results(result_bag, particles=False)
-    bound = {int(r.epoch_stamp_ns): float(r.risk_bound) for r in res.integrity
-             if r.level in (0, 2) and r.epoch_stamp_ns is not None
-             and math.isfinite(r.risk_bound)}
+    verdicts = {int(r.epoch_stamp_ns): r for r in res.integrity
+                if r.level in (0, 2) and r.epoch_stamp_ns is not None
+                and math.isfinite(r.risk_bound)}
+    bound = {s: float(r.risk_bound) for s, r in verdicts.items()}
     ecef = np.column_stack(pymap3d.geodetic2ecef(res.fix_llh[:, 0], res.fix_llh[:, 1],
                                                  res.fix_llh[:, 2])) if len(
         res.fix_llh) else np.zeros((0, 3))
@@ -181,7 +185,11 @@ def node_series(result_bag: Path, frame: LocalFrame) -> dict:
     keep = [i for i, s in enumerate(res.fix_stamp_ns) if int(s) in bound]
     stamps = res.fix_stamp_ns[keep]
     return {'stamp_ns': stamps, 'estimate_enu_m': enu[keep].reshape(-1, 3),
-            'risk_bound': np.array([bound[int(s)] for s in stamps], dtype=float)}
+            'risk_bound': np.array([bound[int(s)] for s in stamps], dtype=float),
+            'protection_level_m': np.array(
+                [math.nan if verdicts[int(s)].protection_level_m is None
+                 else float(verdicts[int(s)].protection_level_m) for s in stamps],
+                dtype=float)}
 
 
 def new_run_folder(root: Path) -> Path:
@@ -240,8 +248,8 @@ def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed
     from ..bags.read import read_drive
     from ..bags.replay import replay_through_nodes
     from ..nodes.camera_node import DEFAULTS as CAMERA_DEFAULTS
-    from .bag_eval import evaluate_result_bag
-    from .plots import risk_plot, trajectory_plot
+    from .bag_eval import evaluate_result_bag_epochs
+    from .plots import integrity_plots, risk_plot, trajectory_plot
     folder.mkdir(parents=True, exist_ok=True)
     bag, result_bag = folder / 'dataset_bag', folder / 'result_bag'
     conversion = stages.run(f'{key}: convert to {bag}', convert_drive, drive, bag)
@@ -268,7 +276,8 @@ def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed
         bag, result_bag, rate=0.0, parameters=params, layout=layout, topics=topics,
         log_dir=folder / 'logs')
     print(f'[demo] {key}: {replay.text()}', file=sys.stderr)
-    nodes = stages.run(f'{key}: gnsscam_eval bag', evaluate_result_bag, result_bag, bag)
+    nodes, node_epochs = stages.run(f'{key}: gnsscam_eval bag', evaluate_result_bag_epochs,
+                                    result_bag, bag)
     matches = None
     if database is not None and data.camera is not None:
         matches = stages.run(f'{key}: offline camera matching', offline_camera_matches,
@@ -301,6 +310,12 @@ def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed
             f'{drive.name}: risk bound of the nodes vs reference risk', t_s,
             series['risk_bound'][i], record_off.reference_risk[j, 0], ALERT_LIMIT_M,
             config.target_risk))
+    # Stanford diagram and error/PL timeline of both runs (nodes: the PL of the recorded
+    # integrity_risk; every GNSS epoch, STALE ones without a PL).
+    for label, table in (('nodes', node_epochs), ('offline', record_off.epochs)):
+        paths += integrity_plots(folder, label, f'{drive.name}: {label}', table.stamp_ns,
+                                 table.horizontal_error_m, table.protection_level_m,
+                                 table.integrity, config.alert_limit_m)
     result = {'dataset': drive.name, 'nodes': nodes, 'offline': offline, 'wls': wls,
               'max_estimate_difference_m': float(diff), 'common_epochs': len(common),
               'replay': replay.as_dict(),
@@ -320,12 +335,16 @@ def _rows(key: str, result: dict) -> list[list]:
     for label, m in (('nodes (replayed bag)', result['nodes']),
                      ('offline (same seed)', result['offline'])):
         integ = m['integrity'][limit]
+        pl = m['protection_level']
+        flag = pl.get('flag_ok') or {}
         rows.append([key, label, m['epochs'], m['rmse_2d_m'], m['rmse_3d_m'],
                      integ['p_fa'], integ['p_mi'], integ['failure_ratio'],
-                     integ['mean_risk_bound']])
+                     integ['mean_risk_bound'], pl['mi_rate'], pl['median_m'],
+                     pl['availability'][limit],
+                     f"{flag.get('error_above_al_epochs')}/{flag.get('ok_epochs')}"])
     w = result['wls']
-    rows.append([key, 'snapshot WLS', w['epochs'], w['rmse_2d_m'], w['rmse_3d_m'], None,
-                 None, None, None])
+    rows.append([key, 'snapshot WLS', w['epochs'], w['rmse_2d_m'], w['rmse_3d_m']]
+                + [None] * 8)
     return rows
 
 
@@ -403,7 +422,13 @@ def main(argv: list[str] | None = None) -> int:
     print(f'Results at alert limit {ALERT_LIMIT_M:g} m, target risk {config.target_risk:g}, '
           f'N = {config.n_particles} x M = {config.n_posteriors}, seed {args.seed}:')
     print(format_table(['data', 'run', 'epochs', 'RMSE 2D [m]', 'RMSE 3D [m]', 'P_FA', 'P_MI',
-                        'fail ratio', 'mean bound'], rows))
+                        'fail ratio', 'mean bound', 'MI rate', 'PL p50 [m]',
+                        f'avail {ALERT_LIMIT_M:g} m', f'err>{ALERT_LIMIT_M:g}|OK'], rows))
+    print('(MI: error > protection level; avail: PL <= alert limit; err>AL|OK: epochs the '
+          'flag said OK with the error above the alert limit / epochs OK)')
+    for key, r in results.items():
+        for label in ('nodes', 'offline'):
+            print(f'{key} {label}: {stanford_line(r[label]["protection_level"])}')
     print()
     for key, r in results.items():
         rep = r['replay']
@@ -416,7 +441,8 @@ def main(argv: list[str] | None = None) -> int:
                'out_dir': str(out_dir)}
     path = write_json_atomic(out_dir / 'summary.json', summary)
     print(f'\nOutputs in {out_dir} (bags, result bags, results.json, trajectory.png, '
-          f'risk_al{ALERT_LIMIT_M:g}m.png per dataset; {path.name}).')
+          f'risk_al{ALERT_LIMIT_M:g}m.png, stanford_nodes/offline.png and '
+          f'error_pl_nodes/offline.png per dataset; {path.name}).')
     print('Stage times: ' + ', '.join(f'{k.split(" (")[0].split(" ->")[0]} {v:.0f} s'
                                       for k, v in stages.times.items()))
     print(f'Total wall time: {stages.total_s:.0f} s')
