@@ -143,7 +143,8 @@ class _Reader:
 def _verdicts():
     ok = IntegrityRisk(stamp_ns=1_000_000_000, level=OK, message='integrity sufficient',
                        risk_bound=0.02, empirical_risk=0.01, divergence_risk=0.01,
-                       alert_limit_m=8.0, target_risk=0.1, epoch_stamp_ns=1_000_000_000)
+                       alert_limit_m=8.0, target_risk=0.1, epoch_stamp_ns=1_000_000_000,
+                       protection_level_m=6.5)
     stale = IntegrityRisk(stamp_ns=2_000_000_000, level=STALE, message='no GNSS',
                           risk_bound=float('nan'), empirical_risk=float('nan'),
                           divergence_risk=float('nan'), alert_limit_m=8.0,
@@ -167,7 +168,8 @@ def _run_consumer(path: Path, tmp_path: Path) -> tuple[int, str]:
     ok, stale = _verdicts()
     try:
         deadline = time.monotonic() + 60.0
-        while not ('position usable' in out.get() and 'STALE: no GNSS' in out.get()):
+        while not ('position usable: protection level 6.5 m' in out.get()
+                   and 'STALE: no GNSS' in out.get()):
             assert proc.poll() is None, f'the example exited early:\n{out.get()}'
             assert time.monotonic() < deadline, f'no verdict logged in 60 s:\n{out.get()}'
             if pub.get_subscription_count() > 0:
@@ -198,7 +200,7 @@ def test_every_python_block_runs_as_printed(tmp_path):
             rc, out = _run_consumer(path, tmp_path)
             assert rc == 0, out
             assert 'Traceback' not in out, out
-            assert 'position usable: P(error > 8.0 m) <= 0.020' in out, out
+            assert 'position usable: protection level 6.5 m <= alert limit 8.0 m' in out, out
             assert 'STALE: no GNSS' in out, out
         else:
             result = subprocess.run([sys.executable, str(path)], cwd=tmp_path, timeout=300,

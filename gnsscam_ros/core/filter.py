@@ -43,6 +43,9 @@ WAITING = 'waiting'            # no initial fix yet
 #: away they are ~1 degree off the local ones, 6,000 km away (an origin left at 0, 0)
 #: meaningless, so such an origin is a configuration error, not a frame.
 MAX_ORIGIN_DISTANCE_M = 100_000.0
+#: Heading uncertainty accrued over a dead-reckoning gap beyond which the heading counts
+#: as lost and is acquired again (distance ``heading_acquisition_m``) [rad].
+HEADING_LOST_RAD = 0.5
 
 
 @dataclass(frozen=True)
@@ -102,14 +105,19 @@ class FilterConfig:
         bias_model: 'cn0' (each posterior carries a Gauss-Markov pseudorange bias per
             satellite, its size from C/N0, propagated into the estimate; core.bias) or
             'none' (posteriors differ by motion perturbations only, as in the paper).
-        bias_floor_m: Bias standard deviation at high C/N0 [m] (smartLoc fit).
-        bias_cn0_sigma_m: C/N0-dependent bias standard deviation at the reference C/N0 [m].
-        bias_cn0_ref_dbhz: Reference C/N0 of the bias model [dB-Hz].
-        bias_unknown_cn0_sigma_m: Bias standard deviation when C/N0 is unknown [m].
+        bias_floor_m: Smallest bias standard deviation at high C/N0 [m].
+        bias_residual_scale: Bias standard deviation at high C/N0 per metre of smoothed
+            residual RMS at the estimate (calibrated on smartLoc, see README).
+        bias_cn0_knee_dbhz: Below this C/N0 the bias grows 10 dB per decade [dB-Hz].
         bias_correlation_time_s: Correlation time of the biases [s] (smartLoc: ~50 s).
         max_speed_mps: Fastest the vehicle may move while its motion is unknown (dead
             reckoning lost or reset) [m/s]: the set spreads by this speed times the gap.
         max_yaw_rate_rps: Fastest heading change while the motion is unknown [rad/s].
+        integrity_settling_s: Integrity is not certified before the heading is acquired
+            and this long after [s]: the set starts on a snapshot fix, which carries the
+            biases' whole effect, while the bias hypotheses start from none and need the
+            filter's own memory to grow into it (measured: the level fell below the error
+            at the end of acquisition on the emulated drive).
         horizontal_risk: Alert limits on horizontal error (True) or 3D error.
         extra_alert_limits_m: Further alert limits whose risk is computed (evaluation).
         use_camera: Fuse camera matches when they are given (False = Particle RAIM only).
@@ -150,13 +158,13 @@ class FilterConfig:
     risk_delta: float = 0.1
     inverse_bernoulli: str = integrity.EXACT
     bias_model: str = BIAS_CN0
-    bias_floor_m: float = 2.5
-    bias_cn0_sigma_m: float = 9.5
-    bias_cn0_ref_dbhz: float = 30.0
-    bias_unknown_cn0_sigma_m: float = 20.0
+    bias_floor_m: float = 2.0
+    bias_residual_scale: float = 0.18
+    bias_cn0_knee_dbhz: float = 41.6
     bias_correlation_time_s: float = 50.0
     max_speed_mps: float = 40.0
     max_yaw_rate_rps: float = 1.0
+    integrity_settling_s: float = 30.0
     horizontal_risk: bool = True
     extra_alert_limits_m: tuple = ()
     use_camera: bool = True
@@ -184,9 +192,9 @@ class FilterConfig:
         for name in ('propagation_var_m2', 'vertical_propagation_var_m2',
                      'yaw_propagation_var_rad2',
                      'motion_perturbation_scale', 'error_correlation_time_s',
-                     'heading_acquisition_m', 'bias_floor_m', 'bias_cn0_sigma_m',
-                     'bias_unknown_cn0_sigma_m', 'bias_correlation_time_s',
-                     'max_speed_mps', 'max_yaw_rate_rps'):
+                     'heading_acquisition_m', 'bias_floor_m', 'bias_residual_scale',
+                     'bias_correlation_time_s',
+                     'max_speed_mps', 'max_yaw_rate_rps', 'integrity_settling_s'):
             if not getattr(self, name) >= 0.0:
                 problems.append(f'{name} must be >= 0')
         if self.likelihood not in LIKELIHOODS:
@@ -225,9 +233,8 @@ class FilterConfig:
 
     @property
     def bias(self) -> BiasModel:
-        return BiasModel(floor_m=self.bias_floor_m, cn0_sigma_m=self.bias_cn0_sigma_m,
-                         cn0_ref_dbhz=self.bias_cn0_ref_dbhz,
-                         unknown_cn0_sigma_m=self.bias_unknown_cn0_sigma_m,
+        return BiasModel(floor_m=self.bias_floor_m, residual_scale=self.bias_residual_scale,
+                         cn0_knee_dbhz=self.bias_cn0_knee_dbhz,
                          correlation_time_s=self.bias_correlation_time_s)
 
 
@@ -310,6 +317,7 @@ class ParticleFilter:
         self.bias = BiasHypotheses(config.bias, config.n_posteriors, self.rng)
         self.last_stamp_ns: int | None = None
         self.distance_since_init_m = 0.0
+        self.acquired_stamp_ns: int | None = None      # end of heading acquisition
         self.last_result: EpochResult | None = None
 
     @property
@@ -368,6 +376,13 @@ class ParticleFilter:
                            cfg.yaw_propagation_var_rad2 * dt_s
                            + (cfg.max_yaw_rate_rps * motion.unknown_s) ** 2, self.rng)
         self._motion_unknown_s = float(motion.unknown_s)
+        if motion.unknown_s > 0.0:
+            # Without dead reckoning the heading drifts by up to max_yaw_rate_rps: beyond
+            # HEADING_LOST_RAD it is unknown and must be acquired again; either way the
+            # integrity settles again before it is certified.
+            self.acquired_stamp_ns = None
+            if motion.unknown_s * cfg.max_yaw_rate_rps > HEADING_LOST_RAD:
+                self.distance_since_init_m = 0.0
         self.last_stamp_ns = epoch.stamp_ns
         self.distance_since_init_m += abs(motion.distance_m)
         prep = None
@@ -485,6 +500,11 @@ class ParticleFilter:
         inlier = gnss.robust_inlier_probability(z[chosen], log_sigma, cfg.outlier_prob,
                                                 cfg.outlier_range_m, post_log_w[chosen])
         weights = evidence * inlier / prep.sigma_m ** 2
+        # Residual at the estimate (position weighted over the chosen set) for the bias
+        # scale (core.bias).
+        estimate = np.exp(post_log_w[chosen]) @ priors[chosen, :, POS]
+        at_estimate = gnss.clock_corrected_residuals(estimate[None], prep, clock_w)[0]
+        self.bias.observe_residuals(epoch.stamp_ns, at_estimate, inlier, 3 + prep.n_systems)
         result = self._finish(epoch, check, priors, post_log_w, chosen, total,
                               (prep, weights))
         if fusion is not None:
@@ -511,9 +531,17 @@ class ParticleFilter:
         risk, level = self._integrity(pos, post_log_w, chosen, mean, cov, epoch.stamp_ns,
                                       update)
         limit = float(cfg.alert_limits_m[0])
+        if (self.acquired_stamp_ns is None and self._motion_unknown_s == 0.0
+                and self.distance_since_init_m >= cfg.heading_acquisition_m):
+            self.acquired_stamp_ns = epoch.stamp_ns
+        settled_s = (-1.0 if self.acquired_stamp_ns is None
+                     else (epoch.stamp_ns - self.acquired_stamp_ns) * 1e-9)
         if self._motion_unknown_s > 0.0:
             reason = (f'dead reckoning missing for {self._motion_unknown_s:.2f} s of this '
                       f'interval: motion unknown')
+        elif settled_s < cfg.integrity_settling_s:
+            reason = ('settling after the first fix or a dead-reckoning gap (heading '
+                      f'acquisition, then {cfg.integrity_settling_s:g} s)')
         elif not level <= limit:
             reason = f'protection level {level:.1f} m above the alert limit {limit:g} m'
         else:

@@ -400,16 +400,22 @@ class MotionAccumulator:
     zero accumulated variance: the step from its last state to the new one is not motion.
     :meth:`add` detects it (an accumulated variance that shrinks, or a step faster than
     ``max_speed_mps``) and leaves that interval uncovered, so the filter treats it as
-    unknown motion instead of a jump.
+    unknown motion instead of a jump. Consecutive states further apart than ``max_gap_s``
+    (the dead reckoning or its inputs stopped) leave their interval uncovered as well: a
+    dead reckoner that resumes after a gap has integrated nothing real across it.
 
     Args:
         max_age_s: States older than this behind the newest are dropped [s].
         max_speed_mps: A step between consecutive states faster than this is a reset [m/s].
+        max_gap_s: Longest interval between consecutive states taken as measured motion [s].
     """
 
-    def __init__(self, max_age_s: float = 60.0, max_speed_mps: float = 40.0):
+    def __init__(self, max_age_s: float = 60.0, max_speed_mps: float = 40.0,
+                 max_gap_s: float = 1.0):
         self.max_age_s = float(max_age_s)
         self.max_speed_mps = float(max_speed_mps)
+        self.max_gap_s = float(max_gap_s)
+        self.gaps = 0
         self.states: list[DeadReckoningState] = []
         self.resets = 0
         # One segment per pair of consecutive states of one run of the dead reckoner:
@@ -448,6 +454,8 @@ class MotionAccumulator:
             if self.is_reset(prev, state):
                 outcome = RESET
                 self.resets += 1
+            elif (state.stamp_ns - prev.stamp_ns) * 1e-9 > self.max_gap_s:
+                self.gaps += 1
             else:
                 self._segments.append((prev.stamp_ns, state.stamp_ns,
                                        motion_between(prev, state)))

@@ -98,6 +98,12 @@ def build_parser() -> argparse.ArgumentParser:
                        help='folder with *_Input.txt and *_GT.txt (or use --input/--truth)')
     smart.add_argument('--input', type=Path, help='input file (pseudorange3/odom3 lines)')
     smart.add_argument('--truth', type=Path, help='ground-truth file (point3 lines)')
+    smart.add_argument('--inject-faults', type=int, default=0, metavar='EPISODES',
+                       help='add this many pseudorange fault episodes (2-5 satellites, '
+                            '20-200 m, 10-40 s each; drawn with --fault-seed) to the real '
+                            'data (default 0)')
+    smart.add_argument('--fault-seed', type=int, default=1,
+                       help='seed of the injected faults (default %(default)s)')
     emu = sub.add_parser('emulated', help='the seeded emulated urban drive')
     emu.add_argument('--faults', type=int, default=0, help='faulty satellites of 12')
     emu.add_argument('--bias-m', type=float, default=100.0, help='fault bias [m]')
@@ -232,7 +238,12 @@ def load_drive(args: argparse.Namespace):
     """The drive named on the command line."""
     if args.command == 'smartloc':
         from ..datasets.smartloc import load_smartloc_args
-        return load_smartloc_args(args.folder, args.input, args.truth)
+        drive = load_smartloc_args(args.folder, args.input, args.truth)
+        if args.inject_faults:
+            from ..datasets.faults import FaultEpisodes, inject_pseudorange_faults
+            drive = inject_pseudorange_faults(drive, args.fault_seed,
+                                              FaultEpisodes(episodes=args.inject_faults))
+        return drive
     from ..datasets.emulated import make_emulated_drive
     seed = args.seed if args.drive_seed is None else args.drive_seed
     return make_emulated_drive(seed, faults=args.faults, bias_m=args.bias_m,

@@ -1,0 +1,289 @@
+"""Protection level, bias hypotheses and unknown motion: known answers and properties."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from synthetic import FRAME, epoch_at
+
+from gnsscam_ros.core import integrity
+from gnsscam_ros.core.bias import BiasHypotheses, BiasModel, projected_weights
+from gnsscam_ros.core.filter import UPDATED, FilterConfig, ParticleFilter
+from gnsscam_ros.core.motion import (ADDED, RESET, DeadReckoningState, MotionAccumulator)
+from gnsscam_ros.core.particles import MotionIncrement
+
+SECOND = 1_000_000_000
+EXCERPT = Path(__file__).parent / 'data' / 'smartloc_excerpt'
+
+
+# ============================================================ bound and q_max
+@pytest.mark.parametrize('method', [integrity.EXACT, integrity.APPROX])
+@pytest.mark.parametrize('eps', [0.01, 0.05, 0.09])
+def test_max_empirical_risk_is_where_the_bound_meets_the_target(method, eps):
+    target = 0.1
+    q = integrity.max_empirical_risk(target, eps, method)
+    assert 0.0 < q < target
+    assert integrity.upper_risk(q, eps, method) == pytest.approx(target, abs=1e-9)
+    assert integrity.upper_risk(q * 1.01, eps, method) > target
+
+
+def test_exact_floor_and_no_certification_below_it():
+    # With R_M = 0 the exact bound is 1 - exp(-eps) > 0: it never collapses to 0...
+    eps = integrity.divergence_budget(0.0, 10, 0.1)
+    assert integrity.upper_risk(0.0, eps) == pytest.approx(1 - np.exp(-eps))
+    assert integrity.certifiable_target(10, 0.1) == pytest.approx(0.375, abs=1e-3)
+    # ...so M = 10 can never certify 0.1: q_max = 0 and the level is infinite.
+    assert integrity.max_empirical_risk(0.1, eps) == 0.0
+    cloud = integrity.PosteriorSet(np.zeros((1, 5, 3)), np.full((1, 5), -np.log(5)),
+                                   np.zeros(10, int), np.zeros((10, 3)))
+    assert cloud.protection_level(np.zeros(3), 0.0) == np.inf
+    # The paper's approximation does collapse to 0 at R_M = 0 (reproduction only).
+    assert integrity.upper_risk(0.0, eps, integrity.APPROX) == 0.0
+
+
+def test_default_configuration_can_certify():
+    cfg = FilterConfig()
+    assert cfg.inverse_bernoulli == integrity.EXACT
+    assert integrity.certifiable_target(cfg.n_posteriors, cfg.risk_delta) < cfg.target_risk
+    # Even with a KL of 1 nat per epoch there is room: q_max > 0.
+    eps = integrity.divergence_budget(1.0, cfg.n_posteriors, cfg.risk_delta)
+    assert integrity.max_empirical_risk(cfg.target_risk, eps) > 0.0
+
+
+# ============================================================ protection level
+def gaussian_set(sigma_m, n=200_000, m=4, seed=0):
+    rng = np.random.default_rng(seed)
+    pos = rng.normal(0.0, sigma_m, (m, n // m, 3))
+    log_w = np.full((m, n // m), -np.log(n // m))
+    return integrity.PosteriorSet(pos, log_w, np.arange(m), np.zeros((m, 3)))
+
+
+@pytest.mark.parametrize('q_max', [0.011, 0.03, 0.1])
+def test_protection_level_of_a_gaussian_cloud_is_the_closed_form(q_max):
+    # Horizontal distance of an isotropic 2D Gaussian: P(d >= r) = exp(-r^2 / (2 s^2)).
+    sigma = 3.0
+    level = gaussian_set(sigma).protection_level(np.zeros(3), q_max)
+    assert level == pytest.approx(sigma * np.sqrt(-2 * np.log(q_max)), rel=0.02)
+
+
+def test_protection_level_is_the_crossing_of_a_monotone_bound():
+    cfg = FilterConfig()
+    cloud = gaussian_set(4.0, n=40_000, m=cfg.n_posteriors)
+    centre = np.array([0.5, -0.3, 0.0])
+    eps = integrity.divergence_budget(0.2, cfg.n_posteriors, cfg.risk_delta)
+    radii = np.linspace(0.0, 30.0, 121)
+    bound = integrity.upper_risk(cloud.hazard_mass(centre, radii), eps)
+    assert np.all(np.diff(bound) <= 1e-12)                   # non-increasing in r
+    level = cloud.protection_level(centre, integrity.max_empirical_risk(0.1, eps))
+    above, below = level * 1.0001 + 1e-9, level * 0.99
+    assert integrity.upper_risk(cloud.hazard_mass(centre, [above]), eps)[0] <= 0.1
+    assert integrity.upper_risk(cloud.hazard_mass(centre, [below]), eps)[0] > 0.1
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 50), st.floats(0.001, 0.3), st.integers(0, 10_000))
+def test_protection_level_matches_a_full_sort(n_samples, q_max, seed):
+    """The partitioned search equals the plain weighted quantile of all M * N distances."""
+    rng = np.random.default_rng(seed)
+    pos = rng.normal(0.0, 5.0, (n_samples, 300, 3))
+    log_w = np.log(rng.dirichlet(np.full(300, 0.3), n_samples))
+    log_w -= np.log(np.exp(log_w).sum(1, keepdims=True))
+    m = 3 * n_samples
+    cloud = integrity.PosteriorSet(pos, log_w, np.arange(m) % n_samples,
+                                   rng.normal(0.0, 3.0, (m, 3)))
+    dist, w = cloud.distances(np.zeros(3))
+    d, w = dist.ravel(), w.ravel() / m
+    order = np.argsort(d)
+    d, w = d[order], w[order]
+    tail = np.cumsum(w[::-1])[::-1]
+    k = int(np.searchsorted(-tail, -q_max))
+    assert cloud.protection_level(np.zeros(3), q_max) == (d[k - 1] if k else 0.0)
+
+
+def test_offsets_displace_the_posteriors():
+    sharp = integrity.PosteriorSet(np.zeros((1, 10, 3)), np.full((1, 10), -np.log(10)),
+                                   np.zeros(4, int), np.array([[3.0, 4.0, 0.0]] * 4))
+    assert sharp.hazard_mass(np.zeros(3), [4.99, 5.01]) == pytest.approx([1.0, 0.0])
+    mean, cov = sharp.pooled_moments()
+    assert mean == pytest.approx([-3.0, -4.0, 0.0]) and cov == pytest.approx(np.zeros((3, 3)))
+
+
+# ============================================================ bias hypotheses
+def geometry(k=8, seed=3):
+    rng = np.random.default_rng(seed)
+    az, el = rng.uniform(0, 2 * np.pi, k), rng.uniform(0.3, 1.3, k)
+    return np.stack([np.cos(el) * np.sin(az), np.cos(el) * np.cos(az), np.sin(el)], 1)
+
+
+def test_projected_weights_remove_each_clock():
+    sys_index = np.array([0, 0, 0, 1, 1, 1])
+    wp = projected_weights(np.array([1.0, 2.0, 0.5, 1.0, 1.0, 3.0]), sys_index, 2)
+    for s in range(2):
+        assert wp @ (sys_index == s).astype(float) == pytest.approx(np.zeros(6), abs=1e-12)
+
+
+def test_a_constant_bias_converges_to_the_least_squares_offset():
+    """Repeated updates with a constant bias move the offset to what weighted least squares
+    with a clock per constellation would make of that bias."""
+    los = geometry()
+    k = los.shape[0]
+    sys_index = np.array([0] * 5 + [1] * 3)
+    weights = np.full(k, 0.1)
+    bias = np.zeros((k, 1))
+    bias[2, 0] = 20.0
+    hyp = BiasHypotheses(BiasModel(1.0, 0.0, 40.0, 50.0), 1, np.random.default_rng(0))
+    g = -los
+    wp = projected_weights(weights, sys_index, 2)
+    info = g.T @ wp @ g
+    q = np.eye(3) * 20.0
+    post = np.linalg.inv(info)                          # steady state of P+ = (P- + Q)^-1..
+    for _ in range(30):
+        post = np.linalg.inv(np.linalg.inv(post + q) + info)
+    for _ in range(2000):
+        hyp.update(bias, los, weights, sys_index, 2, post + q, post)
+    onehot = np.eye(2)[sys_index]
+    design = np.hstack([g, onehot])
+    solution = np.linalg.lstsq(design * np.sqrt(weights)[:, None],
+                               bias[:, 0] * np.sqrt(weights), rcond=None)[0]
+    assert hyp.offsets_m[0] == pytest.approx(solution[:3], rel=1e-3)
+
+
+def test_information_from_elsewhere_shrinks_the_offsets():
+    los = geometry()
+    k = los.shape[0]
+    sys_index = np.zeros(k, int)
+    weights = np.full(k, 0.1)
+    bias = np.random.default_rng(1).normal(0, 10, (k, 50))
+    g = -los
+    info = g.T @ projected_weights(weights, sys_index, 1) @ g
+    prior = np.eye(3) * 4.0
+    alone = BiasHypotheses(BiasModel(1.0, 0.0, 40.0, 50.0), 50, np.random.default_rng(0))
+    alone.update(bias, los, weights, sys_index, 1, prior,
+                 np.linalg.inv(np.linalg.inv(prior) + info))
+    helped = BiasHypotheses(BiasModel(1.0, 0.0, 40.0, 50.0), 50, np.random.default_rng(0))
+    helped.update(bias, los, weights, sys_index, 1, prior,
+                  np.linalg.inv(np.linalg.inv(prior) + info + np.eye(3) * 5.0))
+    assert (np.linalg.norm(helped.offsets_m, axis=1)
+            < np.linalg.norm(alone.offsets_m, axis=1)).all()
+
+
+def test_biases_are_gauss_markov_with_the_model_size():
+    model = BiasModel(floor_m=3.0, residual_scale=0.0, cn0_knee_dbhz=40.0,
+                      correlation_time_s=10.0)
+    hyp = BiasHypotheses(model, 20_000, np.random.default_rng(2))
+    keys, cn0 = np.array([1001, 4005]), np.array([60.0, 30.0])
+    b0 = hyp.biases_at(0, keys, cn0)
+    assert b0.std(axis=1) == pytest.approx(model.sigma_m(cn0, 0.0), rel=0.03)
+    assert model.sigma_m(cn0, 0.0) == pytest.approx([3.0 * np.sqrt(1.01), 3.0 * np.sqrt(11)],
+                                                    rel=1e-3)
+    b1 = hyp.biases_at(10 * SECOND, keys, cn0)
+    corr = [np.corrcoef(b0[i], b1[i])[0, 1] for i in range(2)]
+    assert corr == pytest.approx([np.exp(-1.0)] * 2, abs=0.03)
+    assert b1.std(axis=1) == pytest.approx(model.sigma_m(cn0, 0.0), rel=0.03)
+    # A larger residual RMS scales the hypotheses up, never below the floor.
+    assert model.sigma_m(cn0[:1], 100.0)[0] == pytest.approx(0.0 + 3.0 * np.sqrt(1.01))
+    wider = BiasModel(3.0, 0.2, 40.0, 10.0)
+    assert wider.sigma_m(cn0[:1], 100.0)[0] == pytest.approx(20.0 * np.sqrt(1.01))
+
+
+# ============================================================ motion loss and resets
+def state(t_s, x, var=None):
+    return DeadReckoningState(int(t_s * SECOND), x, 0.0, 0.0, 8.0, 0.0, 0.01, 1e-6,
+                              0.01 * t_s if var is None else var, 1e-6 * t_s)
+
+
+def test_a_restarted_dead_reckoner_is_a_reset_not_a_jump():
+    acc = MotionAccumulator(max_speed_mps=40.0)
+    assert [acc.add(state(t, 8.0 * t)) for t in (0, 1, 2)] == [ADDED] * 3
+    # imu_node restarted: the new run starts at its origin with zero variance.
+    assert acc.add(state(3, 0.0, var=0.0)) == RESET
+    assert acc.add(state(4, 8.0, var=0.01)) == ADDED
+    assert acc.resets == 1
+    motion = acc.increment(1 * SECOND, 4 * SECOND)
+    assert motion.distance_m == pytest.approx(16.0)          # 1-2 and 3-4 s
+    assert motion.unknown_s == pytest.approx(1.0)            # 2-3 s is not motion
+    # A jump faster than the maximum speed is a reset as well.
+    assert acc.add(state(5, 8.0 + 500.0, var=0.02)) == RESET
+
+
+def run_static(filt, epochs, motion_of):
+    out = []
+    for i in range(epochs):
+        epoch = epoch_at(np.zeros(3), clock_m=100.0, stamp_ns=i * SECOND)
+        out.append(filt.step(epoch, None if i == 0 else motion_of(i)))
+    return out
+
+
+def small_config(**kw):
+    base = dict(n_particles=400, acquisition_particles=0, init_position_sd_m=5.0,
+                init_vertical_sd_m=5.0, n_posteriors=100, alert_limit_m=25.0,
+                error_correlation_time_s=1.0, heading_acquisition_m=0.0,
+                integrity_settling_s=10.0)
+    base.update(kw)
+    return FilterConfig(**base)
+
+
+def test_a_tight_consistent_cloud_is_certified_with_the_defaults():
+    filt = ParticleFilter(small_config(), frame=FRAME, rng=np.random.default_rng(0))
+    results = run_static(filt, 30, lambda i: MotionIncrement.stationary(1.0))
+    last = results[-1]
+    assert last.status == UPDATED and last.integrity_ok and last.integrity_reason == ''
+    assert 0.0 < last.protection_level_m <= 25.0
+    assert last.risk.risk_bound[0] <= 0.1
+    assert np.linalg.norm(last.position_enu_m[:2]) < last.protection_level_m
+
+
+def test_unknown_motion_grows_the_level_and_is_never_ok():
+    filt = ParticleFilter(small_config(), frame=FRAME, rng=np.random.default_rng(0))
+    known = run_static(filt, 20, lambda i: MotionIncrement.stationary(1.0))
+    lost = [filt.step(epoch_at(np.zeros(3), clock_m=100.0, stamp_ns=(20 + i) * SECOND),
+                      None) for i in range(5)]
+    assert known[-1].integrity_ok
+    assert all(r.status == UPDATED and not r.integrity_ok and r.motion_unknown_s == 1.0
+               and 'motion unknown' in r.integrity_reason for r in lost)
+    assert lost[-1].protection_level_m > 2.0 * known[-1].protection_level_m
+
+
+# ============================================================ real data end to end
+def test_protection_level_bounds_the_error_on_the_real_excerpt():
+    """The committed smartLoc excerpt (real Berlin data): every updated epoch has a finite
+    level, and once converged it bounds the error in at least 90 % of the epochs."""
+    from gnsscam_ros.datasets.smartloc import load_smartloc_args
+    from gnsscam_ros.evaluation.runner import run_filter
+    drive = load_smartloc_args(EXCERPT)
+    record = run_filter(drive, FilterConfig(), seed=1)
+    level = record.protection_level_m
+    assert level.size > 50 and np.isfinite(level).all()
+    diff = record.estimate_enu_m - record.truth_enu_m
+    error = np.hypot(diff[:, 0], diff[:, 1])
+    later = slice(len(error) // 3, None)
+    assert np.mean(error[later] > level[later]) <= 0.10
+    # OK at an alert limit of 50 m: the error is then within it.
+    ok = level <= 50.0
+    assert ok[later].any() and (error[ok] <= 50.0).all()
+
+
+def test_injected_faults_bias_the_chosen_satellites_for_their_episode():
+    from gnsscam_ros.datasets.faults import FaultEpisodes, inject_pseudorange_faults
+    from gnsscam_ros.datasets.smartloc import load_smartloc_args
+    drive = load_smartloc_args(EXCERPT)
+    spec = FaultEpisodes(episodes=3, satellites=(2, 2), bias_m=(50.0, 50.0),
+                         duration_s=(10.0, 10.0))
+    faulty = inject_pseudorange_faults(drive, seed=4, faults=spec)
+    assert faulty.gnss[0].pr_m is not drive.gnss[0].pr_m          # a copy, input intact
+    diffs = [f.pr_m - e.pr_m for f, e in zip(faulty.gnss, drive.gnss)]
+    added = np.concatenate(diffs)
+    assert int(np.count_nonzero(added)) == faulty.info['faulty_measurements'] > 0
+    episodes = faulty.info['injected_faults']
+    assert all(len(x['satellites']) == 2 and x['duration_s'] == 10.0 for x in episodes)
+    for e, d in zip(faulty.gnss, diffs):
+        expected = np.zeros(e.n_sv)
+        for x in episodes:
+            if x['start_ns'] <= e.stamp_ns < x['start_ns'] + 10 * SECOND:
+                for (sys_id, sv), bias in zip(x['satellites'], x['bias_m']):
+                    expected[(e.system == sys_id) & (e.sv_id == sv)] += bias
+        np.testing.assert_allclose(d, expected, atol=1e-6)
+    # The same seed draws the same faults.
+    again = inject_pseudorange_faults(drive, seed=4, faults=spec)
+    assert again.info['injected_faults'] == faulty.info['injected_faults']
