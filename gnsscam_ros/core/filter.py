@@ -159,7 +159,7 @@ class FilterConfig:
     inverse_bernoulli: str = integrity.EXACT
     bias_model: str = BIAS_CN0
     bias_floor_m: float = 2.0
-    bias_residual_scale: float = 0.18
+    bias_residual_scale: float = 0.23
     bias_cn0_knee_dbhz: float = 41.6
     bias_correlation_time_s: float = 50.0
     max_speed_mps: float = 40.0
