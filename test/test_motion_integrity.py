@@ -92,8 +92,5 @@ def test_restarted_dead_reckoning_is_detected_not_integrated(drive):
     first_after = np.flatnonzero(table.stamp_ns >= restart)[0]
     assert table.integrity[first_after] == 'ERROR'
     assert 'motion unknown' in table.reason[first_after]
-    # Integrity settles again before it is certified.
-    settling = (table.stamp_ns > restart) & (table.stamp_ns <= restart + 20 * SECOND)
-    assert (table.integrity[settling] == 'ERROR').all()
     # The jump back to the origin was not taken as motion: the error stays small.
     assert error.max() < 30.0

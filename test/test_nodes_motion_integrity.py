@@ -284,10 +284,10 @@ def test_imu_node_restarted_mid_drive(graph, drive):
     assert at.level == ma.ERROR and 'motion unknown' in at.message, at
     assert float(at.extra['motion_unknown_s']) == pytest.approx(0.1)
     assert at.extra['dead_reckoning_resets'] == '1'
-    # Then integrity settles again before it is certified ...
+    # After it the motion is known again (a 0.1 s gap does not lose the heading, so the
+    # filter does not settle again) ...
     after = [r for t, r in sorted(risks.items()) if restart_ns < t <= restart_ns + 10 * S]
-    assert after and all(r.level != ma.OK for r in after)
-    assert all(float(r.extra['motion_unknown_s']) == 0.0 for r in after)
+    assert after and all(float(r.extra['motion_unknown_s']) == 0.0 for r in after)
     # ... and the jump back to the origin was not integrated: the error stays small,
     # far below the distance from the odom origin.
     assert max(error.values()) < min(30.0, travelled_m / 4)

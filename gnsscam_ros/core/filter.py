@@ -1,11 +1,15 @@
 """The particle filter: one object runs a GNSS epoch end to end.
 
-propagate (M motion samples) -> GNSS likelihood -> choose the posterior with the highest
-total log-likelihood -> integrity risk bound over the M posteriors -> resample.
+propagate (S motion samples) -> GNSS likelihood (and camera) -> choose the sample with the
+highest total log-likelihood -> risk bound and protection level over M posteriors ->
+resample.
 
-The M posteriors come from M motion samples drawn around the measured odometry, each
-moving the previous particle set (paper §2, §7). The estimate is the posterior with the
-highest total log-likelihood; all M feed the empirical risk (paper §6).
+S motion samples are drawn around the measured odometry, each moving the previous particle
+set (paper §2, §7); the estimate is the one with the highest total log-likelihood. The M
+posteriors of the risk bound (paper §6) are those samples, each displaced by a bias
+hypothesis (``core.bias``: what slowly varying pseudorange biases do to the estimate);
+posterior j uses sample ``j mod S``. With ``bias_model = 'none'`` S = M and the posteriors
+are the motion samples alone, as in the paper.
 """
 from __future__ import annotations
 
@@ -114,6 +118,7 @@ class FilterConfig:
             reckoning lost or reset) [m/s]: the set spreads by this speed times the gap.
         max_yaw_rate_rps: Fastest heading change while the motion is unknown [rad/s].
         integrity_settling_s: Integrity is not certified before the heading is acquired
+            (at the start, and again after a dead-reckoning gap long enough to lose it)
             and this long after [s]: the set starts on a snapshot fix, which carries the
             biases' whole effect, while the bias hypotheses start from none and need the
             filter's own memory to grow into it (measured: the level fell below the error
@@ -255,8 +260,9 @@ class EpochResult:
         protection_level_m: Horizontal (or 3D, see ``horizontal_risk``) protection level:
             the smallest radius around the estimate whose risk bound is at most the target
             [m]; inf when none is, None when not updated.
-        integrity_ok: The solution is an update, its motion is known, and the protection
-            level is within the alert limit (False when unknown).
+        integrity_ok: The solution is an update, the filter has settled
+            (``integrity_settling_s``), the motion over the interval is known and the
+            protection level is within the alert limit (False when unknown).
         integrity_reason: Why integrity is not OK ('' when it is).
         motion_unknown_s: Part of the interval without dead reckoning [s].
         n_satellites: Satellites used in the update.
@@ -318,6 +324,7 @@ class ParticleFilter:
         self.last_stamp_ns: int | None = None
         self.distance_since_init_m = 0.0
         self.acquired_stamp_ns: int | None = None      # end of heading acquisition
+        self._motion_unknown_s = 0.0                    # of the epoch being processed
         self.last_result: EpochResult | None = None
 
     @property
@@ -376,13 +383,13 @@ class ParticleFilter:
                            cfg.yaw_propagation_var_rad2 * dt_s
                            + (cfg.max_yaw_rate_rps * motion.unknown_s) ** 2, self.rng)
         self._motion_unknown_s = float(motion.unknown_s)
-        if motion.unknown_s > 0.0:
+        if motion.unknown_s * cfg.max_yaw_rate_rps > HEADING_LOST_RAD:
             # Without dead reckoning the heading drifts by up to max_yaw_rate_rps: beyond
-            # HEADING_LOST_RAD it is unknown and must be acquired again; either way the
-            # integrity settles again before it is certified.
+            # HEADING_LOST_RAD it is unknown, is acquired again, and integrity settles
+            # again before it is certified. A shorter gap (a late or restarted dead
+            # reckoner) costs only its own epoch (ERROR) and the spread it adds.
             self.acquired_stamp_ns = None
-            if motion.unknown_s * cfg.max_yaw_rate_rps > HEADING_LOST_RAD:
-                self.distance_since_init_m = 0.0
+            self.distance_since_init_m = 0.0
         self.last_stamp_ns = epoch.stamp_ns
         self.distance_since_init_m += abs(motion.distance_m)
         prep = None
@@ -540,7 +547,7 @@ class ParticleFilter:
             reason = (f'dead reckoning missing for {self._motion_unknown_s:.2f} s of this '
                       f'interval: motion unknown')
         elif settled_s < cfg.integrity_settling_s:
-            reason = ('settling after the first fix or a dead-reckoning gap (heading '
+            reason = ('settling after the first fix or a lost heading (heading '
                       f'acquisition, then {cfg.integrity_settling_s:g} s)')
         elif not level <= limit:
             reason = f'protection level {level:.1f} m above the alert limit {limit:g} m'
