@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 from ..core import integrity
-from ..core.filter import LIKELIHOODS, FilterConfig
+from ..core.filter import BIAS_MODELS, LIKELIHOODS, FilterConfig
 from ..datasets.errors import DatasetError
 from .evaluate import evaluate_drive_record
 from .report import (INTEGRITY_HEADERS, OutputExistsError, format_table, integrity_rows,
@@ -47,6 +47,9 @@ def add_filter_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument('--inverse-bernoulli', choices=integrity.INVERSE_METHODS,
                        default=defaults.inverse_bernoulli,
                        help='inverse Bernoulli divergence (default %(default)s)')
+    group.add_argument('--bias-model', choices=BIAS_MODELS, default=defaults.bias_model,
+                       help="posteriors of the bound: 'cn0' bias hypotheses, 'none' motion "
+                            'samples only, as in the paper (default %(default)s)')
     group.add_argument('--target-risk', type=float, default=defaults.target_risk)
     group.add_argument('--seed', type=int, default=0, help='random seed (default 0)')
 
@@ -57,6 +60,7 @@ def config_from_args(args: argparse.Namespace) -> FilterConfig:
                         likelihood=args.likelihood,
                         error_correlation_time_s=args.correlation_time_s,
                         inverse_bernoulli=args.inverse_bernoulli,
+                        bias_model=args.bias_model,
                         target_risk=args.target_risk,
                         alert_limit_m=DEFAULT_ALERT_LIMITS_M[0],
                         extra_alert_limits_m=DEFAULT_ALERT_LIMITS_M[1:])
