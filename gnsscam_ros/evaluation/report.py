@@ -1,14 +1,41 @@
 """Readable tables and safe JSON output for the evaluation commands."""
 from __future__ import annotations
 
+import csv
 import json
 import os
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 
 
 class OutputExistsError(FileExistsError):
     """An output file exists and overwriting was not asked for."""
+
+
+@contextmanager
+def atomic_output(path: Path, force: bool = False, mode: str = 'w', suffix: str = '',
+                  **open_kwargs):
+    """An open temporary file beside ``path`` that replaces it atomically on success.
+
+    A crash, an exception or Ctrl-C inside the block leaves no half-written file (the
+    temporary one is removed), and an existing ``path`` is replaced only with ``force``.
+
+    Raises:
+        OutputExistsError: ``path`` exists and ``force`` is False.
+    """
+    path = Path(path)
+    if path.exists() and not force:
+        raise OutputExistsError(f'{path} exists; pass --force to replace it')
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', suffix=suffix, dir=path.parent)
+    try:
+        with os.fdopen(fd, mode, **open_kwargs) as handle:
+            yield handle
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def write_json_atomic(path: Path, data, force: bool = False) -> Path:
@@ -22,37 +49,18 @@ def write_json_atomic(path: Path, data, force: bool = False) -> Path:
     Raises:
         OutputExistsError: ``path`` exists and ``force`` is False.
     """
-    path = Path(path)
-    if path.exists() and not force:
-        raise OutputExistsError(f'{path} exists; pass --force to replace it')
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', dir=path.parent)
-    try:
-        with os.fdopen(fd, 'w', encoding='utf-8') as handle:
-            json.dump(_finite_json(data), handle, indent=2, allow_nan=False,
-                      default=_jsonable)
-            handle.write('\n')
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    with atomic_output(path, force, encoding='utf-8') as handle:
+        json.dump(_finite_json(data), handle, indent=2, allow_nan=False, default=_jsonable)
+        handle.write('\n')
+    return Path(path)
 
 
 def write_npz_atomic(path: Path, **arrays) -> Path:
     """Write a compressed-free .npz via a temporary file and an atomic rename (cache use)."""
     import numpy as np
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', suffix='.npz', dir=path.parent)
-    try:
-        with os.fdopen(fd, 'wb') as handle:
-            np.savez(handle, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    with atomic_output(path, force=True, mode='wb', suffix='.npz') as handle:
+        np.savez(handle, **arrays)
+    return Path(path)
 
 
 def _finite_json(value):
@@ -150,28 +158,17 @@ def write_csv_atomic(path: Path, header: list[str], rows, force: bool = False) -
         OutputExistsError: ``path`` exists and ``force`` is False.
         ValueError: A row's length differs from the header's (nothing is written).
     """
-    import csv
-    path = Path(path)
-    if path.exists() and not force:
-        raise OutputExistsError(f'{path} exists; pass --force to replace it')
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', dir=path.parent)
-    try:
-        # newline='': the csv module writes its own line endings.
-        with os.fdopen(fd, 'w', encoding='utf-8', newline='') as handle:
-            writer = csv.writer(handle)
-            writer.writerow(header)
-            for number, row in enumerate(rows, start=1):
-                cells = [_csv_cell(value) for value in row]
-                if len(cells) != len(header):
-                    raise ValueError(f'{path}: row {number} has {len(cells)} fields, '
-                                     f'the header {len(header)}')
-                writer.writerow(cells)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    # newline='': the csv module writes its own line endings.
+    with atomic_output(path, force, encoding='utf-8', newline='') as handle:
+        writer = csv.writer(handle)
+        writer.writerow(header)
+        for number, row in enumerate(rows, start=1):
+            cells = [_csv_cell(value) for value in row]
+            if len(cells) != len(header):
+                raise ValueError(f'{path}: row {number} has {len(cells)} fields, '
+                                 f'the header {len(header)}')
+            writer.writerow(cells)
+    return Path(path)
 
 
 def _csv_cell(value) -> str:
