@@ -13,9 +13,9 @@ from .image import ENCODINGS, array_to_image, image_to_array
 from .integrity import (ERROR, OK, STALE, WARN, IntegrityRisk, integrity_risk_to_msg,
                         level_to_int, make_diagnostic_array, make_status, parse_integrity_risk,
                         status_values)
-from .motion import (ImuSample, TwistSample, dead_reckoning_to_odometry, imu_to_sample,
-                     odometry_to_dead_reckoning, sample_to_imu, sample_to_twist,
-                     twist_to_sample)
+from .motion import (GlobalOdometry, ImuSample, TwistSample, dead_reckoning_to_odometry,
+                     global_odometry_to_msg, imu_to_sample, odometry_to_dead_reckoning,
+                     odometry_to_global, sample_to_imu, sample_to_twist, twist_to_sample)
 from .pointcloud import (GNSS_DTYPE, MATCH_DTYPE, CameraMatches, gnss_epoch_to_pointcloud2,
                          matches_to_pointcloud2, pointcloud2_to_gnss_epoch,
                          pointcloud2_to_matches, pointcloud2_to_structured,
@@ -23,15 +23,16 @@ from .pointcloud import (GNSS_DTYPE, MATCH_DTYPE, CameraMatches, gnss_epoch_to_p
 from .stamps import ns_to_stamp, stamp_to_ns
 
 __all__ = [
-    'CameraMatches', 'ENCODINGS', 'ERROR', 'GNSS_DTYPE', 'GeodeticFix', 'ImuSample',
-    'IntegrityRisk', 'MATCH_DTYPE', 'MessageError', 'OK', 'PoseEstimate', 'STALE',
+    'CameraMatches', 'ENCODINGS', 'ERROR', 'GNSS_DTYPE', 'GeodeticFix', 'GlobalOdometry',
+    'ImuSample', 'IntegrityRisk', 'MATCH_DTYPE', 'MessageError', 'OK', 'PoseEstimate', 'STALE',
     'TwistSample', 'WARN', 'array_to_image', 'dead_reckoning_to_odometry',
-    'fix_to_navsatfix', 'gnss_epoch_to_pointcloud2', 'image_to_array', 'imu_to_sample',
-    'integrity_risk_to_msg', 'level_to_int', 'make_diagnostic_array', 'make_status',
-    'matches_to_pointcloud2', 'msg_to_pose', 'navsatfix_to_fix', 'ns_to_stamp',
-    'odometry_to_dead_reckoning', 'parse_integrity_risk', 'particles_to_posearray',
-    'pointcloud2_to_gnss_epoch', 'pointcloud2_to_matches', 'pointcloud2_to_structured',
-    'pose_covariance', 'pose_to_msg', 'posearray_to_particles', 'quaternion_to_yaw',
-    'sample_to_imu', 'sample_to_twist', 'service_bits', 'stamp_to_ns', 'status_values',
-    'structured_to_pointcloud2', 'twist_to_sample', 'yaw_to_quaternion',
+    'fix_to_navsatfix', 'global_odometry_to_msg', 'gnss_epoch_to_pointcloud2',
+    'image_to_array', 'imu_to_sample', 'integrity_risk_to_msg', 'level_to_int',
+    'make_diagnostic_array', 'make_status', 'matches_to_pointcloud2', 'msg_to_pose',
+    'navsatfix_to_fix', 'ns_to_stamp', 'odometry_to_dead_reckoning', 'odometry_to_global',
+    'parse_integrity_risk', 'particles_to_posearray', 'pointcloud2_to_gnss_epoch',
+    'pointcloud2_to_matches', 'pointcloud2_to_structured', 'pose_covariance', 'pose_to_msg',
+    'posearray_to_particles', 'quaternion_to_yaw', 'sample_to_imu', 'sample_to_twist',
+    'service_bits', 'stamp_to_ns', 'status_values', 'structured_to_pointcloud2',
+    'twist_to_sample', 'yaw_to_quaternion',
 ]

@@ -10,6 +10,12 @@
   travelled-distance variance, yaw the accumulated heading variance; twist is the current
   speed and yaw rate with their variances. Consecutive messages give the motion between
   them (:func:`gnsscam_ros.core.motion.motion_between`).
+* ``odometry/global`` (``nav_msgs/Odometry``, frame ``map``, child ``base_link``): the fused
+  estimate for robot_localization / Nav2 consumers (:class:`GlobalOdometry`): pose and 6x6
+  covariance as ``pose``; twist in the child frame: forward speed ``linear.x`` and yaw rate
+  ``angular.z`` from the dead reckoning, variances at twist covariance 0 and 35; the axes
+  the package does not estimate (roll, pitch; lateral and vertical speed, roll and pitch
+  rates) carry :data:`UNESTIMATED_VAR`.
 """
 from __future__ import annotations
 
@@ -172,3 +178,82 @@ def odometry_to_dead_reckoning(msg: Odometry, what: str = 'odometry/dead_reckoni
         yaw_rad=quaternion_to_yaw(msg.pose.pose.orientation), speed_mps=float(t.linear.x),
         yaw_rate_rps=float(t.angular.z), speed_var=float(tc[0]), yaw_rate_var=float(tc[35]),
         distance_var_m2=float(pc[0]), yaw_var_rad2=float(pc[35]))
+
+
+# ---------------------------------------------------------------------- odometry/global
+@dataclass(frozen=True)
+class GlobalOdometry:
+    """The fused estimate with the vehicle's velocity (``odometry/global``).
+
+    Attributes:
+        stamp_ns: Stamp (the GNSS epoch) [ns].
+        position_m: (3,) east, north, up in ``frame_id`` [m].
+        yaw_rad: Heading, counter-clockwise from east [rad].
+        pose_covariance: (6, 6) over (x, y, z, roll, pitch, yaw) [m^2, rad^2].
+        speed_mps: Forward speed, x of ``child_frame_id`` [m/s].
+        yaw_rate_rps: Yaw rate, about z of ``child_frame_id`` [rad/s].
+        speed_var: Variance of ``speed_mps`` [(m/s)^2].
+        yaw_rate_var: Variance of ``yaw_rate_rps`` [(rad/s)^2].
+        frame_id: Frame of the pose (``map``).
+        child_frame_id: Frame of the twist (the vehicle, ``base_link``).
+    """
+
+    stamp_ns: int
+    position_m: np.ndarray
+    yaw_rad: float
+    pose_covariance: np.ndarray
+    speed_mps: float
+    yaw_rate_rps: float
+    speed_var: float
+    yaw_rate_var: float
+    frame_id: str = 'map'
+    child_frame_id: str = BASE_FRAME
+
+
+def global_odometry_to_msg(odom: GlobalOdometry) -> Odometry:
+    """:class:`GlobalOdometry` -> the ``odometry/global`` message.
+
+    Raises:
+        MessageError: Non-finite pose or twist, or a pose covariance that is not 6x6.
+    """
+    pos = np.asarray(odom.position_m, dtype=float).reshape(3)
+    cov = np.asarray(odom.pose_covariance, dtype=float)
+    twist = [odom.speed_mps, odom.yaw_rate_rps, odom.speed_var, odom.yaw_rate_var]
+    if not (np.all(np.isfinite(pos)) and np.isfinite(odom.yaw_rad)
+            and np.all(np.isfinite(twist))):
+        raise MessageError('odometry/global: pose and twist must be finite', 'non_finite')
+    if cov.shape != (6, 6):
+        raise MessageError(f'pose covariance shape {cov.shape}, expected (6, 6)', 'value')
+    msg = Odometry(header=Header(stamp=ns_to_stamp(odom.stamp_ns), frame_id=odom.frame_id),
+                   child_frame_id=odom.child_frame_id)
+    p = msg.pose.pose.position
+    p.x, p.y, p.z = (float(v) for v in pos)
+    msg.pose.pose.orientation = yaw_to_quaternion(odom.yaw_rad)
+    msg.pose.covariance = cov.reshape(-1).tolist()
+    msg.twist.twist.linear.x = float(odom.speed_mps)
+    msg.twist.twist.angular.z = float(odom.yaw_rate_rps)
+    twist_cov = np.diag([odom.speed_var, UNESTIMATED_VAR, UNESTIMATED_VAR, UNESTIMATED_VAR,
+                         UNESTIMATED_VAR, odom.yaw_rate_var])
+    msg.twist.covariance = twist_cov.reshape(-1).tolist()
+    return msg
+
+
+def odometry_to_global(msg: Odometry, what: str = 'odometry/global') -> GlobalOdometry:
+    """The ``odometry/global`` message -> :class:`GlobalOdometry`.
+
+    Raises:
+        MessageError: Non-finite position or twist, or an invalid orientation.
+    """
+    p = msg.pose.pose.position
+    t = msg.twist.twist
+    tc = msg.twist.covariance
+    pos = np.array([p.x, p.y, p.z], dtype=float)
+    if not np.all(np.isfinite([*pos, t.linear.x, t.angular.z, tc[0], tc[35]])):
+        raise MessageError(f'{what}: non-finite pose or twist', 'non_finite')
+    return GlobalOdometry(
+        stamp_ns=stamp_to_ns(msg.header.stamp), position_m=pos,
+        yaw_rad=quaternion_to_yaw(msg.pose.pose.orientation),
+        pose_covariance=np.array(msg.pose.covariance, dtype=float).reshape(6, 6),
+        speed_mps=float(t.linear.x), yaw_rate_rps=float(t.angular.z),
+        speed_var=float(tc[0]), yaw_rate_var=float(tc[35]), frame_id=msg.header.frame_id,
+        child_frame_id=msg.child_frame_id)

@@ -295,6 +295,37 @@ def test_dead_reckoning_round_trip():
         ma.odometry_to_dead_reckoning(msg)
 
 
+def test_global_odometry_round_trip_and_errors():
+    cov = ma.pose_covariance(np.array([[4.0, 0.5, 0.0], [0.5, 2.0, 0.0], [0.0, 0.0, 9.0]]),
+                             0.01)
+    odom = ma.GlobalOdometry(STAMP, np.array([12.5, -3.25, 1.5]), -2.5, cov, 9.5, -0.05,
+                             0.0025, 1e-4, frame_id='map', child_frame_id='base_link')
+    msg = ma.global_odometry_to_msg(odom)
+    assert (msg.header.frame_id, msg.child_frame_id) == ('map', 'base_link')
+    assert ma.stamp_to_ns(msg.header.stamp) == STAMP
+    twist_cov = np.array(msg.twist.covariance).reshape(6, 6)
+    # Only speed and yaw rate are estimated; the other axes say "not estimated".
+    assert twist_cov[0, 0] == 0.0025 and twist_cov[5, 5] == 1e-4
+    assert np.all(np.diag(twist_cov)[1:5] == ma.geometry.UNESTIMATED_VAR)
+    assert np.count_nonzero(twist_cov - np.diag(np.diag(twist_cov))) == 0
+    back = ma.odometry_to_global(msg)
+    for name in ('stamp_ns', 'speed_mps', 'yaw_rate_rps', 'speed_var', 'yaw_rate_var',
+                 'frame_id', 'child_frame_id'):
+        assert getattr(back, name) == getattr(odom, name), name
+    np.testing.assert_array_equal(back.position_m, odom.position_m)
+    np.testing.assert_array_equal(back.pose_covariance, cov)
+    assert back.yaw_rad == pytest.approx(-2.5, abs=1e-15)
+    with pytest.raises(ma.MessageError, match='finite'):
+        ma.global_odometry_to_msg(ma.GlobalOdometry(STAMP, np.zeros(3), 0.0, cov, math.nan,
+                                                    0.0, 0.0, 0.0))
+    with pytest.raises(ma.MessageError, match='6, 6'):
+        ma.global_odometry_to_msg(ma.GlobalOdometry(STAMP, np.zeros(3), 0.0, np.eye(3), 0.0,
+                                                    0.0, 0.0, 0.0))
+    msg.twist.twist.linear.x = math.inf
+    with pytest.raises(ma.MessageError):
+        ma.odometry_to_global(msg)
+
+
 # ---------------------------------------------------------------------- integrity
 def _risk(level=ma.OK, bound=0.05, **kw):
     return ma.IntegrityRisk(stamp_ns=STAMP, level=level, message='m', risk_bound=bound,
