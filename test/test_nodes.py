@@ -25,7 +25,7 @@ from nav_msgs.msg import Odometry
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, Imu, NavSatFix, PointCloud2
 
 import msg_adapters as ma
@@ -40,6 +40,7 @@ from gnsscam_ros.core.types import GnssEpoch, ImuSeries, OdometrySeries
 from gnsscam_ros.datasets.emulated import make_emulated_drive
 from gnsscam_ros.nodes import camera_node, fusion_node, gnss_node, imu_node
 from gnsscam_ros.nodes.camera_node import CameraNode
+from gnsscam_ros.nodes.common import InputFileError, ParameterError
 from gnsscam_ros.nodes.fusion_node import (FusionNode, camera_for_epoch, camera_measurement,
                                            motion_for_epoch, yaw_variance)
 from gnsscam_ros.nodes.gnss_node import GnssNode
@@ -818,3 +819,153 @@ def test_camera_drops_the_oldest_frames_and_counts_them(graph):
         frames[-1].header.stamp.sec * S)              # the newest frame is never dropped
     values = cam.stats.values()
     assert values['dropped_frames'] == dropped and values['processing_count'] == len(matches)
+
+
+# ================================================== outputs for ROS users (issue 14 item 5)
+LATCHED = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                     reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def _integrity_status(reports):
+    """The newest ``fusion_node: integrity`` status of the collected diagnostics."""
+    found = [s for m in reports for s in m.status if s.name == 'fusion_node: integrity']
+    return found[-1] if found else None
+
+
+def test_odometry_global_map_origin_and_integrity_on_diagnostics(graph, drive):
+    g = graph
+    fusion = g.add(FusionNode(context=g.ctx, parameter_overrides=overrides(
+        n_particles=100, seed=3, gnss_timeout_s=1e6, odometry_wait_s=1e6,
+        odometry_timeout_s=1e6, diagnostics_period_s=3600.0)))
+    pub_gnss = g.publisher(PointCloud2, 'gnss/measurements')
+    pub_dr = g.publisher(Odometry, 'odometry/dead_reckoning')
+    risks = g.collect(DiagnosticArray, 'integrity_risk')
+    poses = g.collect(PoseWithCovarianceStamped, 'pose')
+    odoms = g.collect(Odometry, 'odometry/global')
+    reports = g.collect(DiagnosticArray, 'diagnostics')
+    g.connect(pub_gnss, pub_dr)
+    g.spin_until(lambda: fusion.pub_odometry.get_subscription_count() > 0
+                 and fusion._diag_pub.get_subscription_count() > 0, what='output readers')
+
+    # Before any verdict the integrity status on diagnostics is STALE, never OK.
+    fusion.publish_diagnostics()
+    g.spin_until(lambda: _integrity_status(reports) is not None, what='diagnostics')
+    assert ma.level_to_int(_integrity_status(reports).level) == ma.STALE
+    assert not fusion.origin_published            # no map frame yet: no map/origin
+
+    states = dead_reckon(drive.imu, drive.odometry, DeadReckoningConfig())
+    sent = 0
+    epochs = drive.gnss[:6]
+    for epoch in epochs:
+        # The dead reckoning runs 0.25 s ahead of the epoch: the twist must still be the
+        # state at (or before) the epoch, not the newest one.
+        while sent < len(states) and states[sent].stamp_ns <= epoch.stamp_ns + S // 4:
+            n = fusion.stats.get('received_dead_reckoning')
+            pub_dr.publish(ma.dead_reckoning_to_odometry(states[sent]))
+            sent += 1
+            g.spin_until(lambda: fusion.stats.get('received_dead_reckoning') > n)
+        n = len(risks)
+        pub_gnss.publish(ma.gnss_epoch_to_pointcloud2(epoch))
+        g.spin_until(lambda: len(risks) > n, what='integrity_risk')
+        status = fusion.last_result.status
+        if status in (UPDATED, PROPAGATED):
+            g.spin_until(lambda: len(odoms) == len(poses) and poses
+                         and ma.stamp_to_ns(poses[-1].header.stamp) == epoch.stamp_ns,
+                         what='pose and odometry/global of the epoch')
+        # The diagnostics status mirrors this epoch's integrity_risk.
+        risk = ma.parse_integrity_risk(risks[-1])
+        fusion.publish_diagnostics()
+        g.spin_until(lambda: (st := _integrity_status(reports)) is not None
+                     and ma.status_values(st).get('epoch_stamp') == str(epoch.stamp_ns),
+                     what='the integrity status of the epoch')
+        st = _integrity_status(reports)
+        values = ma.status_values(st)
+        assert ma.level_to_int(st.level) == risk.level and st.message == risk.message
+        assert float(values['alert_limit_m']) == risk.alert_limit_m
+        pl = float(values['protection_level_m'])
+        assert pl == risk.protection_level_m or (math.isnan(pl)
+                                                 and math.isnan(risk.protection_level_m))
+    assert len(poses) >= len(epochs) - 1
+    assert {ma.parse_integrity_risk(m).level for m in risks} <= {ma.OK, ma.ERROR, ma.STALE}
+
+    # odometry/global: the pose of the same epoch, map -> base_link, with the dead
+    # reckoning's speed and yaw rate at the epoch.
+    by_stamp = {s.stamp_ns: s for s in states}
+    for pose_msg, odom_msg in zip(poses, odoms):
+        pose, odom = ma.msg_to_pose(pose_msg), ma.odometry_to_global(odom_msg)
+        assert odom.stamp_ns == pose.stamp_ns
+        assert (odom_msg.header.frame_id, odom_msg.child_frame_id) == ('map', 'base_link')
+        np.testing.assert_array_equal(odom.position_m, pose.position_m)
+        np.testing.assert_array_equal(odom.pose_covariance, pose.covariance)
+        assert odom.yaw_rad == pose.yaw_rad
+        assert odom.pose_covariance[3, 3] == odom.pose_covariance[4, 4] >= 1e6
+        state = by_stamp[odom.stamp_ns]           # the state at the (whole-second) epoch
+        assert (odom.speed_mps, odom.yaw_rate_rps, odom.speed_var, odom.yaw_rate_var) == (
+            state.speed_mps, state.yaw_rate_rps, state.speed_var, state.yaw_rate_var)
+    assert any(o.twist.twist.linear.x > 1.0 for o in odoms)   # the vehicle moves
+
+    # map/origin: latched; a subscriber that comes after the first fix still gets it.
+    assert fusion.origin_published
+    late = []
+    g.probe.create_subscription(NavSatFix, 'map/origin', late.append, LATCHED)
+    g.spin_until(lambda: late, 10.0, 'map/origin at a late subscriber')
+    g.spin_for(0.2)
+    assert len(late) == 1
+    origin = ma.navsatfix_to_fix(late[0])
+    lat, lon, alt = fusion.filter.frame.origin_llh
+    assert (origin.lat_deg, origin.lon_deg, origin.alt_m) == (lat, lon, alt)
+    assert late[0].header.frame_id == 'map' and origin.status == 0
+    assert late[0].position_covariance_type == NavSatFix.COVARIANCE_TYPE_UNKNOWN
+    assert origin.stamp_ns == epochs[0].stamp_ns        # the first fix anchored the frame
+
+
+def test_configured_map_origin_is_latched_from_the_start(graph):
+    g = graph
+    origin = [48.858, 2.2945, 35.0]
+    g.add(FusionNode(context=g.ctx, parameter_overrides=overrides(
+        n_particles=100, use_map_origin=True, map_origin_llh=origin)))
+    late = []
+    g.spin_for(0.3)
+    g.probe.create_subscription(NavSatFix, 'map/origin', late.append, LATCHED)
+    g.spin_until(lambda: late, 10.0, 'map/origin before any GNSS')
+    fix = ma.navsatfix_to_fix(late[0])
+    assert [fix.lat_deg, fix.lon_deg, fix.alt_m] == origin
+
+
+# ============================================== start-up parameters (issue 14 item 6)
+def test_integers_are_accepted_for_float_parameters_at_start_and_at_run_time():
+    g = Graph(args=['--ros-args', '-p', 'alert_limit_m:=16', '-p', 'camera_gate_m:=30'])
+    try:
+        fusion = g.add(FusionNode(context=g.ctx, parameter_overrides=overrides(
+            n_particles=100, gnss_timeout_s=5)))
+        assert fusion.filter.config.alert_limit_m == 16.0
+        assert type(fusion.param('alert_limit_m')) is float
+        assert fusion.param('gnss_timeout_s') == 5.0 and fusion.param('camera_gate_m') == 30.0
+        result = fusion.set_parameters([Parameter('alert_limit_m', value=12)])[0]
+        assert result.successful, result.reason
+        assert fusion.filter.config.alert_limit_m == 12.0
+        assert type(fusion.param('alert_limit_m')) is float
+        # An integer parameter still refuses a float, a float one a string.
+        assert not fusion.set_parameters([Parameter('n_posteriors', value=2.5)])[0].successful
+        assert not fusion.set_parameters([Parameter('alert_limit_m', value='x')])[0].successful
+    finally:
+        g.close()
+
+
+@pytest.mark.parametrize('node_class, values, error, text', [
+    (FusionNode, {'likelihood': 'gauss'}, ParameterError,
+     "fusion_node: invalid filter configuration: likelihood must be one of"),
+    (FusionNode, {'n_particles': 0}, ParameterError,
+     'fusion_node: parameter n_particles = 0 refused: out of range [2, 10000000]'),
+    (FusionNode, {'alert_limit_m': 'far'}, ParameterError,
+     "fusion_node: parameter alert_limit_m: expected a number, got 'far'"),
+    (ImuNode, {'yaw_rate_source': 'compass'}, ParameterError,
+     'imu_node: invalid dead-reckoning configuration: yaw_rate_source'),
+    (CameraNode, {'database_path': '/nonexistent/map.npz'}, InputFileError,
+     'camera_node: database_path: /nonexistent/map.npz: no such database file'),
+])
+def test_a_bad_start_up_parameter_is_one_clear_error(graph, node_class, values, error, text):
+    with pytest.raises(error) as info:
+        node_class(context=graph.ctx, parameter_overrides=overrides(**values))
+    assert str(info.value).startswith(text) and '\n' not in str(info.value)

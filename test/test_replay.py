@@ -107,7 +107,10 @@ def test_replay_through_nodes_equals_offline_evaluation(emulated_bag, tmp_path):
     assert summary.published == counts
     assert record.counts['/integrity_risk'] == len(drive.gnss)
     assert record.counts['/ground_truth/pose'] == counts['/ground_truth/pose']
-    assert record.counts['/map/origin'] == 1 and record.counts['/dataset/info'] == 1
+    # map/origin: the dataset's (replayed) and fusion_node's (its map frame, at the same
+    # map_origin_llh here), both latched.
+    assert record.counts['/map/origin'] == 2 and record.counts['/dataset/info'] == 1
+    assert record.counts['/odometry/global'] == record.counts['/pose'] > 0
 
     # The recorded run equals the offline run of the same drive, seed and configuration.
     config = FilterConfig(n_particles=N_PARTICLES)

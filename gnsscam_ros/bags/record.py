@@ -5,10 +5,14 @@ Usage::
     gnsscam_record --out RESULT_BAG [TOPIC ...]
 
 Default topics: :data:`DEFAULT_TOPICS`, the outputs that ``gnsscam_eval bag`` evaluates
-(``pose``, ``fix``, ``particles``, ``integrity_risk``) plus the replayed ground truth and
-dataset description (``ground_truth/pose``, ``map/origin``, ``dataset/info``), so that the
-result bag is self-contained. Further topics are given by name; their type is taken from
-the ROS graph once a publisher appears, or given as ``name:pkg/msg/Type``.
+(``pose``, ``fix``, ``particles``, ``integrity_risk``), ``odometry/global`` (what ROS
+consumers use), plus the replayed ground truth and dataset description
+(``ground_truth/pose``, ``map/origin``, ``dataset/info``), so that the result bag is
+self-contained. ``map/origin`` then holds two messages: the dataset's origin (replayed
+first) and fusion_node's map frame origin (at its first fix, or at start-up when it is
+given ``map_origin_llh``: then the same origin); the evaluation takes the last one, the
+frame of ``pose``. Further topics are given by name; their type is taken from the ROS
+graph once a publisher appears, or given as ``name:pkg/msg/Type``.
 
 Messages are received serialised (``raw=True`` subscriptions) and written as they came:
 no decoding on the way. The bag time of each message is its reception time (node clock),
@@ -25,7 +29,7 @@ Exit codes of the CLI: 0 recorded (Ctrl-C is the normal way to stop), 2 bad usag
 4 output exists or cannot be written.
 
 On a ROS 2 machine the equivalent is ``ros2 bag record -o RESULT_BAG /pose /fix
-/particles /integrity_risk /ground_truth/pose /map/origin``.
+/particles /integrity_risk /odometry/global /ground_truth/pose /map/origin``.
 """
 from __future__ import annotations
 
@@ -60,6 +64,7 @@ DEFAULT_TOPICS: dict[str, tuple[str, bool]] = {
     schema.FIX: (schema.NAVSATFIX, False),
     schema.PARTICLES: (schema.POSE_ARRAY, False),
     schema.INTEGRITY: (schema.DIAGNOSTIC_ARRAY, False),
+    schema.ODOMETRY_GLOBAL: (schema.ODOMETRY, False),
     schema.TRUTH: (schema.POSE_STAMPED, False),
     schema.ORIGIN: (schema.NAVSATFIX, True),
     schema.INFO: (schema.STRING, True),

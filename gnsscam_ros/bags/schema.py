@@ -69,6 +69,7 @@ POSE = 'pose'
 FIX = 'fix'
 PARTICLES = 'particles'
 INTEGRITY = 'integrity_risk'
+ODOMETRY_GLOBAL = 'odometry/global'
 
 STRING = 'std_msgs/msg/String'
 NAVSATFIX = 'sensor_msgs/msg/NavSatFix'
@@ -80,6 +81,7 @@ POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
 POSE_COV_STAMPED = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 POSE_ARRAY = 'geometry_msgs/msg/PoseArray'
 DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
+ODOMETRY = 'nav_msgs/msg/Odometry'
 
 
 @dataclass(frozen=True)

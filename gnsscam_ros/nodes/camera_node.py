@@ -17,9 +17,16 @@ camera frame without a match, and a flow-controlled replay (``bags.replay``) tak
 the acknowledgement of the image instead of waiting for one that never comes. Only frames
 older than the last answered one get no answer, so that ``camera/matches`` stays in stamp
 order (a later answer covers them).
+
+Without ``database_path`` (the default) the node runs and answers every frame empty; a
+``database_path`` that does not name a readable map database stops it at start-up.
+
+Exit codes: 0 stopped (Ctrl-C, shutdown), 1 failed while running, 2 a parameter refused at
+start-up, 3 ``database_path`` missing or not a map database (one line on stderr each).
 """
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from collections import deque
@@ -30,11 +37,11 @@ from sensor_msgs.msg import Image, PointCloud2
 
 from gnsscam_ros.core.frames import LocalFrame
 from gnsscam_ros.vision.database import MapDatabase
-from gnsscam_ros.vision.errors import VisionError
+from gnsscam_ros.vision.errors import MapDatabaseError, VisionError
 from msg_adapters import (ERROR, OK, WARN, CameraMatches, MessageError, image_to_array,
                           matches_to_pointcloud2, stamp_to_ns)
 
-from .common import GnssCamNode, reliable_qos, run_node, sensor_qos
+from .common import GnssCamNode, InputFileError, reliable_qos, run_node, sensor_qos
 
 # Code defaults; config/camera_node.yaml documents the same values (a test checks).
 DEFAULTS = {
@@ -69,8 +76,9 @@ class CameraNode(GnssCamNode):
         **kwargs: Forwarded to ``rclpy.node.Node``.
 
     Raises:
-        gnsscam_ros.vision.errors.MapDatabaseError: ``database_path`` names a file that is
-            not a readable map database.
+        InputFileError: ``database_path`` names a file that is not a readable map database
+            (the message names it).
+        ParameterError: A parameter refused at start-up.
     """
 
     def __init__(self, node_name: str = 'camera_node', database: MapDatabase | None = None,
@@ -108,7 +116,10 @@ class CameraNode(GnssCamNode):
         cv2.setNumThreads(int(self.param('opencv_threads')))
         self.database = database
         if self.database is None and self.param('database_path'):
-            self.database = MapDatabase.load(self.param('database_path'))
+            try:
+                self.database = MapDatabase.load(self.param('database_path'))
+            except MapDatabaseError as err:
+                raise InputFileError(f'{node_name}: database_path: {err}') from err
         self._positions = None
         if self.database is not None:
             if self.param('use_map_origin'):
@@ -132,6 +143,14 @@ class CameraNode(GnssCamNode):
         self._worker.start()
         self.parameters_declared()
 
+    def ready_settings(self) -> dict:
+        if self.database is None:
+            return {'database': "none (every frame answered empty; set database_path)"}
+        return {'database': self.param('database_path') or 'given',
+                'database_images': len(self.database), 'top_k': self.param('top_k'),
+                'map_origin': (f'{list(self.param("map_origin_llh"))}'
+                               if self.param('use_map_origin') else 'database frame')}
+
     # ------------------------------------------------------------------- callbacks
     def on_image(self, msg: Image) -> None:
         """Queue a frame for the matcher (cheap: the executor thread never matches)."""
@@ -152,9 +171,13 @@ class CameraNode(GnssCamNode):
                 if self._stop:
                     return
                 msg = self._queue.popleft()
+            if not self.context.ok():
+                return                   # shut down (Ctrl-C): nowhere to publish
             try:
                 self.process(msg)
             except Exception as err:     # keep matching: one bad frame must not stop it
+                if not self.context.ok():
+                    return               # the context went down while publishing
                 self.warn_rejected('camera/image_raw', 'error', repr(err))
                 self._answer_unmatched(msg)
 
@@ -235,10 +258,10 @@ class CameraNode(GnssCamNode):
         return super().destroy_node()
 
 
-def main(args=None) -> None:
-    """``ros2 run gnsscam_ros camera_node``."""
-    run_node(CameraNode, args)
+def main(args=None) -> int:
+    """``ros2 run gnsscam_ros camera_node``; the exit code (module docstring)."""
+    return run_node(CameraNode, args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -1,9 +1,20 @@
 """What every gnsscam_ros node shares: parameter declaration with descriptors and
 validation, rejection/drop counters, processing-time statistics and the ``diagnostics``
-report, QoS profiles, and the Jazzy ``main()``."""
+report, QoS profiles, the ready line, and the Jazzy ``main()`` with its exit codes.
+
+Exit codes of the node executables (:func:`run_node`, pipeline_node):
+
+* 0 (:data:`EXIT_OK`): stopped by Ctrl-C (SIGINT), SIGTERM or a ROS shutdown;
+* 1 (:data:`EXIT_FAILED`): the node failed while running (traceback on stderr);
+* 2 (:data:`EXIT_PARAMETER`): a parameter refused at start-up (wrong type, out of range,
+  refused by the node's checks), one line on stderr naming it;
+* 3 (:data:`EXIT_INPUT`): an input file named by a parameter cannot be used
+  (camera_node ``database_path`` missing or not a map database), one line on stderr.
+"""
 from __future__ import annotations
 
 import math
+import os
 import sys
 import threading
 import time
@@ -15,8 +26,10 @@ import numpy as np
 import rclpy
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
+from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -24,6 +37,44 @@ from msg_adapters import OK, WARN, make_diagnostic_array, make_status
 
 # Float ranges need finite ends; this stands for "no upper limit".
 BIG = 1e12
+
+EXIT_OK, EXIT_FAILED, EXIT_PARAMETER, EXIT_INPUT = 0, 1, 2, 3
+
+
+class StartupError(Exception):
+    """A node cannot start with its configuration; :func:`run_node` prints the message on
+    one line and exits with :attr:`exit_code`."""
+
+    exit_code = EXIT_FAILED
+
+
+class ParameterError(StartupError, ValueError):
+    """A parameter value refused at start-up (type, range or the node's own checks)."""
+
+    exit_code = EXIT_PARAMETER
+
+
+class InputFileError(StartupError):
+    """A file named by a parameter cannot be used (missing, unreadable, wrong content)."""
+
+    exit_code = EXIT_INPUT
+
+
+def latched_qos() -> QoSProfile:
+    """Once-only outputs (``map/origin``): reliable, transient local, depth 1, so that a
+    subscriber that comes later still receives the last message."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                      reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def _coerced(param: Parameter, expected: int) -> Parameter:
+    """An INTEGER value given for a DOUBLE parameter as that DOUBLE (``-p x:=16`` and
+    ``x: 16`` in YAML mean 16.0); anything else unchanged."""
+    if (param.type_ == Parameter.Type.INTEGER
+            and expected == Parameter.Type.DOUBLE.value):
+        return Parameter(param.name, Parameter.Type.DOUBLE, float(param.value))
+    return param
 
 
 def sensor_qos(depth: int) -> QoSProfile:
@@ -125,6 +176,9 @@ class GnssCamNode(Node):
         self._validators: dict[str, Callable] = {}
         self._all_declared = False
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', reliable_qos())
+        # Run-time updates (`ros2 param set n x 16`): an integer for a float parameter is
+        # that float. Start-up overrides are coerced in declare().
+        self.add_pre_set_parameters_callback(self._coerce_types)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._post_set_parameters)
         self.declare('diagnostics_period_s', 1.0, 'Period of the diagnostics report [s].',
@@ -146,11 +200,15 @@ class GnssCamNode(Node):
             validator: ``f(value) -> str | None``; a string refuses the value with that
                 reason (checked at start-up too).
 
+        An integer override of a float parameter (``-p alert_limit_m:=16``, ``16`` in a
+        params file) is taken as that float.
+
         Returns:
             The value in force (default or override).
 
         Raises:
-            ValueError: The start-up value is refused by ``validator``.
+            ParameterError: The start-up value has the wrong type, is out of range or is
+                refused by ``validator`` (the message names the parameter).
         """
         desc = ParameterDescriptor(name=name, description=description, read_only=read_only)
         if value_range is not None:
@@ -163,13 +221,39 @@ class GnssCamNode(Node):
             elif isinstance(default, float):
                 desc.floating_point_range = [FloatingPointRange(
                     from_value=float(low), to_value=float(high), step=0.0)]
-        self.declare_parameter(name, default, desc)
+        # rclpy keeps the command-line, params-file and constructor overrides here and
+        # offers no hook before it checks their type on declaration.
+        overrides = self._parameter_overrides
+        if name in overrides and isinstance(default, float):
+            overrides[name] = _coerced(overrides[name], Parameter.Type.DOUBLE.value)
+        try:
+            self.declare_parameter(name, default, desc)
+        except InvalidParameterTypeException as err:
+            given = overrides[name].value if name in overrides else None
+            raise ParameterError(f'{self.get_name()}: parameter {name}: expected '
+                                 f'{_type_name(default)}, got {given!r}') from err
+        except InvalidParameterValueException as err:
+            given = overrides[name].value if name in overrides else None
+            reason = str(err).split('Reason: ', 1)[-1].rsplit(f': {name}', 1)[0]
+            if value_range is not None and 'out of range' in reason:
+                reason = f'out of range [{value_range[0]}, {value_range[1]}]'
+            raise ParameterError(f'{self.get_name()}: parameter {name} = {given!r} refused: '
+                                 f'{reason}') from err
         if validator is not None:
             self._validators[name] = validator
             reason = validator(self.param(name))
             if reason:
-                raise ValueError(f'{self.get_name()}: parameter {name}: {reason}')
+                raise ParameterError(f'{self.get_name()}: parameter {name} = '
+                                     f'{self.param(name)!r} refused: {reason}')
         return self.param(name)
+
+    def _coerce_types(self, params: list) -> list:
+        out = []
+        for p in params:
+            expected = (self.describe_parameter(p.name).type
+                        if self.has_parameter(p.name) else None)
+            out.append(_coerced(p, expected))
+        return out
 
     def param(self, name: str):
         """Current value of a declared parameter."""
@@ -205,6 +289,25 @@ class GnssCamNode(Node):
         are checked and applied as a whole."""
         self._all_declared = True
 
+    # ------------------------------------------------------------------- ready line
+    def ready_settings(self) -> dict:
+        """The key settings for the ready line (override)."""
+        return {}
+
+    def ready_line(self) -> str:
+        """One line: what the node subscribes and publishes, and its key settings (logged by
+        :func:`start_nodes` once every node of the process is constructed)."""
+        prefix = self.get_namespace().rstrip('/') + '/'
+
+        def names(endpoints):
+            rel = {e.topic_name[len(prefix):] if e.topic_name.startswith(prefix)
+                   else e.topic_name for e in endpoints}
+            return ', '.join(sorted(rel - _INFRASTRUCTURE_TOPICS)) or 'nothing'
+        settings = ', '.join(f'{k}={v}' for k, v in self.ready_settings().items())
+        return (f'ready: subscribes {names(self.subscriptions)}; publishes '
+                f'{names(self.publishers)} (+ diagnostics)'
+                + (f'; {settings}' if settings else ''))
+
     # ----------------------------------------------------------------- diagnostics
     def diagnostic_summary(self) -> tuple[int, str, dict]:
         """``(level, message, extra values)`` of the node's own state (override)."""
@@ -232,12 +335,19 @@ class GnssCamNode(Node):
                     out[f'{kind}_{rel}'] = int(count(endpoint))
         return out
 
+    def extra_statuses(self) -> list:
+        """Further DiagnosticStatus entries of the ``diagnostics`` report (override)."""
+        return []
+
     def publish_diagnostics(self) -> None:
+        if not self.context.ok():
+            return          # shutting down: a timer that fires now has nowhere to publish
         level, message, extra = self.diagnostic_summary()
         values = {**self.stats.values(), **self.link_counts(), **extra}
         status = make_status(f'{self.get_name()}: status', level, message, values,
                              hardware_id='gnsscam_ros')
-        self._diag_pub.publish(make_diagnostic_array(self.now_ns(), [status]))
+        self._diag_pub.publish(make_diagnostic_array(self.now_ns(),
+                                                     [status, *self.extra_statuses()]))
 
     def now_ns(self) -> int:
         """Node clock time [ns] (ROS time; simulated time when ``use_sim_time``)."""
@@ -250,14 +360,30 @@ class GnssCamNode(Node):
                                   throttle_duration_sec=5.0)
 
 
+def _type_name(default) -> str:
+    if isinstance(default, bool):
+        return 'a boolean (true/false)'
+    if isinstance(default, int):
+        return 'an integer'
+    if isinstance(default, float):
+        return 'a number'
+    if isinstance(default, str):
+        return 'a string'
+    if isinstance(default, (list, tuple)) and default and isinstance(default[0], float):
+        return 'a list of numbers, e.g. [1.0, 2.0, 3.0]'
+    return f'a value of type {type(default).__name__}'
+
+
 def level_worst(*levels: int) -> int:
     """The most severe of diagnostic levels (OK < WARN < ERROR < STALE)."""
     return max(levels) if levels else OK
 
 
-__all__ = ['BIG', 'GnssCamNode', 'NodeStats', 'OK', 'WARN', 'level_worst', 'reliable_qos',
-           'run_node', 'sensor_qos', 'NodeSpinner', 'stop_process', 'wants_help',
-           'print_node_help']
+__all__ = ['BIG', 'EXIT_FAILED', 'EXIT_INPUT', 'EXIT_OK', 'EXIT_PARAMETER', 'GnssCamNode',
+           'InputFileError', 'NodeStats', 'OK', 'ParameterError', 'StartupError', 'WARN',
+           'latched_qos', 'level_worst', 'reliable_qos', 'run_node', 'sensor_qos',
+           'NodeSpinner', 'stop_process', 'wants_help', 'print_node_help', 'spin_node',
+           'start_nodes', 'quietly']
 
 
 def wants_help(args=None) -> bool:
@@ -281,26 +407,97 @@ def print_node_help(executable: str, doc: str | None, configs: tuple[str, ...]) 
     print(f'Example: {executable} --ros-args {files}')
 
 
-def run_node(node_class, args=None) -> None:
-    """The Jazzy ``main()`` of a single-node executable (ros2/demos talker pattern).
+def start_nodes(executable: str, constructors: list[Callable], context=None
+                ) -> tuple[list, int]:
+    """Construct a process's nodes, one after the other; a configuration one of them
+    refuses becomes one line on stderr (``<executable>: <what is wrong>``) instead of a
+    traceback, and the nodes already constructed are destroyed. Once all are constructed
+    each logs its ready line (:meth:`GnssCamNode.ready_line`).
 
-    ``-h``/``--help`` (before ``--ros-args``) prints the usage and returns.
+    Ctrl-C during construction shuts the context down under the constructor (the next
+    endpoint it creates fails: ``RCLError: ... context is invalid``): that is a stop, not a
+    failure.
+
+    Returns:
+        ``(nodes, EXIT_OK)``, or ``([], exit code)`` when a node refused to start, or
+        ``([], EXIT_OK)`` when the process was stopped while they started.
     """
-    if wants_help(args):
-        name = node_class.__module__.rsplit('.', 1)[-1]
-        print_node_help(name, sys.modules[node_class.__module__].__doc__, (name,))
-        return
-    rclpy.init(args=args)
-    node = None
+    nodes: list = []
     try:
-        node = node_class()
+        for construct in constructors:
+            nodes.append(construct())
+        for node in nodes:
+            node.get_logger().info(node.ready_line())
+        return nodes, EXIT_OK
+    except StartupError as err:
+        text = str(err)      # the node's errors start with its name
+        print(text if text.startswith(f'{executable}:') else f'{executable}: {text}',
+              file=sys.stderr)
+        code = err.exit_code
+    except Exception:
+        if rclpy.ok(context=context):
+            raise
+        code = EXIT_OK
+    for node in nodes:
+        quietly(node.destroy_node)
+    return [], code
+
+
+def spin_node(node) -> None:
+    """Spin ``node`` until Ctrl-C or shutdown.
+
+    Ctrl-C shuts the context down from rclpy's signal handler, concurrently with the
+    executor: when it lands between the executor's ``context.ok()`` check and its next
+    wait, that wait fails (``RCLError: failed to initialize wait set: the given context
+    is not valid``; 1 stop in 12 here). An error raised once the context is down is that
+    stop, not a failure; one raised while it is up is a failure and propagates.
+    """
+    try:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:
+        if node.context.ok():
+            raise
+
+
+def quietly(action) -> None:
+    """Run a clean-up step; a second Ctrl-C during it does not end in a traceback."""
+    try:
+        action()
+    except KeyboardInterrupt:
+        pass
+
+
+def run_node(node_class, args=None) -> int:
+    """The Jazzy ``main()`` of a single-node executable (ros2/demos talker pattern).
+
+    ``-h``/``--help`` (before ``--ros-args``) prints the usage and returns.
+
+    Returns:
+        The exit code (module docstring): 0 after Ctrl-C or shutdown, 2 for a refused
+        parameter, 3 for an unusable input file (one line on stderr each).
+    """
+    name = node_class.__module__.rsplit('.', 1)[-1]
+    if name == '__main__':              # python -m gnsscam_ros.nodes.<name>
+        name = os.path.splitext(os.path.basename(sys.argv[0]))[0]
+    if wants_help(args):
+        print_node_help(name, sys.modules[node_class.__module__].__doc__, (name,))
+        return EXIT_OK
+    nodes: list = []
+    code = EXIT_OK
+    try:
+        rclpy.init(args=args)
+        nodes, code = start_nodes(name, [node_class])
+        if nodes:
+            spin_node(nodes[0])
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass                            # Ctrl-C during start-up
     finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        for node in nodes:
+            quietly(node.destroy_node)
+        quietly(rclpy.try_shutdown)
+    return code
 
 
 class NodeSpinner:
@@ -324,6 +521,7 @@ class NodeSpinner:
 
     def __init__(self, nodes: list, context=None):
         self.context = context
+        self.failed = False              # a node's callback raised while running
         self._stop = threading.Event()
         self._pairs = []
         for node in nodes:
@@ -344,7 +542,8 @@ class NodeSpinner:
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
         except Exception as err:    # noqa: BLE001 - a node failed: stop the group, loudly
-            if self._ok():
+            if self._ok():          # else: the context went down under it (Ctrl-C)
+                self.failed = True
                 node.get_logger().fatal(f'{type(err).__name__}: {err}; shutting down')
                 rclpy.try_shutdown(context=self.context)
 

@@ -11,18 +11,33 @@ the camera matches of that interval moved to the epoch (``core.fusion``).
 
 Publishes, in this order, ``integrity_risk`` (DiagnosticArray: OK = integrity sufficient,
 ERROR = alarm, STALE = no valid solution), ``pose`` (PoseWithCovarianceStamped, map),
-``fix`` (NavSatFix, WGS84) and ``particles`` (PoseArray, map). Without GNSS for
-``gnss_timeout_s`` it publishes ``integrity_risk`` STALE every ``stale_report_period_s``:
-a consumer never sees a stale OK.
+``odometry/global`` (nav_msgs/Odometry, ``map_frame_id`` -> ``base_frame_id``: the same
+pose and covariance, and the forward speed and yaw rate of the newest dead-reckoning state
+at or before the epoch, for robot_localization / Nav2), ``fix`` (NavSatFix, WGS84) and
+``particles`` (PoseArray, map). Without GNSS for ``gnss_timeout_s`` it publishes
+``integrity_risk`` STALE every ``stale_report_period_s``: a consumer never sees a stale OK.
+
+``map/origin`` (NavSatFix, transient local: a late subscriber still gets it) carries the
+geodetic origin of the ``map`` frame once it exists (``map_origin_llh`` at start-up, else
+the first robust fix), so that ``pose`` and ``particles`` can be georeferenced; the
+fields as the bag converter writes them (frame ``map``, status FIX, covariance unknown).
+``diagnostics`` carries, besides the node status, ``fusion_node: integrity``: the latest
+integrity verdict (level OK / ERROR / STALE as ``integrity_risk``, its message,
+protection level and alert limit) for diagnostic_aggregator and rqt_robot_monitor.
 
 Every FilterConfig field except ``extra_alert_limits_m`` is a parameter of the same name;
 all of them can be changed while running (validated as a whole FilterConfig; a refused
-update keeps the old values), e.g. ``alert_limit_m`` and ``target_risk``.
+update keeps the old values), e.g. ``alert_limit_m`` and ``target_risk``. An integer given
+for a float parameter (``-p alert_limit_m:=16``) is that float.
+
+Exit codes: 0 stopped (Ctrl-C, shutdown), 1 failed while running, 2 a parameter refused at
+start-up (``-p likelihood:=gauss``; one line on stderr naming it).
 """
 from __future__ import annotations
 
 import math
 import re
+import sys
 import time
 from collections import deque
 from dataclasses import fields, replace
@@ -39,13 +54,15 @@ from gnsscam_ros.core.frames import LocalFrame
 from gnsscam_ros.core.fusion import CameraMeasurement, measurements_at_epoch
 from gnsscam_ros.core.motion import OUT_OF_ORDER, RESET, MotionAccumulator
 from gnsscam_ros.core.types import GnssEpoch
-from msg_adapters import (ERROR, OK, STALE, WARN, CameraMatches, GeodeticFix, IntegrityRisk,
-                          MessageError, PoseEstimate, fix_to_navsatfix, integrity_risk_to_msg,
+from msg_adapters import (ERROR, OK, STALE, WARN, CameraMatches, GeodeticFix, GlobalOdometry,
+                          IntegrityRisk, MessageError, PoseEstimate, fix_to_navsatfix,
+                          global_odometry_to_msg, integrity_risk_to_msg, make_status,
                           odometry_to_dead_reckoning, particles_to_posearray,
                           pointcloud2_to_gnss_epoch, pointcloud2_to_matches, pose_covariance,
                           pose_to_msg, service_bits)
+from msg_adapters.geometry import UNESTIMATED_VAR
 
-from .common import BIG, GnssCamNode, reliable_qos, run_node
+from .common import BIG, GnssCamNode, ParameterError, latched_qos, reliable_qos, run_node
 
 _FILTER_DEFAULTS = FilterConfig()
 # FilterConfig fields that are not node parameters (evaluation only).
@@ -61,6 +78,7 @@ DEFAULTS = {
     'map_origin_llh': [0.0, 0.0, 0.0],
     'map_frame_id': 'map',
     'fix_frame_id': 'gnss',
+    'base_frame_id': 'base_link',
     'gnss_timeout_s': 2.0,
     'stale_report_period_s': 1.0,
     'odometry_wait_s': 0.2,
@@ -141,6 +159,20 @@ def motion_for_epoch(accumulator: MotionAccumulator, filt: ParticleFilter, stamp
     return accumulator.increment(t0, stamp_ns)
 
 
+def twist_at(accumulator: MotionAccumulator, stamp_ns: int
+             ) -> tuple[float, float, float, float]:
+    """``(speed, yaw rate, speed variance, yaw-rate variance)`` of the newest dead-reckoning
+    state at or before ``stamp_ns`` [m/s, rad/s, (m/s)^2, (rad/s)^2]; unknown (zeros with
+    :data:`UNESTIMATED_VAR`) when there is none within ``accumulator.max_gap_s`` before."""
+    for state in reversed(accumulator.states):
+        if state.stamp_ns <= stamp_ns:
+            if (stamp_ns - state.stamp_ns) * 1e-9 <= accumulator.max_gap_s:
+                return (state.speed_mps, state.yaw_rate_rps, state.speed_var,
+                        state.yaw_rate_var)
+            break
+    return 0.0, 0.0, UNESTIMATED_VAR, UNESTIMATED_VAR
+
+
 def camera_for_epoch(buffer: list[CameraMeasurement], accumulator: MotionAccumulator,
                      filt: ParticleFilter, stamp_ns: int):
     """The camera argument of ``filt.step``: matches since the previous epoch, moved to
@@ -179,8 +211,11 @@ class FusionNode(GnssCamNode):
                      'Map frame origin [lat deg, lon deg, alt m].', read_only=True,
                      validator=lambda v: None if len(v) == 3 and np.all(np.isfinite(v))
                      else 'map_origin_llh must be 3 finite numbers')
-        self.declare('map_frame_id', DEFAULTS['map_frame_id'], 'Frame of pose and particles.')
+        self.declare('map_frame_id', DEFAULTS['map_frame_id'],
+                     'Frame of pose, particles, odometry/global and map/origin.')
         self.declare('fix_frame_id', DEFAULTS['fix_frame_id'], 'Frame of fix.')
+        self.declare('base_frame_id', DEFAULTS['base_frame_id'],
+                     'Child frame of odometry/global (the vehicle; its twist is in it).')
         self.declare('gnss_timeout_s', DEFAULTS['gnss_timeout_s'],
                      'No GNSS epoch for this long: integrity_risk STALE [s].', (0.01, BIG))
         self.declare('stale_report_period_s', DEFAULTS['stale_report_period_s'],
@@ -213,7 +248,11 @@ class FusionNode(GnssCamNode):
         rng = np.random.default_rng(None if seed < 0 else seed)
         frame = LocalFrame(*self.param('map_origin_llh')) if self.param(
             'use_map_origin') else None
-        self.filter = ParticleFilter(self._filter_config({}), frame=frame, rng=rng)
+        try:
+            config = self._filter_config({})
+        except ValueError as err:        # FilterConfig's own checks (likelihood, ...)
+            raise ParameterError(f'{node_name}: {err}') from err
+        self.filter = ParticleFilter(config, frame=frame, rng=rng)
         self.accumulator = MotionAccumulator(self.param('odometry_buffer_s'),
                                              self.filter.config.max_speed_mps)
         self.camera_buffer: list[CameraMeasurement] = []
@@ -226,10 +265,14 @@ class FusionNode(GnssCamNode):
         self._last_stale_report = -math.inf
         self._last_epoch_ns: int | None = None
         self.last_result: EpochResult | None = None
+        self.last_risk: IntegrityRisk | None = None
+        self.origin_published = False
 
         self.pub_integrity = self.create_publisher(DiagnosticArray, 'integrity_risk',
                                                    reliable_qos())
         self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'pose', reliable_qos())
+        self.pub_odometry = self.create_publisher(Odometry, 'odometry/global', reliable_qos())
+        self.pub_origin = self.create_publisher(NavSatFix, 'map/origin', latched_qos())
         self.pub_fix = self.create_publisher(NavSatFix, 'fix', reliable_qos())
         self.pub_particles = self.create_publisher(PoseArray, 'particles', reliable_qos(2))
         depth = self.param('input_queue_depth')
@@ -241,7 +284,17 @@ class FusionNode(GnssCamNode):
         self.sub_camera = self.create_subscription(PointCloud2, 'camera/matches',
                                                    self.on_matches, reliable_qos(depth))
         self._timer = self.create_timer(0.02, self.on_timer)
+        if self.filter.frame is not None:
+            self.publish_origin(self.now_ns())
         self.parameters_declared()
+
+    def ready_settings(self) -> dict:
+        cfg = self.filter.config
+        origin = (f'map_origin_llh {list(self.param("map_origin_llh"))}'
+                  if self.param('use_map_origin') else 'first robust fix')
+        return {'n_particles': cfg.n_particles, 'likelihood': cfg.likelihood,
+                'alert_limit_m': cfg.alert_limit_m, 'target_risk': cfg.target_risk,
+                'map_origin': origin, 'seed': self.param('seed')}
 
     # ------------------------------------------------------------------ parameters
     def _filter_config(self, changes: dict) -> FilterConfig:
@@ -333,6 +386,8 @@ class FusionNode(GnssCamNode):
 
     def on_timer(self) -> None:
         """Run epochs whose wait for odometry is over; report STALE without GNSS."""
+        if not self.context.ok():
+            return                       # shutting down (Ctrl-C): nothing to publish to
         if self._queue:
             self.process_ready()
         now = time.monotonic()
@@ -385,6 +440,8 @@ class FusionNode(GnssCamNode):
             self.stats.add_time(time.perf_counter() - start)
             return result
         self._last_epoch_ns = epoch.stamp_ns
+        if not self.origin_published and self.filter.frame is not None:
+            self.publish_origin(epoch.stamp_ns, service_bits(epoch.system))
         self.publish_integrity(self.integrity_of(result))
         self.stats.add_time(time.perf_counter() - start)
         if result.status in (UPDATED, PROPAGATED):
@@ -441,16 +498,55 @@ class FusionNode(GnssCamNode):
 
     def publish_integrity(self, risk: IntegrityRisk) -> None:
         self.pub_integrity.publish(integrity_risk_to_msg(risk))
+        self.last_risk = risk
         self.stats.count('published_integrity_risk')
+
+    def publish_origin(self, stamp_ns: int, service: int = 0) -> None:
+        """``map/origin`` (latched): the geodetic origin of the filter's map frame."""
+        lat, lon, alt = (float(v) for v in self.filter.frame.origin_llh)
+        self.pub_origin.publish(fix_to_navsatfix(GeodeticFix(
+            stamp_ns=stamp_ns, lat_deg=lat, lon_deg=lon, alt_m=alt, covariance_enu_m2=None,
+            status=NavSatStatus.STATUS_FIX, service=service,
+            frame_id=self.param('map_frame_id'))))
+        self.origin_published = True
+        self.stats.count('published_map_origin')
+        self.get_logger().info(f'map frame origin: lat {lat:.8f} deg, lon {lon:.8f} deg, '
+                               f'alt {alt:.3f} m (published on map/origin)')
+
+    def extra_statuses(self) -> list:
+        """``<node>: integrity``: the latest integrity verdict as a diagnostics status."""
+        risk, cfg = self.last_risk, self.filter.config
+        if risk is None:
+            level, message = STALE, 'no integrity verdict yet'
+            values = {'protection_level_m': math.nan,
+                      'alert_limit_m': float(cfg.alert_limit_m)}
+        else:
+            level, message = risk.level, risk.message
+            values = {'protection_level_m': (math.nan if risk.protection_level_m is None
+                                             else float(risk.protection_level_m)),
+                      'alert_limit_m': float(risk.alert_limit_m),
+                      'risk_bound': float(risk.risk_bound),
+                      'target_risk': float(risk.target_risk),
+                      'epoch_stamp': ('' if risk.epoch_stamp_ns is None
+                                      else int(risk.epoch_stamp_ns))}
+        return [make_status(f'{self.get_name()}: integrity', level, message, values,
+                            hardware_id='gnsscam_ros')]
 
     def _publish_estimate(self, result: EpochResult, epoch: GnssEpoch) -> None:
         filt = self.filter
         map_frame = self.param('map_frame_id')
         yaw_var = yaw_variance(filt.particles[:, 3], filt.log_w)
         cov = np.asarray(result.covariance_m2, dtype=float)
+        pose_cov = pose_covariance(cov, yaw_var)
         self.pub_pose.publish(pose_to_msg(PoseEstimate(
             stamp_ns=result.stamp_ns, position_m=result.position_enu_m, yaw_rad=result.yaw_rad,
-            covariance=pose_covariance(cov, yaw_var), frame_id=map_frame)))
+            covariance=pose_cov, frame_id=map_frame)))
+        speed, yaw_rate, speed_var, yaw_rate_var = twist_at(self.accumulator, result.stamp_ns)
+        self.pub_odometry.publish(global_odometry_to_msg(GlobalOdometry(
+            stamp_ns=result.stamp_ns, position_m=result.position_enu_m, yaw_rad=result.yaw_rad,
+            pose_covariance=pose_cov, speed_mps=speed, yaw_rate_rps=yaw_rate,
+            speed_var=speed_var, yaw_rate_var=yaw_rate_var, frame_id=map_frame,
+            child_frame_id=self.param('base_frame_id'))))
         if result.status == UPDATED:
             lat, lon, alt = filt.frame.enu_to_geodetic(result.position_enu_m)
             self.pub_fix.publish(fix_to_navsatfix(GeodeticFix(
@@ -489,10 +585,10 @@ class FusionNode(GnssCamNode):
         return OK, 'running', values
 
 
-def main(args=None) -> None:
-    """``ros2 run gnsscam_ros fusion_node``."""
-    run_node(FusionNode, args)
+def main(args=None) -> int:
+    """``ros2 run gnsscam_ros fusion_node``; the exit code (module docstring)."""
+    return run_node(FusionNode, args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

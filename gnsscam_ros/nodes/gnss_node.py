@@ -9,9 +9,14 @@ Checks (``core.gnss.check_epoch``): non-finite values, non-positive range or var
 duplicated satellites, unknown system code, elevation and C/N0 masks, minimum satellite
 count; whole messages with wrong fields or frame, or stamps not after the previous epoch,
 are refused. Everything refused is counted and reported on ``diagnostics``.
+
+Exit codes: 0 stopped (Ctrl-C, shutdown), 1 failed while running, 2 a parameter refused at
+start-up (one line on stderr naming it). An integer given for a float parameter is that
+float.
 """
 from __future__ import annotations
 
+import sys
 import time
 
 import numpy as np
@@ -106,6 +111,10 @@ class GnssNode(GnssCamNode):
                                             sensor_qos(self.param('input_queue_depth')))
         self.parameters_declared()
 
+    def ready_settings(self) -> dict:
+        return {name: self.param(name) for name in ('elevation_mask_deg', 'cn0_mask_dbhz',
+                                                    'min_satellites', 'input_frame_id')}
+
     def on_epoch(self, msg: PointCloud2) -> None:
         """Validate one epoch and publish what passes."""
         with self.stats.timed():
@@ -174,10 +183,10 @@ class GnssNode(GnssCamNode):
         return OK, 'receiving', values
 
 
-def main(args=None) -> None:
-    """``ros2 run gnsscam_ros gnss_node``."""
-    run_node(GnssNode, args)
+def main(args=None) -> int:
+    """``ros2 run gnsscam_ros gnss_node``; the exit code (module docstring)."""
+    return run_node(GnssNode, args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

@@ -13,9 +13,14 @@ A source is *active* while its messages keep arriving (``source_timeout_s``, wal
 states are emitted up to the newest stamp every active source has reached, so the output
 does not depend on how the two streams interleave. Messages with non-finite values or
 stamps not after their stream's previous one are refused and counted.
+
+Exit codes: 0 stopped (Ctrl-C, shutdown), 1 failed while running, 2 a parameter refused at
+start-up (``-p yaw_rate_source:=compass``; one line on stderr naming it). An integer given
+for a float parameter is that float.
 """
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import fields
 
@@ -27,7 +32,7 @@ from gnsscam_ros.core.motion import IMU, ODOMETRY, DeadReckoner, DeadReckoningCo
 from msg_adapters import (OK, WARN, MessageError, dead_reckoning_to_odometry, imu_to_sample,
                           twist_to_sample)
 
-from .common import BIG, GnssCamNode, reliable_qos, run_node, sensor_qos
+from .common import BIG, GnssCamNode, ParameterError, reliable_qos, run_node, sensor_qos
 
 _DR = DeadReckoningConfig()
 # Code defaults; config/imu_node.yaml documents the same values (a test checks). The
@@ -85,7 +90,11 @@ class ImuNode(GnssCamNode):
         self.declare('output_queue_depth', DEFAULTS['output_queue_depth'],
                      'Publisher queue depth of odometry/dead_reckoning [messages].',
                      (1, 100000), read_only=True)
-        self.dead_reckoner = DeadReckoner(self._dr_config({}))
+        try:
+            config = self._dr_config({})
+        except ValueError as err:        # DeadReckoningConfig's own checks
+            raise ParameterError(f'{node_name}: {err}') from err
+        self.dead_reckoner = DeadReckoner(config)
         self._receipt: dict[str, float] = {}
         self._started = time.monotonic()
         self.pub = self.create_publisher(Odometry, 'odometry/dead_reckoning',
@@ -95,6 +104,10 @@ class ImuNode(GnssCamNode):
         self.sub_twist = self.create_subscription(TwistWithCovarianceStamped, 'odom/twist',
                                                   self.on_twist, sensor_qos(depth))
         self.parameters_declared()
+
+    def ready_settings(self) -> dict:
+        return {name: self.param(name) for name in ('yaw_rate_source', 'output_period_s',
+                                                    'source_timeout_s')}
 
     def _dr_config(self, changes: dict) -> DeadReckoningConfig:
         values = {name: changes.get(name, self.param(name)) for name in _DR_DESCRIPTIONS}
@@ -167,10 +180,10 @@ class ImuNode(GnssCamNode):
         return OK, 'imu + odometry' if ODOMETRY in active else 'imu only', values
 
 
-def main(args=None) -> None:
-    """``ros2 run gnsscam_ros imu_node``."""
-    run_node(ImuNode, args)
+def main(args=None) -> int:
+    """``ros2 run gnsscam_ros imu_node``; the exit code (module docstring)."""
+    return run_node(ImuNode, args)
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

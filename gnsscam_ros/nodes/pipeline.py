@@ -5,14 +5,21 @@ its own thread (``common.NodeSpinner``; each keeps its own name, parameters and 
 so ``--params-file`` files written for the separate executables apply unchanged). They
 share one GIL: the filter epoch holds it for most of its run, so separate processes
 (``ros2 run`` each node) use more cores and replay a bag faster.
+
+Exit codes: 0 stopped (Ctrl-C, shutdown), 1 a node failed while running, 2 a parameter
+refused at start-up, 3 camera_node's ``database_path`` missing or not a map database (one
+line on stderr each; the nodes already started are stopped).
 """
 from __future__ import annotations
+
+import sys
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
 
 from .camera_node import CameraNode
-from .common import NodeSpinner, print_node_help, wants_help
+from .common import (EXIT_FAILED, EXIT_OK, NodeSpinner, print_node_help, quietly,
+                     start_nodes, wants_help)
 from .fusion_node import FusionNode
 from .gnss_node import GnssNode
 from .imu_node import ImuNode
@@ -25,27 +32,31 @@ def make_nodes(**kwargs) -> list:
             FusionNode(**kwargs)]
 
 
-def main(args=None) -> None:
-    """``ros2 run gnsscam_ros pipeline_node``."""
+def main(args=None) -> int:
+    """``ros2 run gnsscam_ros pipeline_node``; the exit code (module docstring)."""
     if wants_help(args):
         print_node_help('pipeline_node', __doc__,
                         ('gnss_node', 'imu_node', 'camera_node', 'fusion_node'))
-        return
-    rclpy.init(args=args)
-    nodes, spinner = [], None
+        return EXIT_OK
+    nodes, spinner, code = [], None, EXIT_OK
     try:
-        nodes = make_nodes()
-        spinner = NodeSpinner(nodes)
-        spinner.wait()
+        rclpy.init(args=args)
+        nodes, code = start_nodes('pipeline_node', [GnssNode, CameraNode, ImuNode, FusionNode])
+        if nodes:
+            spinner = NodeSpinner(nodes)
+            spinner.wait()
+            if spinner.failed:
+                code = EXIT_FAILED
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         if spinner is not None:
-            spinner.stop()
+            quietly(spinner.stop)
         for node in nodes:
-            node.destroy_node()
-        rclpy.try_shutdown()
+            quietly(node.destroy_node)
+        quietly(rclpy.try_shutdown)
+    return code
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())
