@@ -264,6 +264,8 @@ class EpochResult:
             (``integrity_settling_s``), the motion over the interval is known and the
             protection level is within the alert limit (False when unknown).
         integrity_reason: Why integrity is not OK ('' when it is).
+        integrity_valid: Everything but the protection level allows OK (settled, motion
+            known): the flag at any alert limit L is ``integrity_valid and PL <= L``.
         motion_unknown_s: Part of the interval without dead reckoning [s].
         n_satellites: Satellites used in the update.
         rejected: ``{reason: count}`` of satellites dropped by the checks.
@@ -288,6 +290,7 @@ class EpochResult:
     protection_level_m: float | None = None
     integrity_ok: bool = False
     integrity_reason: str = ''
+    integrity_valid: bool = False
     motion_unknown_s: float = 0.0
     n_satellites: int = 0
     rejected: dict = field(default_factory=dict)
@@ -571,6 +574,8 @@ class ParticleFilter:
             yaw_rad=self._circular_mean(priors[chosen, :, YAW], post_log_w[chosen]),
             chosen=chosen, total_log_lik=total, risk=risk, protection_level_m=level,
             integrity_ok=not reason, integrity_reason=reason,
+            integrity_valid=self._motion_unknown_s == 0.0 and (
+                settled_s >= cfg.integrity_settling_s),
             motion_unknown_s=self._motion_unknown_s,
             rejected=check.rejected, ess=ess, resampled=bool(resampled))
         self.last_result = result

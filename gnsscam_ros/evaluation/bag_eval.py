@@ -301,21 +301,26 @@ def evaluate_result_bag_epochs(result_bag: str | Path, truth_bag: str | Path | N
 
     diff = est - true_enu
     err = np.hypot(diff[:, 0], diff[:, 1]) if horizontal else np.linalg.norm(diff, axis=1)
+    main_limits = {float(verdicts[s].alert_limit_m) for s in stamps if s in verdicts}
+    main_limit = (main_limits.pop() if len(main_limits) == 1
+                  else limits[0] if limits else defaults.alert_limit_m)
+    # At the verdicts' own alert limit "declared sufficient" is the published level OK;
+    # for further limits only the bound is known.
+    flagged_ok = np.array([s in verdicts and verdicts[s].integrity_ok for s in stamps])
     by_limit = {}
     for a, limit in enumerate(limits):
         bound = np.array([_bounds(verdicts[s]).get(limit, np.nan) for s in stamps],
                          dtype=float)
         keep = np.isfinite(bound)
+        declared = flagged_ok[keep] if limit == main_limit else None
         by_limit[f'{limit:g}'] = integrity_metrics(err[keep], bound[keep],
-                                                   reference[keep, a], limit, target)
+                                                   reference[keep, a], limit, target,
+                                                   declared_ok=declared)
     methods = {str(verdicts[s].extra.get('inverse_bernoulli', 'published'))
                for s in stamps if s in verdicts}
     method = methods.pop() if len(methods) == 1 else 'published'
     out['integrity'] = by_limit
     out['integrity_by_inverse_bernoulli'] = {method: by_limit}
-    main_limits = {float(verdicts[s].alert_limit_m) for s in stamps if s in verdicts}
-    main_limit = (main_limits.pop() if len(main_limits) == 1
-                  else limits[0] if limits else defaults.alert_limit_m)
     pl = np.array([_pl(verdicts[s]) if s in verdicts else math.nan for s in stamps],
                   dtype=float)
     ok = np.array([s in verdicts and verdicts[s].level == 0 for s in stamps], dtype=bool)

@@ -5,7 +5,9 @@ Definitions, per epoch with a GNSS update, for one alert limit AL:
 * position error: distance between estimate and ground truth (2D: east-north; 3D);
   RMSE is the root of the mean squared error over epochs.
 * fault (hazardous event): the position error (horizontal, like the risk) exceeds AL.
-* declared insufficient: the risk bound exceeds the target risk.
+* declared sufficient: the integrity flag a user sees says OK at AL (the filter has
+  settled, the motion is known and the protection level is within AL); without a flag
+  (``declared_ok`` not given), the risk bound is within the target risk.
 * P_FA = (#insufficient and no fault) / (#no fault): false alarms among fault-free epochs.
 * P_MI = (#sufficient and fault) / (#fault): missed identifications among faulty epochs.
 * failure: the risk bound is below the reference risk (computed with ground truth);
@@ -48,7 +50,8 @@ def _rate(numerator: int, denominator: int) -> float | None:
 
 
 def integrity_metrics(error_m: np.ndarray, risk_bound: np.ndarray, reference_risk: np.ndarray,
-                      alert_limit_m: float, target_risk: float) -> dict:
+                      alert_limit_m: float, target_risk: float,
+                      declared_ok: np.ndarray | None = None) -> dict:
     """Integrity metrics of one alert limit over a run (see the module docstring).
 
     Args:
@@ -57,6 +60,8 @@ def integrity_metrics(error_m: np.ndarray, risk_bound: np.ndarray, reference_ris
         reference_risk: (T,) reference risks from ground truth.
         alert_limit_m: Alert limit [m].
         target_risk: Integrity target (insufficient when the bound exceeds it).
+        declared_ok: (T,) the flag's verdict at this alert limit (True = OK); None: the
+            bound within the target counts as declared sufficient.
 
     Returns:
         ``p_fa``, ``p_mi``, ``failure_ratio``, ``failure_error_m``, ``bound_gap`` and the
@@ -66,7 +71,8 @@ def integrity_metrics(error_m: np.ndarray, risk_bound: np.ndarray, reference_ris
     risk_bound = np.asarray(risk_bound, dtype=float)
     reference_risk = np.asarray(reference_risk, dtype=float)
     fault = error_m > alert_limit_m
-    insufficient = risk_bound > target_risk
+    insufficient = (risk_bound > target_risk if declared_ok is None
+                    else ~np.asarray(declared_ok, dtype=bool))
     failure = risk_bound < reference_risk
     n = int(error_m.size)
     false_alarms = int(np.sum(insufficient & ~fault))

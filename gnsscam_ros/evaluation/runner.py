@@ -88,6 +88,8 @@ class RunRecord:
     alert_limits_m: np.ndarray
     protection_level_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,)
     integrity_ok: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    # (T,) settled and motion known: the flag at alert limit L is valid & (PL <= L).
+    integrity_valid: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     statuses: dict = field(default_factory=dict)
     seconds: float = 0.0
     camera_alpha: dict = field(default_factory=dict)   # frame_id -> mixture weight alpha*
@@ -180,7 +182,7 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int, inputs,
     limits = config.alert_limits_m
     other = integrity.APPROX if config.inverse_bernoulli == integrity.EXACT else integrity.EXACT
     stamps, estimates, bounds, bounds_other, references = [], [], [], [], []
-    levels, oks = [], []
+    levels, oks, valids = [], [], []
     statuses: dict[str, int] = {}
     bar = Progress(f'filter {drive.name}', len(drive.gnss), progress)
     start = time.monotonic()
@@ -213,6 +215,7 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int, inputs,
         references.append(filt.posterior_set.hazard_mass(truth, limits))
         levels.append(result.protection_level_m)
         oks.append(result.integrity_ok)
+        valids.append(result.integrity_valid)
     seconds = time.monotonic() - start
     stamps_arr = np.array(stamps, dtype=np.int64)
     record = RunRecord(
@@ -223,6 +226,7 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int, inputs,
         reference_risk=np.array(references).reshape(-1, len(limits)), alert_limits_m=limits,
         protection_level_m=np.array(levels, dtype=float),
         integrity_ok=np.array(oks, dtype=bool),
+        integrity_valid=np.array(valids, dtype=bool),
         statuses=statuses, seconds=seconds, camera_alpha=camera_alpha,
         camera_excluded_epochs=camera_excluded, camera_epochs=camera_epochs,
         epochs=_epoch_table(rows, filt.frame, drive))
@@ -309,12 +313,22 @@ def summarize(record: RunRecord, config: FilterConfig) -> dict:
     diff = record.estimate_enu_m - record.truth_enu_m
     err = np.hypot(diff[:, 0], diff[:, 1]) if config.horizontal_risk else np.linalg.norm(
         diff, axis=1)
+    # Declared sufficient = the flag a user sees at that alert limit: settled, motion
+    # known and PL <= AL (configured method); for the other inverse, settled, motion
+    # known and its bound within the target.
+    valid = (record.integrity_valid if record.integrity_valid.size == err.size
+             else np.ones(err.size, dtype=bool))
     by_method = {}
     for method, bounds in record.risk_bound.items():
-        by_method[method] = {
-            f'{limit:g}': integrity_metrics(err, bounds[:, a], record.reference_risk[:, a],
-                                            limit, config.target_risk)
-            for a, limit in enumerate(record.alert_limits_m)}
+        by_method[method] = {}
+        for a, limit in enumerate(record.alert_limits_m):
+            if method == config.inverse_bernoulli and record.protection_level_m.size == err.size:
+                declared = valid & (record.protection_level_m <= limit)
+            else:
+                declared = valid & (bounds[:, a] <= config.target_risk)
+            by_method[method][f'{limit:g}'] = integrity_metrics(
+                err, bounds[:, a], record.reference_risk[:, a], limit, config.target_risk,
+                declared_ok=declared)
     out['integrity'] = by_method[config.inverse_bernoulli]
     out['integrity_by_inverse_bernoulli'] = by_method
     out['protection_level'] = protection_level_metrics(
