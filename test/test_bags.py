@@ -356,7 +356,11 @@ def test_cli_interrupted_process_leaves_no_partial_bag(tmp_path, sig):
          # finished first on a loaded machine).
          'sys.exit(main())', 'emulated', '--seed', '1', '--duration-s', '240', '--out',
          str(out)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        # A suite started in the background of a non-interactive shell inherits SIGINT
+        # ignored, and Python then installs no KeyboardInterrupt handler: give the child
+        # the default disposition, as a terminal would.
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 60
     # Wait until frames are being written into the temporary sibling folder.
     while not any((out.parent).glob('.emu.partial-*/emu/*.mcap')):
@@ -570,12 +574,14 @@ def _result_bag(path: Path, epochs, with_particles=True, with_fix=True, with_tru
                     empirical_risk=np.nan, divergence_risk=np.nan, alert_limit_m=8.0,
                     target_risk=0.1, epoch_stamp_ns=s)))
                 continue
-            ok = ep['bound8'] <= 0.1
+            ok = ep.get('ok', ep['bound8'] <= 0.1)
+            extra = {'risk_bound_16m': ep['bound16'], 'inverse_bernoulli': 'exact'}
+            if 'valid' in ep:
+                extra['integrity_valid'] = ep['valid']
             put('integrity_risk', s, integrity_risk_to_msg(IntegrityRisk(
                 stamp_ns=s, level=OK if ok else ERROR, message='', risk_bound=ep['bound8'],
                 empirical_risk=ep['bound8'] / 2, divergence_risk=ep['bound8'] / 2,
-                alert_limit_m=8.0, target_risk=0.1, epoch_stamp_ns=s,
-                extra={'risk_bound_16m': ep['bound16'], 'inverse_bernoulli': 'exact'})))
+                alert_limit_m=8.0, target_risk=0.1, epoch_stamp_ns=s, extra=extra)))
             put('pose', s, pose_to_msg(PoseEstimate(
                 stamp_ns=s, position_m=ep['enu'], yaw_rad=0.3,
                 covariance=pose_covariance(np.diag([4.0, 4.0, 9.0]), 0.01))))
@@ -692,9 +698,12 @@ def test_evaluate_result_bag_agrees_with_offline_run(tmp_path):
     epochs = []
     bounds = record.risk_bound[config.inverse_bernoulli]
     for k, s in enumerate(record.stamp_ns):
+        # The verdict fusion_node publishes: OK = the filter's flag, and whether the filter
+        # was settled with its motion known (for the 16 m limit).
         epochs.append({'stamp_ns': int(s), 'enu': record.estimate_enu_m[k],
                        'bound8': float(bounds[k, 0]), 'bound16': float(bounds[k, 1]),
-                       'spread': np.zeros((1, 3))})
+                       'spread': np.zeros((1, 3)), 'ok': bool(record.integrity_ok[k]),
+                       'valid': bool(record.integrity_valid[k])})
     assert OK == 0 and ERROR == 2
     _result_bag(tmp_path / 'res', epochs, with_particles=False, origin=drive.origin_llh)
     out = evaluate_result_bag(tmp_path / 'res', truth_bag=tmp_path / 'dataset')

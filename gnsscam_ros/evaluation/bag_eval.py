@@ -305,14 +305,18 @@ def evaluate_result_bag_epochs(result_bag: str | Path, truth_bag: str | Path | N
     main_limit = (main_limits.pop() if len(main_limits) == 1
                   else limits[0] if limits else defaults.alert_limit_m)
     # At the verdicts' own alert limit "declared sufficient" is the published level OK;
-    # for further limits only the bound is known.
+    # for further limits the flag would be: valid (settled, motion known; the
+    # ``integrity_valid`` extra, taken as true when absent) and the bound within the target.
     flagged_ok = np.array([s in verdicts and verdicts[s].integrity_ok for s in stamps])
+    valid = np.array([s in verdicts and verdicts[s].extra.get('integrity_valid', 'true')
+                      == 'true' for s in stamps])
     by_limit = {}
     for a, limit in enumerate(limits):
         bound = np.array([_bounds(verdicts[s]).get(limit, np.nan) for s in stamps],
                          dtype=float)
         keep = np.isfinite(bound)
-        declared = flagged_ok[keep] if limit == main_limit else None
+        declared = (flagged_ok[keep] if limit == main_limit
+                    else valid[keep] & (bound[keep] <= target))
         by_limit[f'{limit:g}'] = integrity_metrics(err[keep], bound[keep],
                                                    reference[keep, a], limit, target,
                                                    declared_ok=declared)

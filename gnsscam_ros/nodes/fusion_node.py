@@ -464,6 +464,7 @@ class FusionNode(GnssCamNode):
                  'kl_nats': float(risk.kl_nats), 'epsilon': float(risk.epsilon),
                  'inverse_bernoulli': cfg.inverse_bernoulli,
                  'motion_unknown_s': float(result.motion_unknown_s),
+                 'integrity_valid': bool(result.integrity_valid),
                  'dead_reckoning_resets': int(self.accumulator.resets)}
         for a in range(1, len(risk.alert_limits_m)):
             extra[f'risk_bound_{risk.alert_limits_m[a]:g}m'] = float(risk.risk_bound[a])
