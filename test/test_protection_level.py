@@ -287,3 +287,15 @@ def test_injected_faults_bias_the_chosen_satellites_for_their_episode():
     # The same seed draws the same faults.
     again = inject_pseudorange_faults(drive, seed=4, faults=spec)
     assert again.info['injected_faults'] == faulty.info['injected_faults']
+
+
+def test_distances_equal_the_direct_formula():
+    rng = np.random.default_rng(5)
+    pos = rng.normal(0.0, 20.0, (4, 50, 3)) + [3000.0, -2000.0, 40.0]
+    cloud = integrity.PosteriorSet(pos, np.full((4, 50), -np.log(50)), np.arange(10) % 4,
+                                   rng.normal(0.0, 8.0, (10, 3)))
+    centre = np.array([3001.0, -1999.0, 41.0])
+    dist, _ = cloud.distances(centre)
+    direct = np.linalg.norm((pos[cloud.motion_index] - cloud.offsets_m[:, None, :]
+                             - centre)[..., :2], axis=-1)
+    np.testing.assert_allclose(dist, direct, rtol=1e-5, atol=1e-4)

@@ -265,13 +265,20 @@ class PosteriorSet:
         """Distances (M, N) of every posterior's particles from ``centre_m`` and their
         weights (M, N), each row summing to one."""
         dims = 2 if self.horizontal else 3
-        # Relative coordinates are small, so single precision is ample (and halves the
-        # traffic of the M * N arrays).
-        rel = (self.positions_m[..., :dims] - np.asarray(centre_m, dtype=float)[:dims]
-               ).astype(np.float32)
-        # Particles of posterior j sit at x - o_j: rel_j = (x - centre) - o_j.
-        rel = rel[self.motion_index] - self.offsets_m[:, None, :dims].astype(np.float32)
-        dist = np.sqrt(np.einsum('mnd,mnd->mn', rel, rel))
+        # Particles of posterior j sit at x - o_j, so with r = x - centre:
+        # |r - o_j|^2 = |r|^2 - 2 r.o_j + |o_j|^2, one small matrix product per motion
+        # sample instead of an (M, N, d) copy. Relative coordinates are small: single
+        # precision is ample for the M * N result.
+        rel = self.positions_m[..., :dims] - np.asarray(centre_m, dtype=float)[:dims]
+        offsets = self.offsets_m[:, :dims]
+        dist = np.empty((self.motion_index.shape[0], rel.shape[1]), dtype=np.float32)
+        r2 = np.einsum('snd,snd->sn', rel, rel)
+        o2 = np.einsum('md,md->m', offsets, offsets)
+        for s in range(rel.shape[0]):
+            rows = np.flatnonzero(self.motion_index == s)
+            if rows.size:
+                d2 = r2[s][None, :] - 2.0 * (offsets[rows] @ rel[s].T) + o2[rows][:, None]
+                dist[rows] = np.sqrt(np.maximum(d2, 0.0))
         return dist, np.exp(self.log_w[self.motion_index])
 
     def hazard_mass(self, centre_m: np.ndarray, radii_m, dist_w: tuple | None = None
