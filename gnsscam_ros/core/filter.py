@@ -505,18 +505,11 @@ class ParticleFilter:
         total = logsumexp(joint, axis=1)
         post_log_w = joint - total[:, None]
         chosen = int(np.argmax(total))
-        # What the update weighed each satellite with, for the bias hypotheses: tempering
-        # times the chosen set's inlier probability over the variance.
+        # The chosen set's inlier probability of each satellite, for the bias hypotheses.
         inlier = gnss.robust_inlier_probability(z[chosen], log_sigma, cfg.outlier_prob,
                                                 cfg.outlier_range_m, post_log_w[chosen])
-        weights = evidence * inlier / prep.sigma_m ** 2
-        # Residual at the estimate (position weighted over the chosen set) for the bias
-        # scale (core.bias).
-        estimate = np.exp(post_log_w[chosen]) @ priors[chosen, :, POS]
-        at_estimate = gnss.clock_corrected_residuals(estimate[None], prep, clock_w)[0]
-        self.bias.observe_residuals(epoch.stamp_ns, at_estimate, inlier, 3 + prep.n_systems)
         result = self._finish(epoch, check, priors, post_log_w, chosen, total,
-                              (prep, weights))
+                              (prep, inlier, evidence, clock_w))
         if fusion is not None:
             result.camera_frame_ids = tuple(c.frame_id for c in camera)
             result.camera_alpha = fusion.alpha[:, chosen]
@@ -593,7 +586,8 @@ class ParticleFilter:
             mean: (3,) the estimate [m].
             cov: (3, 3) the chosen posterior's covariance [m^2].
             stamp_ns: Epoch time [ns].
-            update: ``(prepared epoch, (k,) update weights)`` of the GNSS update.
+            update: ``(prepared epoch, (k,) inlier probabilities, tempering exponent,
+                (k,) clock weights)`` of the GNSS update.
         """
         cfg = self.config
         s, n = post_log_w.shape
@@ -611,7 +605,12 @@ class ParticleFilter:
         if cfg.bias_model == BIAS_NONE or update is None:
             offsets = prior_offsets
         else:
-            prep, weights = update
+            prep, inlier, evidence, clock_w = update
+            # The residuals at the estimate size the hypotheses; the update weighed each
+            # satellite with tempering times inlier probability over its variance.
+            at_estimate = gnss.clock_corrected_residuals(mean[None], prep, clock_w)[0]
+            self.bias.observe_residuals(stamp_ns, at_estimate, inlier, 3 + prep.n_systems)
+            weights = evidence * inlier / prep.sigma_m ** 2
             line = prep.sv_enu_m - mean
             line /= np.linalg.norm(line, axis=1, keepdims=True)
             _, prior_cov = weighted_mean_cov(pos[chosen], prior_log_w)

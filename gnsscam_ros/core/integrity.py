@@ -73,15 +73,18 @@ def inverse_bernoulli_approx(q, eps) -> np.ndarray:
     return np.sqrt(2.0 * np.asarray(eps, dtype=float) * q * (1.0 - q))
 
 
+def inverse_bernoulli(q, eps, method: str = EXACT) -> np.ndarray:
+    """``D_Ber^-1(q, eps)`` by the named method ('exact' or 'approx')."""
+    if method == EXACT:
+        return inverse_bernoulli_exact(q, eps)
+    if method == APPROX:
+        return inverse_bernoulli_approx(q, eps)
+    raise ValueError(f'unknown inverse Bernoulli method {method!r}; use {INVERSE_METHODS}')
+
+
 def upper_risk(q, eps, method: str = EXACT) -> np.ndarray:
     """The bound ``q + D_Ber^-1(q, eps)`` for the given inverse, clipped to 1."""
-    if method == EXACT:
-        gap = inverse_bernoulli_exact(q, eps)
-    elif method == APPROX:
-        gap = inverse_bernoulli_approx(q, eps)
-    else:
-        raise ValueError(f'unknown inverse Bernoulli method {method!r}; use {INVERSE_METHODS}')
-    return np.minimum(np.asarray(q, dtype=float) + gap, 1.0)
+    return np.minimum(np.asarray(q, dtype=float) + inverse_bernoulli(q, eps, method), 1.0)
 
 
 def _bernoulli_kl_scalar(q: float, p: float) -> float:
@@ -216,14 +219,9 @@ def risk_bound(empirical: np.ndarray, kl_nats: float, n_posteriors: int, delta: 
         method: 'exact' (bisection) or 'approx' (the paper's closed form).
         alert_limits_m: (A,) limits, carried along for reporting.
     """
-    if method not in INVERSE_METHODS:
-        raise ValueError(f'unknown inverse Bernoulli method {method!r}; use {INVERSE_METHODS}')
     empirical = np.asarray(empirical, dtype=float)
     eps = divergence_budget(kl_nats, n_posteriors, delta)
-    if method == EXACT:
-        divergence = inverse_bernoulli_exact(empirical, eps)
-    else:
-        divergence = inverse_bernoulli_approx(empirical, eps)
+    divergence = inverse_bernoulli(empirical, eps, method)
     limits = np.full(empirical.shape, np.nan) if alert_limits_m is None else np.asarray(
         alert_limits_m, dtype=float)
     return RiskBound(alert_limits_m=limits, empirical_risk=empirical,
