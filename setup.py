@@ -24,11 +24,11 @@ setup(
     entry_points={
         'console_scripts': [
             'gnsscam_eval = gnsscam_ros.evaluation.cli:main',
-            'gnsscam_bench = gnsscam_ros.evaluation.bench:main',
+            'gnsscam_bench = gnsscam_ros.bench.filter:main',
             'gnsscam_mapdb = gnsscam_ros.vision.mapdb_cli:main',
             'gnsscam_convert = gnsscam_ros.bags.convert_cli:main',
-            'gnsscam_replay = gnsscam_ros.bags.replay:main',
-            'gnsscam_record = gnsscam_ros.bags.record:main',
+            'gnsscam_replay = gnsscam_ros.live.replay:main',
+            'gnsscam_record = gnsscam_ros.live.record:main',
             'gnss_node = gnsscam_ros.nodes.gnss_node:main',
             'camera_node = gnsscam_ros.nodes.camera_node:main',
             'imu_node = gnsscam_ros.nodes.imu_node:main',

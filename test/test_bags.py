@@ -274,8 +274,8 @@ def test_gnss_layout_is_the_nodes_layout():
 
 
 def test_emulated_drive_with_rendered_camera(tmp_path):
-    from gnsscam_ros.datasets.camera import with_camera
-    from gnsscam_ros.datasets.emulated import make_emulated_drive
+    from gnsscam_ros.datasets.emulated.camera import with_camera
+    from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
     src = with_camera(make_emulated_drive(3, faults=2, duration_s=1.0))
     summary = convert_drive(src, tmp_path / 'emu', workers=2)
     assert summary.topics['/camera/image_raw'].count == len(src.camera) == 11
@@ -685,7 +685,7 @@ def test_evaluate_result_bag_agrees_with_offline_run(tmp_path):
     from msg_adapters import ERROR, OK
 
     from gnsscam_ros.core.filter import FilterConfig
-    from gnsscam_ros.datasets.emulated import make_emulated_drive
+    from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
     from gnsscam_ros.evaluation.bag_eval import evaluate_result_bag
     from gnsscam_ros.evaluation.runner import (accuracy, run_filter, run_snapshot_baseline,
                                                summarize, truth_at)

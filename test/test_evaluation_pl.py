@@ -10,10 +10,10 @@ import pytest
 from conftest import SMARTLOC_EXCERPT
 
 from gnsscam_ros.core.filter import FilterConfig
-from gnsscam_ros.datasets.emulated import make_emulated_drive
+from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
 from gnsscam_ros.evaluation import cli
 from gnsscam_ros.evaluation.metrics import percentile_with_inf, protection_level_metrics
-from gnsscam_ros.evaluation.report import write_json_atomic
+from gnsscam_ros.io.atomic import write_json_atomic
 from gnsscam_ros.evaluation.runner import EpochTable, run_filter, summarize
 
 REQUIRED = ['stamp_ns', 'lat_deg', 'lon_deg', 'height_m', 'protection_level_m', 'risk_bound',

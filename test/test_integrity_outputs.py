@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from gnsscam_ros.evaluation.report import (OutputExistsError, STANFORD_KEYS, stanford_counts,
-                                           write_csv_atomic)
+from gnsscam_ros.evaluation.report import STANFORD_KEYS, stanford_counts
+from gnsscam_ros.io.atomic import OutputExistsError, write_csv_atomic
 
 AL = 10.0
 # (error, PL, region) by hand, one or more per region, boundaries included.

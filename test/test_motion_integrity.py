@@ -11,7 +11,7 @@ import pytest
 from gnsscam_ros.core.filter import FilterConfig
 from gnsscam_ros.core.motion import MotionAccumulator, dead_reckon
 from gnsscam_ros.core.types import ImuSeries, OdometrySeries
-from gnsscam_ros.datasets.emulated import make_emulated_drive
+from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
 from gnsscam_ros.evaluation.runner import run_epochs
 
 SECOND = 1_000_000_000

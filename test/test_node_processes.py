@@ -23,7 +23,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, PointCloud2
 
 import msg_adapters as ma
-from gnsscam_ros.datasets.emulated import make_emulated_drive
+from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
 
 ROOT = Path(__file__).resolve().parents[1]
 EXECUTABLES = ('gnss_node', 'camera_node', 'imu_node', 'fusion_node', 'pipeline_node')

@@ -37,7 +37,7 @@ from gnsscam_ros.core.motion import (ADDED, IMU, ODOMETRY, OUT_OF_ORDER, DeadRec
                                      MotionAccumulator, dead_reckon, integrate_odometry,
                                      motion_between)
 from gnsscam_ros.core.types import GnssEpoch, ImuSeries, OdometrySeries
-from gnsscam_ros.datasets.emulated import make_emulated_drive
+from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
 from gnsscam_ros.nodes import camera_node, fusion_node, gnss_node, imu_node
 from gnsscam_ros.nodes.camera_node import CameraNode
 from gnsscam_ros.nodes.common import InputFileError, ParameterError

@@ -32,7 +32,7 @@ import msg_adapters as ma
 from gnsscam_ros.core.filter import PROPAGATED, UPDATED
 from gnsscam_ros.core.frames import LocalFrame
 from gnsscam_ros.core.motion import dead_reckon
-from gnsscam_ros.datasets.emulated import make_emulated_drive
+from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
 from gnsscam_ros.nodes.fusion_node import FusionNode
 from gnsscam_ros.nodes.gnss_node import GnssNode
 from gnsscam_ros.nodes.imu_node import ImuNode

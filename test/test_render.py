@@ -1,4 +1,4 @@
-"""Tests of the emulated street imagery (vision.render) and camera stream (datasets.camera)."""
+"""Tests of the emulated street imagery (datasets.emulated.render) and camera stream (datasets.emulated.camera)."""
 import dataclasses
 import os
 
@@ -6,13 +6,13 @@ import cv2
 import numpy as np
 import pytest
 
-from gnsscam_ros.datasets.camera import (FAULT_BLUR, FAULT_CLEAN, FAULT_OCCLUSION,
-                                         build_emulated_map_database, database_poses,
-                                         evaluate_retrieval, make_camera_stream,
-                                         map_database_views, with_camera)
-from gnsscam_ros.datasets.emulated import make_emulated_drive, make_scenario
-from gnsscam_ros.vision.render import (CameraIntrinsics, Lighting, StreetRenderer,
-                                       facade_texture, render_view, visibility_order)
+from gnsscam_ros.datasets.emulated.camera import (FAULT_BLUR, FAULT_CLEAN, FAULT_OCCLUSION,
+                                                  build_emulated_map_database, database_poses,
+                                                  evaluate_retrieval, make_camera_stream,
+                                                  map_database_views, with_camera)
+from gnsscam_ros.datasets.emulated.drive import make_emulated_drive, make_scenario
+from gnsscam_ros.datasets.emulated.render import (CameraIntrinsics, Lighting, StreetRenderer,
+                                                  facade_texture, render_view, visibility_order)
 
 SEED = 2
 ORB = cv2.ORB_create(1000)
@@ -40,7 +40,7 @@ def test_texture_deterministic_and_repeated():
     assert a is b and not a.flags.writeable
     assert a.shape == (300, 400, 3) and a.dtype == np.uint8
     # The cache is only a speed-up: a fresh texture is identical.
-    from gnsscam_ros.vision import render
+    from gnsscam_ros.datasets.emulated import render
     assert np.array_equal(render._make_texture(3, 400, 300, 20.0), a)
     assert not np.array_equal(facade_texture(4, 20.0, 15.0), a)
     # Same style, other width: the upper floors' window grid (anchored at the left edge)

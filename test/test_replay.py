@@ -1,5 +1,5 @@
-"""Replay of a converted bag through the nodes, recording and evaluation (bags.replay,
-bags.record, evaluation.demo).
+"""Replay of a converted bag through the nodes, recording and evaluation (live.replay,
+live.record, evaluation.demo).
 
 * end to end: an emulated drive -> bag -> replay at R = 0 through the four nodes ->
   recorded result bag -> ``evaluate_result_bag`` equals the offline run of the same drive
@@ -28,10 +28,10 @@ from rclpy.context import Context
 from gnsscam_ros.bags.convert import convert_drive
 from gnsscam_ros.bags.errors import BagExistsError, BagReadError
 from gnsscam_ros.bags.read import bag_topics, read_drive, read_results
-from gnsscam_ros.bags.record import BagRecorder
-from gnsscam_ros.bags.replay import BagReplayer, main as replay_main, replay_through_nodes
+from gnsscam_ros.live.record import BagRecorder
+from gnsscam_ros.live.replay import BagReplayer, main as replay_main, replay_through_nodes
 from gnsscam_ros.core.filter import FilterConfig
-from gnsscam_ros.datasets.emulated import make_emulated_drive
+from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
 from gnsscam_ros.evaluation.bag_eval import evaluate_result_bag
 from gnsscam_ros.evaluation.demo import (node_series, offline_camera_matches, offline_run,
                                          route_range_of)
@@ -204,7 +204,7 @@ def test_camera_matches_flow_and_equal_offline(tmp_path):
 
 
 def test_route_range_limits_the_database_to_the_drive():
-    from gnsscam_ros.datasets.camera import database_poses, scenario_of
+    from gnsscam_ros.datasets.emulated.camera import database_poses, scenario_of
     drive = make_emulated_drive(3, duration_s=60.0)
     scenario = scenario_of(drive)
     s0, s1 = route_range_of(scenario, drive)
@@ -331,11 +331,11 @@ def _env(tmp_path, dom):
 def test_clis_stop_cleanly_on_sigint(emulated_bag, tmp_path):
     dom = domain()
     env = _env(tmp_path, dom)
-    record = subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.bags.record', '--out',
+    record = subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.live.record', '--out',
                                str(tmp_path / 'rec'), 'imu/data:sensor_msgs/msg/Imu'],
                               env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                               text=True)
-    replay = subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.bags.replay',
+    replay = subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.live.replay',
                                str(emulated_bag), '--rate', '1', '--wait', '0'],
                               env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                               text=True)
@@ -397,7 +397,7 @@ def test_default_camera_bag_flows_through_a_default_pipeline_node(tmp_path):
             assert pipeline.poll() is None, pipeline.communicate()[1]
             assert time.monotonic() < deadline, 'pipeline_node never published integrity_risk'
             time.sleep(0.05)
-        replay = subprocess.run([sys.executable, '-m', 'gnsscam_ros.bags.replay', str(bag),
+        replay = subprocess.run([sys.executable, '-m', 'gnsscam_ros.live.replay', str(bag),
                                  '--rate', '4', '--wait', '60', '--json',
                                  str(tmp_path / 'replay.json')],
                                 env=env, capture_output=True, text=True, timeout=600)

@@ -21,8 +21,8 @@ import numpy as np
 
 from ..core.filter import PARTICLE_RAIM, FilterConfig
 from ..core.fusion import CameraMeasurement
-from ..datasets.emulated import make_emulated_drive
-from .report import format_table
+from ..datasets.emulated.drive import make_emulated_drive
+from ..io.tables import format_table
 from .runner import run_filter, summarize
 
 GNSS_CASES = [(0, 0.0)] + [(f, b) for b in (100.0, 200.0) for f in (2, 4, 6, 9)]
@@ -70,8 +70,8 @@ def camera_matches_for_seed(seed: int, cache_dir: Path) -> tuple[list, dict]:
         ``(matches, faults)``: a CameraMeasurement per frame with a match (position at the
         image time) and ``{frame_id: fault code}`` (0 clean, 1 blur, 2 occlusion).
     """
-    from ..datasets.camera import build_emulated_map_database, scenario_of
-    from .report import write_npz_atomic
+    from ..datasets.emulated.camera import build_emulated_map_database, scenario_of
+    from ..io.atomic import write_npz_atomic
     cache_dir = Path(cache_dir)
     drive = make_emulated_drive(seed, camera=True)
     stream = drive.camera
@@ -128,7 +128,7 @@ def run_case(seed: int, faults: int, bias_m: float, method: str, base: FilterCon
            'protection_level': metrics['protection_level'],
            'gnss_epochs': len(drive.gnss), 'filter_seconds': metrics['filter_seconds']}
     if epochs_dir is not None:
-        from .report import write_csv_atomic
+        from ..io.atomic import write_csv_atomic
         path = Path(epochs_dir) / f'epochs_s{seed}_{case_tag(faults, bias_m)}_{method}.csv'
         write_csv_atomic(path, list(record.epochs.CSV_COLUMNS), record.epochs.csv_rows(),
                          force=force)

@@ -22,9 +22,10 @@ from ..core import integrity
 from ..core.filter import BIAS_MODELS, LIKELIHOODS, FilterConfig
 from ..datasets.errors import DatasetError
 from .evaluate import evaluate_drive_record
-from .report import (INTEGRITY_HEADERS, OutputExistsError, format_table, integrity_rows,
-                     protection_level_headers, protection_level_rows, stanford_line,
-                     write_csv_atomic, write_json_atomic)
+from .report import (INTEGRITY_HEADERS, integrity_rows, protection_level_headers,
+                     protection_level_rows, stanford_line)
+from ..io.atomic import OutputExistsError, write_csv_atomic, write_json_atomic
+from ..io.tables import format_table
 
 EXIT_OK, EXIT_USAGE, EXIT_INPUT, EXIT_OUTPUT = 0, 2, 3, 4
 DEFAULT_ALERT_LIMITS_M = (8.0, 16.0)
@@ -248,7 +249,7 @@ def load_drive(args: argparse.Namespace):
             drive = inject_pseudorange_faults(drive, args.fault_seed,
                                               FaultEpisodes(episodes=args.inject_faults))
         return drive
-    from ..datasets.emulated import make_emulated_drive
+    from ..datasets.emulated.drive import make_emulated_drive
     seed = args.seed if args.drive_seed is None else args.drive_seed
     return make_emulated_drive(seed, faults=args.faults, bias_m=args.bias_m,
                                nlos=not args.no_nlos, duration_s=args.duration_s)

@@ -10,8 +10,8 @@ real smartLoc run (no camera), in one command and without a ROS install:
    the first build renders a few thousand database views, about a minute or two on two
    cores; later runs load it in a second) and saved next to the bag for camera_node;
 3. the bag is replayed at ``R = 0`` (as fast as the nodes keep up, lossless;
-   ``bags.replay``) into gnss_node, imu_node, camera_node and fusion_node, each in its own
-   process, and their outputs are recorded into a result bag (``bags.record``);
+   ``live.replay``) into gnss_node, imu_node, camera_node and fusion_node, each in its own
+   process, and their outputs are recorded into a result bag (``live.record``);
 4. ``gnsscam_eval bag`` metrics are computed from the result bag
    (``evaluation.bag_eval``), next to the offline evaluation of the same drive with the
    same seed and configuration (:func:`offline_run`: the filter core run over the bag's
@@ -43,7 +43,9 @@ from ..core.frames import LocalFrame
 from ..core.fusion import CameraMeasurement
 from ..core.motion import DeadReckoningConfig, MotionAccumulator, dead_reckon
 from ..core.types import Drive, ImuSeries, OdometrySeries, Trajectory
-from .report import format_table, stanford_line, write_json_atomic
+from .report import stanford_line
+from ..io.atomic import write_json_atomic
+from ..io.tables import format_table
 from .runner import RunRecord, accuracy, run_epochs, run_snapshot_baseline, summarize, truth_at
 
 #: Alert limit of the comparison [m]: the nodes publish the risk at one alert limit
@@ -237,7 +239,7 @@ def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed
         config: Filter configuration of both the nodes and the offline run.
         seed: Filter seed of both.
         stages: Stage timer.
-        layout: Where the nodes run (``bags.replay.LAYOUTS``).
+        layout: Where the nodes run (``live.replay.LAYOUTS``).
         database: Map database for the camera (None: GNSS only).
 
     Returns:
@@ -246,7 +248,7 @@ def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed
     """
     from ..bags.convert import convert_drive
     from ..bags.read import read_drive
-    from ..bags.replay import replay_through_nodes
+    from ..live.replay import replay_through_nodes
     from ..nodes.camera_node import DEFAULTS as CAMERA_DEFAULTS
     from .bag_eval import evaluate_result_bag_epochs
     from .plots import integrity_plots, risk_plot, trajectory_plot
@@ -378,18 +380,19 @@ def main(argv: list[str] | None = None) -> int:
     stages = Stages()
     out_dir = new_run_folder(args.out)
     print(f'[demo] writing into {out_dir}', file=sys.stderr)
-    from ..bags.replay import use_dds_profile
+    from ..live.replay import use_dds_profile
     use_dds_profile(out_dir)            # before the first ROS participant of this process
     results: dict[str, dict] = {}
 
     # ---- emulated urban drive, camera included
-    from ..datasets.emulated import make_emulated_drive
+    from ..datasets.emulated.drive import make_emulated_drive
     duration = None if args.full else args.duration_s
     drive = stages.run('emulated: generate the drive', make_emulated_drive, EMULATED_SEED,
                        faults=EMULATED_FAULTS, bias_m=EMULATED_BIAS_M, duration_s=duration)
     database = None
     if not args.no_camera:
-        from ..datasets.camera import build_emulated_map_database, scenario_of, with_camera
+        from ..datasets.emulated.camera import (build_emulated_map_database, scenario_of,
+                                                with_camera)
         drive = with_camera(drive)
         scenario = scenario_of(drive)
         database = stages.run(

@@ -10,7 +10,7 @@ import matplotlib.pyplot as plt  # noqa: E402  (backend must be chosen first)
 import numpy as np  # noqa: E402
 from matplotlib.colors import LogNorm  # noqa: E402
 
-from .report import stanford_counts  # noqa: E402  (pure counting, importable without plots)
+from .report import stanford_counts  # noqa: E402  pure counting, importable without plots
 
 ERROR_HIGHLIGHT_M = 10.0
 LOG_FLOOR_M = 0.1          # log axes cannot show 0; errors/PLs below this sit on the edge

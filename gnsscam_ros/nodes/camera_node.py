@@ -13,7 +13,7 @@ buffer sizes and stamps older than the last matched image are refused and counte
 Every frame taken from the queue is answered on ``camera/matches``: a frame that cannot be
 matched (no map database, a refused image, a matcher error) gets an *empty* cloud with its
 stamp, as does a frame without any database match. Downstream, fusion_node counts it as a
-camera frame without a match, and a flow-controlled replay (``bags.replay``) takes it as
+camera frame without a match, and a flow-controlled replay (``live.replay``) takes it as
 the acknowledgement of the image instead of waiting for one that never comes. Only frames
 older than the last answered one get no answer, so that ``camera/matches`` stays in stamp
 order (a later answer covers them).

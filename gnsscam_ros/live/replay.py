@@ -95,7 +95,7 @@ unless ``FASTRTPS_DEFAULT_PROFILES_FILE`` is set or ``--no-dds-profile`` is give
 Exit codes of the CLI: 0 done (also on Ctrl-C: the replay stops after the current
 message), 2 bad usage, 3 the bag is missing, unreadable or has an unknown message type.
 
-``python -m gnsscam_ros.bags.replay_bench`` measures replay through the nodes at 10,000
+``python -m gnsscam_ros.bench.replay`` measures replay through the nodes at 10,000
 particles (speed as a multiple of real time, dropped GNSS epochs).
 """
 from __future__ import annotations
@@ -124,9 +124,9 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from msg_adapters import MessageError, parse_integrity_risk, status_values
 
 from ..nodes.common import NodeSpinner, stop_process
-from . import schema
-from .errors import BagError, BagReadError, BagTypeError
-from .read import header_stamp_ns, open_bag
+from ..bags import schema
+from ..bags.errors import BagError, BagReadError, BagTypeError
+from ..bags.read import header_stamp_ns, open_bag
 
 EXIT_OK, EXIT_USAGE, EXIT_INPUT = 0, 2, 3
 _NO_PUB_EVENTS = PublisherEventCallbacks(use_default_callbacks=False)
@@ -928,7 +928,7 @@ def _overrides(values: dict) -> list:
 #: make common: measured here, 17 of 50 images paced at 10 Hz arrived. A 32 MB segment
 #: carries whole images (50 of 50), and the GNSS epochs no longer compete with them for it.
 DDS_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
-<!-- gnsscam_ros: shared memory large enough for camera images (see bags/replay.py). -->
+<!-- gnsscam_ros: shared memory large enough for camera images (see live/replay.py). -->
 <profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
   <transport_descriptors>
     <transport_descriptor>
@@ -1246,7 +1246,7 @@ def main(argv: list[str] | None = None) -> int:
     if summary is not None:
         print(summary.text())
         if args.json is not None:
-            from ..evaluation.report import write_json_atomic
+            from ..io.atomic import write_json_atomic
             write_json_atomic(args.json, summary.as_dict())
     return code
 

@@ -1,7 +1,7 @@
 """Camera stream and geotagged map database of the emulated drive (rendered images).
 
 The forward camera of the emulated drive sees the procedural city of :mod:`.city` rendered
-by :mod:`..vision.render`: real images on which ORB finds and matches features. Two passes
+by :mod:`.render`: real images on which ORB finds and matches features. Two passes
 through the city are rendered:
 
 * **Query pass** (:func:`make_camera_stream`): the drive itself at ``rate_hz`` (10 Hz),
@@ -22,7 +22,7 @@ through the city are rendered:
   :func:`build_emulated_map_database` turns it into a :class:`..vision.database.MapDatabase`
   and caches it on disk.
 
-Run ``python -m gnsscam_ros.datasets.camera --measure --seed 1`` to measure retrieval on
+Run ``python -m gnsscam_ros.datasets.emulated.camera --measure --seed 1`` to measure retrieval on
 the full drive (top-1 match within 10 m of the truth, for clean, blurred and occluded
 frames separately).
 """
@@ -44,12 +44,12 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..core.types import Drive
-from ..vision.database import MapDatabase, PositionTable
-from ..vision.errors import MapDatabaseError
-from ..vision.features import OrbExtractor, OrbParams
-from ..vision.render import CameraIntrinsics, Lighting, StreetRenderer
-from .emulated import EmulationConfig, Scenario, make_scenario, stream_rng
+from ...core.types import Drive
+from ...vision.database import MapDatabase, PositionTable
+from ...vision.errors import MapDatabaseError
+from ...vision.features import OrbExtractor, OrbParams
+from .render import CameraIntrinsics, Lighting, StreetRenderer
+from .drive import EmulationConfig, Scenario, make_scenario, stream_rng
 
 FAULT_CLEAN, FAULT_BLUR, FAULT_OCCLUSION = 0, 1, 2
 FAULT_NAMES = ('clean', 'blur', 'occlusion')
@@ -291,7 +291,7 @@ def make_camera_stream(scenario: Scenario, seed: int | None = None, rate_hz: flo
         x[k] = acc
     noise_index = rng_exp.integers(0, 1 << 16, n)
 
-    info = {'generator': 'gnsscam_ros.datasets.camera.make_camera_stream',
+    info = {'generator': 'gnsscam_ros.datasets.emulated.camera.make_camera_stream',
             'seed': seed, 'scenario_seed': int(scenario.seed), 'rate_hz': float(rate_hz),
             'fault_fraction': float(fault_fraction), 'fault_kinds': list(fault_kinds),
             'blur_ksize': int(blur_ksize), 'occlusion_frac': [float(lo), float(hi)],
@@ -679,8 +679,8 @@ def _progress(stage: str, done: int, total: int) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m gnsscam_ros.datasets.camera --measure --seed 1``: retrieval figures."""
-    ap = argparse.ArgumentParser(prog='python -m gnsscam_ros.datasets.camera',
+    """``python -m gnsscam_ros.datasets.emulated.camera --measure --seed 1``: retrieval figures."""
+    ap = argparse.ArgumentParser(prog='python -m gnsscam_ros.datasets.emulated.camera',
                                  description='Emulated camera stream and map database.')
     ap.add_argument('--measure', action='store_true',
                     help='build/load the database and measure top-1 retrieval on the drive')

@@ -40,9 +40,9 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.signal import lfilter
 from scipy.special import ndtr
 
-from ..core.frames import OMEGA_EARTH_RPS, SPEED_OF_LIGHT_MPS, LocalFrame
-from ..core.types import GLONASS, GPS, Drive, GnssEpoch, ImuSeries, OdometrySeries, Trajectory
-from .city import City, los_blocked, make_city
+from ...core.frames import OMEGA_EARTH_RPS, SPEED_OF_LIGHT_MPS, LocalFrame
+from ...core.types import GLONASS, GPS, Drive, GnssEpoch, ImuSeries, OdometrySeries, Trajectory
+from ..city import City, los_blocked, make_city
 
 GRAVITY_MPS2 = 9.81                 # local gravity magnitude used for the IMU [m/s^2]
 MU_EARTH_M3PS2 = 3.986004418e14     # WGS84 gravitational parameter [m^3/s^2]
@@ -804,7 +804,7 @@ def make_emulated_drive(seed: int, faults: int = 0, bias_m: float = 100.0, nlos:
                        yaw_rad=pose.yaw_rad[keep_t])
     s_end = float(np.interp(t_end, sc.t_s, sc.s_m))
     info = {
-        'generator': 'gnsscam_ros.datasets.emulated.make_emulated_drive',
+        'generator': 'gnsscam_ros.datasets.emulated.drive.make_emulated_drive',
         'seed': int(seed), 'faults': int(faults), 'bias_m': float(bias_m), 'nlos': bool(nlos),
         'duration_s': float(t_end), 'gnss_rate_hz': float(gnss_rate_hz),
         'fault_fraction': float(fault_fraction), 'config': asdict(cfg),

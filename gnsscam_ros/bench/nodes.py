@@ -1,4 +1,4 @@
-"""Benchmarks of the ROS side: ``python -m gnsscam_ros.nodes.bench``.
+"""Benchmarks of the ROS side: ``python -m gnsscam_ros.bench.nodes``.
 
 1. **End-to-end latency**: pipeline_node runs in its own process (as deployed); this
    process replays the emulated drive (IMU, odometry, then each GNSS epoch on
@@ -35,7 +35,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, Imu, PointCloud2
 
 import msg_adapters as ma
-from gnsscam_ros.datasets.emulated import make_emulated_drive
+from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
 from gnsscam_ros.nodes.common import stop_process
 
 RELIABLE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2000,
@@ -307,7 +307,7 @@ def bench_camera(fps: float = 30.0, seconds: float = 5.0, n_database: int = 60,
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog='python -m gnsscam_ros.nodes.bench',
+    parser = argparse.ArgumentParser(prog='python -m gnsscam_ros.bench.nodes',
                                      description=__doc__.split('\n\n')[0])
     parser.add_argument('--particles', type=int, default=10_000)
     parser.add_argument('--acquisition-particles', type=int, default=0,

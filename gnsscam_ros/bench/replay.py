@@ -1,4 +1,4 @@
-"""Benchmark: replay through the nodes (``python -m gnsscam_ros.bags.replay_bench``).
+"""Benchmark: replay through the nodes (``python -m gnsscam_ros.bench.replay``).
 
 Converts a seeded emulated drive (GNSS 1 Hz, IMU 100 Hz, odometry 10 Hz, ground truth;
 optionally the camera at 10 Hz with its map database) into a bag, replays it at
@@ -26,8 +26,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from ..evaluation.report import format_table, write_json_atomic
-from .replay import LAYOUTS, replay_through_nodes
+from ..io.atomic import write_json_atomic
+from ..io.tables import format_table
+from ..live.replay import LAYOUTS, replay_through_nodes
 
 
 def bench_once(particles: int = 10_000, duration_s: float = 120.0, seed: int = 3,
@@ -52,8 +53,8 @@ def bench_once(particles: int = 10_000, duration_s: float = 120.0, seed: int = 3
     Returns:
         The figures (see the module docstring) and the replay summary.
     """
-    from ..datasets.emulated import make_emulated_drive
-    from .convert import convert_drive
+    from ..datasets.emulated.drive import make_emulated_drive
+    from ..bags.convert import convert_drive
     drive = make_emulated_drive(seed, faults=6, bias_m=100.0, duration_s=duration_s)
     params: dict = {'fusion_node': {'n_particles': int(particles), 'seed': int(seed),
                                     'use_map_origin': True,
@@ -64,7 +65,8 @@ def bench_once(particles: int = 10_000, duration_s: float = 120.0, seed: int = 3
         tempfile.mkdtemp(prefix='gnsscam_replay_bench_'))
     try:
         if camera:
-            from ..datasets.camera import build_emulated_map_database, scenario_of, with_camera
+            from ..datasets.emulated.camera import (build_emulated_map_database, scenario_of,
+                                                    with_camera)
             from ..evaluation.demo import route_range_of
             drive = with_camera(drive)
             scenario = scenario_of(drive)
@@ -120,7 +122,7 @@ def _float(value) -> float | None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog='python -m gnsscam_ros.bags.replay_bench',
+    parser = argparse.ArgumentParser(prog='python -m gnsscam_ros.bench.replay',
                                      description=__doc__.split('\n')[0])
     parser.add_argument('--particles', type=int, nargs='+', default=[10_000],
                         help='particles per posterior (default %(default)s)')

@@ -50,9 +50,9 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.rosbag2 import Writer
 
-from . import schema
-from .convert import STORAGES
-from .errors import BagError, BagExistsError, BagTypeError
+from ..bags import schema
+from ..bags.convert import STORAGES
+from ..bags.errors import BagError, BagExistsError, BagTypeError
 from .replay import message_class
 
 EXIT_OK, EXIT_USAGE, EXIT_OUTPUT = 0, 2, 4

@@ -20,8 +20,9 @@ from ..core.filter import FilterConfig, ParticleFilter
 from ..core.frames import LocalFrame
 from ..core.gnss import prepare_epoch, ranges
 from ..core.particles import MotionIncrement
-from ..datasets.emulated import make_emulated_drive
-from .report import OutputExistsError, format_table, write_json_atomic
+from ..datasets.emulated.drive import make_emulated_drive
+from ..io.atomic import OutputExistsError, write_json_atomic
+from ..io.tables import format_table
 
 DEFAULT_COUNTS = (120, 1000, 10000, 100000)
 

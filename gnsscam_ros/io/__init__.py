@@ -1,0 +1,1 @@
+"""General file output: atomic writers (:mod:`.atomic`) and text tables (:mod:`.tables`)."""
