@@ -1,7 +1,7 @@
 """Motion loss and dead-reckoning resets are integrity events (offline, nodes' motion path).
 
-The motion reaches the filter as fusion_node computes it: imu_node's dead reckoning
-(``dead_reckon``) accumulated by ``MotionAccumulator``. Dead reckoning that stops for 20 s,
+The motion reaches the filter as in fusion_node: imu_node's dead reckoning (``dead_reckon``)
+through the epoch engine. Dead reckoning that stops for 20 s,
 or restarts at its origin (a restarted imu_node), must never leave the flag OK while the
 error exceeds the protection level, and the epochs without motion must be ERROR.
 """
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gnsscam_ros.core.filter import FilterConfig
-from gnsscam_ros.core.motion import MotionAccumulator, dead_reckon
+from gnsscam_ros.core.motion import dead_reckon
 from gnsscam_ros.core.types import ImuSeries, OdometrySeries
 from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
 from gnsscam_ros.evaluation.runner import run_epochs
@@ -34,21 +34,9 @@ def series_from(drive, t0_ns):
 
 
 def run_with_states(drive, states):
-    acc = MotionAccumulator()
-    nxt = 0
-
-    def inputs(filt, epoch):
-        nonlocal nxt
-        while nxt < len(states) and (not acc.states or acc.newest_stamp_ns < epoch.stamp_ns):
-            acc.add(states[nxt])
-            nxt += 1
-        t0 = filt.last_stamp_ns
-        if t0 is None or epoch.stamp_ns <= t0 or not acc.states:
-            return None, None
-        return acc.increment(t0, epoch.stamp_ns), None
-
-    record, _ = run_epochs(drive, FilterConfig(alert_limit_m=25.0), 1, inputs)
-    return record, acc
+    """The offline run with these dead-reckoning states; also the engine's accumulator."""
+    record, engine = run_epochs(drive, FilterConfig(alert_limit_m=25.0), 1, states=states)
+    return record, engine.motion
 
 
 def check_never_ok_beyond_the_level(record):

@@ -29,25 +29,27 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import Image, Imu, NavSatFix, PointCloud2
 
 import msg_adapters as ma
-from gnsscam_ros.core.filter import PROPAGATED, UPDATED, FilterConfig, ParticleFilter
+from gnsscam_ros.core.engine import EpochEngine, InputTiming, best_match
+from gnsscam_ros.core.filter import PROPAGATED, UPDATED, FilterConfig
 from gnsscam_ros.core.frames import LocalFrame
 from gnsscam_ros.core.gnss import check_epoch
 from gnsscam_ros.core.motion import (ADDED, IMU, ODOMETRY, OUT_OF_ORDER, DeadReckoner,
                                      DeadReckoningConfig, DeadReckoningState,
-                                     MotionAccumulator, dead_reckon, integrate_odometry,
+                                     MotionAccumulator, dead_reckon,
                                      motion_between)
 from gnsscam_ros.core.types import GnssEpoch, ImuSeries, OdometrySeries
 from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
+from gnsscam_ros.evaluation.runner import engine_reports
 from gnsscam_ros.nodes import camera_node, fusion_node, gnss_node, imu_node
 from gnsscam_ros.nodes.camera_node import CameraNode
 from gnsscam_ros.nodes.common import InputFileError, ParameterError
-from gnsscam_ros.nodes.fusion_node import (FusionNode, camera_for_epoch, camera_measurement,
-                                           motion_for_epoch, yaw_variance)
+from gnsscam_ros.nodes.fusion_node import FusionNode, yaw_variance
 from gnsscam_ros.nodes.gnss_node import GnssNode
 from gnsscam_ros.nodes.imu_node import ImuNode
 from gnsscam_ros.vision.database import MapDatabase, PositionTable
 from gnsscam_ros.vision.features import OrbExtractor, OrbParams
 from gnsscam_ros.vision.mapdb_cli import synthetic_scene
+from oracles import integrate_odometry
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config'
 NODE_MODULES = {'gnss_node': gnss_node, 'imu_node': imu_node, 'camera_node': camera_node,
@@ -297,27 +299,6 @@ def test_node_spinner_serves_each_node_and_stops_the_group_when_one_fails():
         rclpy.try_shutdown(context=ctx)
 
 
-def test_epochs_wait_for_the_first_dead_reckoning_only_at_the_start(graph):
-    fusion = graph.add(FusionNode(context=graph.ctx, parameter_overrides=overrides(
-        odometry_wait_s=0.2, odometry_timeout_s=1.0)))
-    now = time.monotonic()
-    assert fusion._ready(S, now)                      # first fix: no motion needed
-    fusion.filter.particles = np.zeros((2, 4))        # as if initialised
-    fusion._first_gnss_receipt = now
-    # GNSS has just begun and no dead reckoning has arrived: its first states may be on
-    # their way (another path than the epochs), so the epoch waits for them ...
-    assert not fusion._ready(S, now)
-    assert fusion._ready(S, now - 0.3)           # ... at most odometry_wait_s
-    # GNSS for longer than odometry_timeout_s without any: GNSS-only, no waiting.
-    fusion._first_gnss_receipt = now - 1.5
-    assert fusion._ready(S, now)
-    # Dead reckoning running but behind the epoch: wait; stopped for longer: do not.
-    fusion._last_dr_receipt = now
-    assert not fusion._ready(S, now)
-    fusion._last_dr_receipt = now - 1.5
-    assert fusion._ready(S, now)
-
-
 def test_diagnostics_report_matched_links_for_the_replay(graph):
     g = graph
     imu = g.add(ImuNode(context=g.ctx))
@@ -495,7 +476,7 @@ def test_nodes_equal_offline_core_run(graph, drive, tmp_path):
             pub_cam.publish(ma.array_to_image(images[sent_images], cam_stamps[sent_images]))
             sent_images += 1
             g.spin_until(lambda: fusion.stats.get('received_matches') > n, what='matches')
-        g.spin_until(lambda: (fusion.accumulator.newest_stamp_ns or -1) >= t_k,
+        g.spin_until(lambda: (fusion.engine.motion.newest_stamp_ns or -1) >= t_k,
                      what='dead reckoning at the epoch')
         pub_gnss.publish(ma.gnss_epoch_to_pointcloud2(epoch))
         g.spin_until(lambda: fusion.last_result is not None
@@ -516,24 +497,21 @@ def test_nodes_equal_offline_core_run(graph, drive, tmp_path):
         range(len(cam_stamps)))                    # each image finds itself first
 
     # ---- offline: the same core functions on the same input, same seed
-    filt = ParticleFilter(FilterConfig(n_particles=n_particles), frame=frame,
-                          rng=np.random.default_rng(seed))
-    acc = MotionAccumulator(fusion_node.DEFAULTS['odometry_buffer_s'])
-    for s in dead_reckon(drive.imu, drive.odometry, DeadReckoningConfig()):
-        acc.add(s)
-    buffer = [camera_measurement(ma.pointcloud2_to_matches(m), i)
-              for i, m in enumerate(matches)]
+    engine = EpochEngine(FilterConfig(n_particles=n_particles), frame=frame,
+                         rng=np.random.default_rng(seed),
+                         timing=InputTiming(gnss_queue_size=None))
+    states = dead_reckon(drive.imu, drive.odometry, DeadReckoningConfig())
+    camera = []
+    for i, m in enumerate(matches):
+        parsed = ma.pointcloud2_to_matches(m)
+        camera.append(best_match(parsed.stamp_ns, parsed.position_m, parsed.score, i))
     gd = gnss_node.DEFAULTS
-    offline = []
-    for epoch in epochs:
-        check = check_epoch(epoch, gd['min_satellites'], gd['elevation_mask_deg'],
-                            gd['cn0_mask_dbhz'])
-        e = epoch.subset(check.keep)
-        motion = motion_for_epoch(acc, filt, e.stamp_ns)
-        camera = camera_for_epoch(buffer, acc, filt, e.stamp_ns)
-        r = filt.step(e, motion, camera)
-        offline.append((r, filt.particles.copy(), yaw_variance(filt.particles[:, 3],
-                                                               filt.log_w)))
+    checked = [epoch.subset(check_epoch(epoch, gd['min_satellites'], gd['elevation_mask_deg'],
+                                        gd['cn0_mask_dbhz']).keep) for epoch in epochs]
+    filt = engine.filter
+    offline = [(report.result, filt.particles.copy(),
+                yaw_variance(filt.particles[:, 3], filt.log_w))
+               for report in engine_reports(engine, checked, states, camera)]
     used_camera = [r for r, _, _ in offline if r.camera_alpha is not None]
     assert used_camera, 'the camera matches reached the filter'
 
@@ -793,7 +771,7 @@ def test_camera_without_database_answers_every_frame_with_empty_matches(graph):
     assert cam.stats.rejected == {'no_database': 5}
     assert cam.stats.get('frames_without_match') == 5
     g.spin_until(lambda: fusion.stats.get('camera_without_match') == 5, what='fusion')
-    assert not fusion.stats.rejected and fusion.camera_buffer == []
+    assert not fusion.stats.rejected and fusion.engine.camera == []
 
 
 def test_camera_drops_the_oldest_frames_and_counts_them(graph):

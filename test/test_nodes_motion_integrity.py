@@ -133,7 +133,7 @@ class DriveRun:
         """Publish one GNSS epoch and wait for its integrity_risk (and pose)."""
         t_k = epoch.stamp_ns
         if covered:
-            self.g.spin_until(lambda: (self.fusion.accumulator.newest_stamp_ns or -1) >= t_k,
+            self.g.spin_until(lambda: (self.fusion.engine.motion.newest_stamp_ns or -1) >= t_k,
                               what='dead reckoning at the epoch')
         else:
             self.wait_dead_reckoning_delivered()
@@ -248,7 +248,7 @@ def test_imu_node_restarted_mid_drive(graph, drive):
             # Everything before the restart reaches the old imu_node and fusion_node ...
             run.feed_until(restart_ns, before=True)
             run.wait_dead_reckoning_delivered()
-            assert run.fusion.accumulator.newest_stamp_ns == restart_ns - S // 10
+            assert run.fusion.engine.motion.newest_stamp_ns == restart_ns - S // 10
             # ... then it is killed and a new one starts: the same topics, a fresh
             # dead reckoning at the odom origin.
             old = run.imu
@@ -268,7 +268,7 @@ def test_imu_node_restarted_mid_drive(graph, drive):
         if epoch.stamp_ns == restarted:
             warned = run.diagnostic_now()
     assert restarted == restart_ns
-    assert run.fusion.accumulator.resets == 1
+    assert run.fusion.engine.motion.resets == 1
     assert run.fusion.stats.get('dead_reckoning_resets') == 1
     level, message, values = warned
     assert level == ma.WARN and 'dead reckoning' in message, message

@@ -1,4 +1,5 @@
-"""Tests of the emulated street imagery (datasets.emulated.render) and camera stream (datasets.emulated.camera)."""
+"""Tests of the emulated street imagery (datasets.emulated.render) and camera stream
+(datasets.emulated.camera)."""
 import dataclasses
 import os
 

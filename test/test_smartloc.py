@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 from conftest import SMARTLOC_EXCERPT
 
-from gnsscam_ros.core.motion import integrate_odometry
 from gnsscam_ros.datasets.errors import DatasetError
 from gnsscam_ros.datasets.smartloc import discover_files, load_smartloc
+from oracles import integrate_odometry
 
 GOOD_PR = ('pseudorange3 0 19949087.65 25 14567933.92 2809850.97 21875628.07 12 1 85.1 49\n')
 GOOD_ODOM = 'odom3 0 5.85 0 0 0 0 -0.0059 0.0025 0.0009 0.0009 4e-06 4e-06 4e-06\n'

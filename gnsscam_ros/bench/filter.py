@@ -16,10 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.filter import FilterConfig, ParticleFilter
+from ..core.engine import EpochEngine
+from ..core.filter import FilterConfig
 from ..core.frames import LocalFrame
 from ..core.gnss import prepare_epoch, ranges
-from ..core.particles import MotionIncrement
+from ..core.motion import DeadReckoningState
 from ..datasets.emulated.drive import make_emulated_drive
 from ..io.atomic import OutputExistsError, write_json_atomic
 from ..io.tables import format_table
@@ -47,6 +48,16 @@ def bare_likelihood(positions_m: np.ndarray, prep) -> np.ndarray:
     return a_max + np.log(np.exp(a - a_max[:, None]).sum(axis=1))
 
 
+def straight_state(stamp_ns: int, x_m: float, previous: DeadReckoningState | None = None
+                   ) -> DeadReckoningState:
+    """A dead-reckoning state of a vehicle driving straight along x at 8 m/s."""
+    var = (0.0, 0.0) if previous is None else (previous.distance_var_m2 + 0.01,
+                                               previous.yaw_var_rad2 + 1e-5)
+    return DeadReckoningState(stamp_ns=stamp_ns, x_m=x_m, y_m=0.0, yaw_rad=0.0, speed_mps=8.0,
+                              yaw_rate_rps=0.0, speed_var=0.0025, yaw_rate_var=1e-4,
+                              distance_var_m2=var[0], yaw_var_rad2=var[1])
+
+
 def bench(counts=DEFAULT_COUNTS, n_posteriors: int | None = None,
           likelihood: str | None = None, repeats: int = 15, seed: int = 0,
           bias_model: str | None = None) -> dict:
@@ -67,17 +78,22 @@ def bench(counts=DEFAULT_COUNTS, n_posteriors: int | None = None,
                               acquisition_particles=0, bias_model=bias_model)
         if likelihood is not None:
             config = replace(config, likelihood=likelihood)
-        filt = ParticleFilter(config, frame=frame, rng=np.random.default_rng(seed))
-        filt.step(epochs[0], None)
-        state = {'i': 1}
-        motion = MotionIncrement(dt_s=1.0, distance_m=8.0, dyaw_rad=0.01,
-                                 distance_var_m2=0.01, dyaw_var_rad2=1e-5)
+        engine = EpochEngine(config, frame=frame, rng=np.random.default_rng(seed))
+        filt = engine.filter
+        state = {'i': 1, 'dr': straight_state(epochs[0].stamp_ns - 1_000_000_000, 0.0)}
+        engine.add_dead_reckoning(state['dr'])
+        engine.add_gnss(epochs[0])
+        list(engine.ready_reports())
 
         def one_epoch():
-            # Advance the stamp every call so each call is a fresh, valid epoch.
+            # Advance the stamp every call so each call is a fresh, valid epoch, with 8 m
+            # of dead reckoning over the interval (through the engine, as fusion_node).
             template = epochs[state['i'] % len(epochs)]
             stamp = filt.last_stamp_ns + 1_000_000_000
-            filt.step(replace(template, stamp_ns=stamp), motion)
+            state['dr'] = straight_state(stamp, state['dr'].x_m + 8.0, state['dr'])
+            engine.add_dead_reckoning(state['dr'])
+            engine.add_gnss(replace(template, stamp_ns=stamp))
+            list(engine.ready_reports())
             state['i'] += 1
 
         evaluations = n * config.motion_sample_count

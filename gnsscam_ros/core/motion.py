@@ -1,4 +1,5 @@
-"""Dead reckoning: turn odometry samples into the motion between two GNSS epochs."""
+"""Dead reckoning: odometry and IMU samples -> planar states -> the motion between two GNSS
+epochs (one implementation for the nodes and every offline run)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -8,47 +9,9 @@ import numpy as np
 from .particles import MotionIncrement
 from .types import ImuSeries, OdometrySeries
 
-
-def integrate_odometry(odom: OdometrySeries, t0_ns: int, t1_ns: int) -> MotionIncrement:
-    """Integrate speed and yaw rate over ``[t0_ns, t1_ns]`` (trapezoidal rule).
-
-    Samples are linearly interpolated at the interval ends; outside the recorded span the
-    nearest sample is held. Variances add up as for white noise on each sample period.
-
-    Args:
-        odom: Odometry series (stamps strictly increasing).
-        t0_ns: Interval start [ns].
-        t1_ns: Interval end [ns], not before ``t0_ns``.
-
-    Returns:
-        The motion increment (distance along the heading and heading change).
-    """
-    if t1_ns < t0_ns:
-        raise ValueError(f'interval ends before it starts: {t0_ns} > {t1_ns}')
-    dt_s = (t1_ns - t0_ns) * 1e-9
-    if len(odom) == 0 or dt_s == 0.0:
-        return MotionIncrement.stationary(dt_s)
-    inside = (odom.stamp_ns > t0_ns) & (odom.stamp_ns < t1_ns)
-    t = np.concatenate(([t0_ns], odom.stamp_ns[inside], [t1_ns])).astype(float) * 1e-9
-    stamps_s = odom.stamp_ns.astype(float) * 1e-9
-    speed = np.interp(t, stamps_s, odom.speed_mps)
-    yaw_rate = np.interp(t, stamps_s, odom.yaw_rate_rps)
-    steps = np.diff(t)
-    distance = float(np.sum(0.5 * (speed[1:] + speed[:-1]) * steps))
-    dyaw = float(np.sum(0.5 * (yaw_rate[1:] + yaw_rate[:-1]) * steps))
-    speed_var = float(np.interp(t0_ns * 1e-9, stamps_s, odom.speed_var))
-    yaw_var = float(np.interp(t0_ns * 1e-9, stamps_s, odom.yaw_rate_var))
-    # Each sample's error persists for its own period: var = sigma^2 * sum(step^2)
-    # (white noise per sample), an honest figure for the odometry's own quoted variances.
-    sum_sq = float(np.sum(steps ** 2))
-    return MotionIncrement(dt_s=dt_s, distance_m=distance, dyaw_rad=dyaw,
-                           distance_var_m2=speed_var * sum_sq, dyaw_var_rad2=yaw_var * sum_sq)
-
-
-# ====================================================================== dead reckoning
-# Online dead reckoning shared by imu_node (which publishes the states) and fusion_node
-# (which turns consecutive states into the MotionIncrement of each GNSS interval), and by
-# any offline run that must reproduce the nodes: one implementation, no rclpy.
+# Online dead reckoning shared by imu_node (which publishes the states) and the epoch engine
+# (``core.engine``: fusion_node and every offline run), which turns consecutive states into
+# the MotionIncrement of each GNSS interval: one implementation, no rclpy.
 
 ODOMETRY = 'odometry'
 IMU = 'imu'
@@ -151,10 +114,9 @@ class DeadReckoner:
     stamps (one per ``config.output_period_s`` of stamp time), so that both
     signals can be interpolated linearly at every emitted stamp and the result does not
     depend on the order in which the two streams' messages arrive. Between two stamps the
-    speed and yaw rate are integrated with the trapezoidal rule (as
-    :func:`integrate_odometry`) and the position advances along the mid-interval heading
-    (as :func:`.particles.propagate`). Which sources are active is the caller's call (a
-    node: received recently; offline: present).
+    speed and yaw rate are integrated with the trapezoidal rule and the position advances
+    along the mid-interval heading (as :func:`.particles.propagate`). Which sources are
+    active is the caller's call (a node: received recently; offline: present).
 
     Args:
         config: Parameters.
@@ -314,7 +276,7 @@ class DeadReckoner:
         dyaw = 0.5 * (prev.yaw_rate_rps + yaw_rate) * dt_s
         heading = prev.yaw_rad + 0.5 * dyaw
         # Each sample's error persists over its own sample period T: the variance grows by
-        # sigma^2 * T * dt (= sigma^2 * T^2 per period, as in integrate_odometry).
+        # sigma^2 * T * dt (= sigma^2 * T^2 per period).
         return DeadReckoningState(
             stamp_ns=stamp_ns, x_m=prev.x_m + distance * np.cos(heading),
             y_m=prev.y_m + distance * np.sin(heading), yaw_rad=prev.yaw_rad + dyaw,

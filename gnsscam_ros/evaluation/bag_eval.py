@@ -180,6 +180,84 @@ def _epoch_table(res: ResultBag, verdicts: dict, frame: LocalFrame, est_stamps: 
                       satellites=sats)
 
 
+def _reference_risks(res: ResultBag, stamps: list[int], est: np.ndarray,
+                     true_enu: np.ndarray, limits: list[float], horizontal: bool,
+                     source: str) -> tuple[np.ndarray, dict]:
+    """Reference risk per epoch and alert limit from the recorded posterior (module doc):
+    ``((T, A) risks, {posterior source: epochs})``."""
+    pose_index = {int(s): i for i, s in enumerate(res.pose_stamp_ns)}
+    z = np.random.default_rng(0).standard_normal((REFERENCE_SAMPLES, 3))
+    limits_arr = np.array(limits, dtype=float)
+    reference = np.full((len(stamps), len(limits)), np.nan)
+    sources = {'particles': 0, 'pose_covariance': 0, 'fix_covariance': 0, 'none': 0}
+    fix_cov = dict(zip((int(s) for s in res.fix_stamp_ns), res.fix_cov_enu_m2))
+    for k, s in enumerate(stamps):
+        if not len(limits):
+            break
+        p = pose_index.get(s)
+        offset = est[k] - res.pose_enu_m[p] if p is not None else None
+        cloud = res.particles.get(s)
+        if cloud is not None and len(cloud) and (p is not None or source == 'pose'):
+            samples = cloud[:, :3] + (offset if offset is not None else 0.0)
+            sources['particles'] += 1
+        elif p is not None and np.all(np.isfinite(res.pose_cov[p, :3, :3])):
+            samples = _gaussian_samples(est[k], res.pose_cov[p, :3, :3], z)
+            sources['pose_covariance'] += 1
+        elif s in fix_cov and np.all(np.isfinite(fix_cov[s])):
+            samples = _gaussian_samples(est[k], fix_cov[s], z)
+            sources['fix_covariance'] += 1
+        else:
+            sources['none'] += 1
+            continue
+        n = samples.shape[0]
+        reference[k] = hazard_mass(samples[None], np.full((1, n), -math.log(n)), true_enu[k],
+                                   limits_arr, horizontal)
+
+    return reference, sources
+
+
+def _integrity_by_limit(verdicts: dict, stamps: list[int], err: np.ndarray,
+                        reference: np.ndarray, limits: list[float], target: float
+                        ) -> tuple[float, dict, str]:
+    """``(the verdicts' own alert limit, {limit: integrity metrics}, inverse method)``."""
+    defaults = FilterConfig()
+    main_limits = {float(verdicts[s].alert_limit_m) for s in stamps if s in verdicts}
+    main_limit = (main_limits.pop() if len(main_limits) == 1
+                  else limits[0] if limits else defaults.alert_limit_m)
+    # At the verdicts' own alert limit "declared sufficient" is the published level OK;
+    # for further limits the flag would be: valid (settled, motion known; the
+    # ``integrity_valid`` extra, taken as true when absent) and the bound within the target.
+    flagged_ok = np.array([s in verdicts and verdicts[s].integrity_ok for s in stamps])
+    valid = np.array([s in verdicts and verdicts[s].extra.get('integrity_valid', 'true')
+                      == 'true' for s in stamps])
+    by_limit = {}
+    for a, limit in enumerate(limits):
+        bound = np.array([_bounds(verdicts[s]).get(limit, np.nan) for s in stamps],
+                         dtype=float)
+        keep = np.isfinite(bound)
+        declared = (flagged_ok[keep] if limit == main_limit
+                    else valid[keep] & (bound[keep] <= target))
+        by_limit[f'{limit:g}'] = integrity_metrics(err[keep], bound[keep],
+                                                   reference[keep, a], limit, target,
+                                                   declared_ok=declared)
+    methods = {str(verdicts[s].extra.get('inverse_bernoulli', 'published'))
+               for s in stamps if s in verdicts}
+    method = methods.pop() if len(methods) == 1 else 'published'
+    return main_limit, by_limit, method
+
+
+def _baseline(gnss_drive: Drive | None, truth_drive: Drive, frame: LocalFrame,
+              var_m2: float) -> dict:
+    """Snapshot WLS accuracy on the dataset's GNSS (None values without GNSS)."""
+    baseline = {'rmse_2d_m': None, 'rmse_3d_m': None, 'epochs': 0, 'p50_2d_m': None,
+                'p95_2d_m': None, 'max_2d_m': None}
+    if gnss_drive is not None:
+        b_stamps, fixes = run_snapshot_baseline(gnss_drive, frame, var_m2)
+        if len(b_stamps):
+            baseline = accuracy(fixes, truth_at(truth_drive, frame, b_stamps))
+    return baseline
+
+
 def evaluate_result_bag(result_bag: str | Path, truth_bag: str | Path | None = None,
                         namespace: str = '/', origin_llh: tuple | None = None,
                         horizontal_risk: bool | None = None,
@@ -243,7 +321,6 @@ def evaluate_result_bag_epochs(result_bag: str | Path, truth_bag: str | Path | N
     frame = _truth_frame(origin, truth)
     source, est_stamps, est_enu = _estimates(res, frame, origin is not None)
     est_index = {int(s): i for i, s in enumerate(est_stamps)}
-    pose_index = {int(s): i for i, s in enumerate(res.pose_stamp_ns)}
 
     verdicts = _verdicts(res)
     if res.integrity:
@@ -271,58 +348,12 @@ def evaluate_result_bag_epochs(result_bag: str | Path, truth_bag: str | Path | N
                               path=res.path, topic=schema.INTEGRITY)
     target = targets.pop() if targets else defaults.target_risk
 
-    # Reference risk per epoch and limit, from the recorded posterior (see module doc).
-    z = np.random.default_rng(0).standard_normal((REFERENCE_SAMPLES, 3))
-    limits_arr = np.array(limits, dtype=float)
-    reference = np.full((len(stamps), len(limits)), np.nan)
-    sources = {'particles': 0, 'pose_covariance': 0, 'fix_covariance': 0, 'none': 0}
-    fix_cov = dict(zip((int(s) for s in res.fix_stamp_ns), res.fix_cov_enu_m2))
-    for k, s in enumerate(stamps):
-        if not len(limits):
-            break
-        p = pose_index.get(s)
-        offset = est[k] - res.pose_enu_m[p] if p is not None else None
-        cloud = res.particles.get(s)
-        if cloud is not None and len(cloud) and (p is not None or source == 'pose'):
-            samples = cloud[:, :3] + (offset if offset is not None else 0.0)
-            sources['particles'] += 1
-        elif p is not None and np.all(np.isfinite(res.pose_cov[p, :3, :3])):
-            samples = _gaussian_samples(est[k], res.pose_cov[p, :3, :3], z)
-            sources['pose_covariance'] += 1
-        elif s in fix_cov and np.all(np.isfinite(fix_cov[s])):
-            samples = _gaussian_samples(est[k], fix_cov[s], z)
-            sources['fix_covariance'] += 1
-        else:
-            sources['none'] += 1
-            continue
-        n = samples.shape[0]
-        reference[k] = hazard_mass(samples[None], np.full((1, n), -math.log(n)), true_enu[k],
-                                   limits_arr, horizontal)
-
+    reference, sources = _reference_risks(res, stamps, est, true_enu, limits, horizontal,
+                                          source)
     diff = est - true_enu
     err = np.hypot(diff[:, 0], diff[:, 1]) if horizontal else np.linalg.norm(diff, axis=1)
-    main_limits = {float(verdicts[s].alert_limit_m) for s in stamps if s in verdicts}
-    main_limit = (main_limits.pop() if len(main_limits) == 1
-                  else limits[0] if limits else defaults.alert_limit_m)
-    # At the verdicts' own alert limit "declared sufficient" is the published level OK;
-    # for further limits the flag would be: valid (settled, motion known; the
-    # ``integrity_valid`` extra, taken as true when absent) and the bound within the target.
-    flagged_ok = np.array([s in verdicts and verdicts[s].integrity_ok for s in stamps])
-    valid = np.array([s in verdicts and verdicts[s].extra.get('integrity_valid', 'true')
-                      == 'true' for s in stamps])
-    by_limit = {}
-    for a, limit in enumerate(limits):
-        bound = np.array([_bounds(verdicts[s]).get(limit, np.nan) for s in stamps],
-                         dtype=float)
-        keep = np.isfinite(bound)
-        declared = (flagged_ok[keep] if limit == main_limit
-                    else valid[keep] & (bound[keep] <= target))
-        by_limit[f'{limit:g}'] = integrity_metrics(err[keep], bound[keep],
-                                                   reference[keep, a], limit, target,
-                                                   declared_ok=declared)
-    methods = {str(verdicts[s].extra.get('inverse_bernoulli', 'published'))
-               for s in stamps if s in verdicts}
-    method = methods.pop() if len(methods) == 1 else 'published'
+    main_limit, by_limit, method = _integrity_by_limit(verdicts, stamps, err, reference,
+                                                       limits, target)
     out['integrity'] = by_limit
     out['integrity_by_inverse_bernoulli'] = {method: by_limit}
     pl = np.array([_pl(verdicts[s]) if s in verdicts else math.nan for s in stamps],
@@ -336,12 +367,7 @@ def evaluate_result_bag_epochs(result_bag: str | Path, truth_bag: str | Path | N
     out['statuses'] = levels
     out['filter_seconds'] = None
 
-    baseline = {'rmse_2d_m': None, 'rmse_3d_m': None, 'epochs': 0, 'p50_2d_m': None,
-                'p95_2d_m': None, 'max_2d_m': None}
-    if gnss_drive is not None:
-        b_stamps, fixes = run_snapshot_baseline(gnss_drive, frame, var_m2)
-        if len(b_stamps):
-            baseline = accuracy(fixes, truth_at(truth_drive, frame, b_stamps))
+    baseline = _baseline(gnss_drive, truth_drive, frame, var_m2)
     out['baseline_wls'] = baseline
     out['rmse_2d_ratio_to_wls'] = (out['rmse_2d_m'] / baseline['rmse_2d_m']
                                    if baseline['rmse_2d_m'] and len(stamps) else None)

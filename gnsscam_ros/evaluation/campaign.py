@@ -19,11 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.engine import best_match
 from ..core.filter import PARTICLE_RAIM, FilterConfig
-from ..core.fusion import CameraMeasurement
+from ..datasets.emulated.camera import build_emulated_map_database, scenario_of
 from ..datasets.emulated.drive import make_emulated_drive
+from ..io.atomic import write_csv_atomic, write_npz_atomic
 from ..io.tables import format_table
-from .runner import run_filter, summarize
+from .runner import offline_camera_matches, run_filter, summarize
 
 GNSS_CASES = [(0, 0.0)] + [(f, b) for b in (100.0, 200.0) for f in (2, 4, 6, 9)]
 METHODS = ('particle_raim', 'gnss_robust', 'fused')
@@ -70,8 +72,6 @@ def camera_matches_for_seed(seed: int, cache_dir: Path) -> tuple[list, dict]:
         ``(matches, faults)``: a CameraMeasurement per frame with a match (position at the
         image time) and ``{frame_id: fault code}`` (0 clean, 1 blur, 2 occlusion).
     """
-    from ..datasets.emulated.camera import build_emulated_map_database, scenario_of
-    from ..io.atomic import write_npz_atomic
     cache_dir = Path(cache_dir)
     drive = make_emulated_drive(seed, camera=True)
     stream = drive.camera
@@ -84,19 +84,14 @@ def camera_matches_for_seed(seed: int, cache_dir: Path) -> tuple[list, dict]:
     else:
         db = build_emulated_map_database(scenario_of(drive), cache_dir=cache_dir,
                                          margin_m=DATABASE_MARGIN_M)
-        stamps, positions, scores, frame_ids = [], [], [], []
-        for i, stamp, image in stream.frames():
-            best = db.query(image, top_k=1)
-            if best:
-                stamps.append(stamp)
-                positions.append(best[0].position_enu_m)
-                scores.append(best[0].score)
-                frame_ids.append(i)
-        stamps, positions = np.array(stamps, np.int64), np.array(positions).reshape(-1, 3)
-        scores, frame_ids = np.array(scores, float), np.array(frame_ids, np.int64)
+        found = offline_camera_matches(stream, db, top_k=1)
+        stamps = np.array([m.stamp_ns for m in found], np.int64)
+        positions = np.array([m.position_enu_m for m in found]).reshape(-1, 3)
+        scores = np.array([m.score for m in found], float)
+        frame_ids = np.array([m.frame_id for m in found], np.int64)
         write_npz_atomic(path, stamp_ns=stamps, position_enu_m=positions, score=scores,
                          frame_id=frame_ids)
-    matches = [CameraMeasurement(int(t), p, float(sc), int(f))
+    matches = [best_match(t, p[None], np.array([sc]), f)
                for t, p, sc, f in zip(stamps, positions, scores, frame_ids)]
     return matches, {int(i): int(c) for i, c in enumerate(stream.fault)}
 
@@ -128,7 +123,6 @@ def run_case(seed: int, faults: int, bias_m: float, method: str, base: FilterCon
            'protection_level': metrics['protection_level'],
            'gnss_epochs': len(drive.gnss), 'filter_seconds': metrics['filter_seconds']}
     if epochs_dir is not None:
-        from ..io.atomic import write_csv_atomic
         path = Path(epochs_dir) / f'epochs_s{seed}_{case_tag(faults, bias_m)}_{method}.csv'
         write_csv_atomic(path, list(record.epochs.CSV_COLUMNS), record.epochs.csv_rows(),
                          force=force)

@@ -18,14 +18,20 @@ import argparse
 import sys
 from pathlib import Path
 
+from ..bags.errors import BagError
 from ..core import integrity
 from ..core.filter import BIAS_MODELS, LIKELIHOODS, FilterConfig
+from ..datasets.emulated.drive import make_emulated_drive
 from ..datasets.errors import DatasetError
+from ..datasets.faults import FaultEpisodes, inject_pseudorange_faults
+from ..datasets.smartloc import load_smartloc_args
+from ..io.atomic import OutputExistsError, write_csv_atomic, write_json_atomic
+from ..io.tables import format_table
+from .bag_eval import evaluate_result_bag_epochs
+from .campaign import campaign_config, campaign_tables, run_campaign
 from .evaluate import evaluate_drive_record
 from .report import (INTEGRITY_HEADERS, integrity_rows, protection_level_headers,
                      protection_level_rows, stanford_line)
-from ..io.atomic import OutputExistsError, write_csv_atomic, write_json_atomic
-from ..io.tables import format_table
 
 EXIT_OK, EXIT_USAGE, EXIT_INPUT, EXIT_OUTPUT = 0, 2, 3, 4
 DEFAULT_ALERT_LIMITS_M = (8.0, 16.0)
@@ -197,8 +203,6 @@ def write_result(args: argparse.Namespace, result: dict, epochs=None, label: str
 
 def run_bag_command(args: argparse.Namespace) -> int:
     """``gnsscam_eval bag``: the offline metrics computed from a recorded result bag."""
-    from ..bags.errors import BagError
-    from .bag_eval import evaluate_result_bag_epochs
     try:
         result, epochs = evaluate_result_bag_epochs(
             args.result_bag, args.truth, namespace=args.namespace,
@@ -214,7 +218,6 @@ def run_bag_command(args: argparse.Namespace) -> int:
 
 def run_campaign_command(args: argparse.Namespace) -> int:
     """``gnsscam_eval campaign``: run, print Tables 2-4, write JSON and plots."""
-    from .campaign import campaign_config, campaign_tables, run_campaign
     if args.epochs_csv is not None and args.epochs_csv.exists() and any(
             args.epochs_csv.iterdir()) and not args.force:
         print(f'gnsscam_eval: {args.epochs_csv} is not empty; pass --force to write into it',
@@ -242,14 +245,11 @@ def run_campaign_command(args: argparse.Namespace) -> int:
 def load_drive(args: argparse.Namespace):
     """The drive named on the command line."""
     if args.command == 'smartloc':
-        from ..datasets.smartloc import load_smartloc_args
         drive = load_smartloc_args(args.folder, args.input, args.truth)
         if args.inject_faults:
-            from ..datasets.faults import FaultEpisodes, inject_pseudorange_faults
             drive = inject_pseudorange_faults(drive, args.fault_seed,
                                               FaultEpisodes(episodes=args.inject_faults))
         return drive
-    from ..datasets.emulated.drive import make_emulated_drive
     seed = args.seed if args.drive_seed is None else args.drive_seed
     return make_emulated_drive(seed, faults=args.faults, bias_m=args.bias_m,
                                nlos=not args.no_nlos, duration_s=args.duration_s)

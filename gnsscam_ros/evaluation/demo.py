@@ -38,15 +38,25 @@ from pathlib import Path
 
 import numpy as np
 
+from ..bags.convert import convert_drive
+from ..bags.read import read_drive, read_results
 from ..core.filter import FilterConfig
 from ..core.frames import LocalFrame
 from ..core.fusion import CameraMeasurement
-from ..core.motion import DeadReckoningConfig, MotionAccumulator, dead_reckon
+from ..core.motion import DeadReckoningConfig
 from ..core.types import Drive, ImuSeries, OdometrySeries, Trajectory
-from .report import stanford_line
+from ..datasets.emulated.camera import build_emulated_map_database, scenario_of, with_camera
+from ..datasets.emulated.drive import make_emulated_drive
+from ..datasets.errors import DatasetError
+from ..datasets.smartloc import discover_files, load_smartloc
 from ..io.atomic import write_json_atomic
 from ..io.tables import format_table
-from .runner import RunRecord, accuracy, run_epochs, run_snapshot_baseline, summarize, truth_at
+from ..live.replay import replay_through_nodes, use_dds_profile
+from ..nodes.camera_node import DEFAULTS as CAMERA_DEFAULTS
+from .bag_eval import evaluate_result_bag_epochs
+from .report import stanford_line
+from .runner import (RunRecord, accuracy, offline_camera_matches, run_epochs,
+                     run_snapshot_baseline, summarize, truth_at)
 
 #: Alert limit of the comparison [m]: the nodes publish the risk at one alert limit
 #: (fusion_node ``alert_limit_m``; extra limits are not a node parameter).
@@ -98,40 +108,12 @@ def cut_drive(drive: Drive, duration_s: float | None) -> Drive:
         truth=truth, info={**drive.info, 'cut_s': float(duration_s)})
 
 
-def offline_camera_matches(camera, database, top_k: int = 5) -> list[CameraMeasurement]:
-    """Best database match of every frame of a camera stream, as camera_node + fusion_node
-    produce them (top-``top_k`` query, best first; ``frame_id`` counts every frame).
-
-    Args:
-        camera: Frames (``bags.read.BagCamera`` or ``datasets.camera.CameraStream``).
-        database: The map database (positions in the map frame).
-        top_k: camera_node's ``top_k``.
-    """
-    out = []
-    positions = database.positions.enu_m
-    for i, stamp, image in camera.frames():
-        found = database.query(image, top_k=top_k)
-        if found:
-            out.append(CameraMeasurement(int(stamp), np.asarray(positions[found[0].index],
-                                                                dtype=float),
-                                         float(found[0].score), int(i)))
-    return out
-
-
 def offline_run(drive: Drive, config: FilterConfig, seed: int,
                 camera_matches: list[CameraMeasurement] | None = None,
                 dr_config: DeadReckoningConfig | None = None) -> tuple[RunRecord, LocalFrame]:
-    """The offline evaluation run of a drive with the nodes' motion and camera handling.
-
-    The filter core (``ParticleFilter``) runs over the drive's epochs as
-    :func:`.runner.run_filter` does, with the motion and camera measurements that
-    fusion_node computes: the dead reckoning of imu_node (``core.motion.dead_reckon``,
-    odometry before IMU at equal stamps) accumulated by ``MotionAccumulator``, and the
-    camera matches moved to the epoch by ``fusion_node.camera_for_epoch``. ``run_filter``
-    integrates the odometry directly (``integrate_odometry``), which agrees with the dead
-    reckoning to ~1e-9 m; the filter amplifies such differences (its discrete choices:
-    resampling, the chosen posterior) to metres over a few dozen epochs, so only the same
-    motion arithmetic gives the same trajectory as the nodes.
+    """The offline evaluation run of a drive: the filter core over the drive's epochs
+    through the same :class:`~gnsscam_ros.core.engine.EpochEngine` as fusion_node, with
+    imu_node's dead reckoning (:func:`.runner.run_epochs`), no ROS graph.
 
     Args:
         drive: The data (with truth).
@@ -144,24 +126,8 @@ def offline_run(drive: Drive, config: FilterConfig, seed: int,
     Returns:
         The run record (as :func:`.runner.run_filter`) and the filter's map frame.
     """
-    from ..nodes.fusion_node import DEFAULTS, camera_for_epoch, motion_for_epoch
-    states = dead_reckon(drive.imu, drive.odometry, dr_config)
-    acc = MotionAccumulator(DEFAULTS['odometry_buffer_s'])
-    nxt = 0
-
-    def inputs(filt, epoch) -> tuple:
-        nonlocal nxt
-        # The states fusion_node has when it runs the epoch: up to the first one at or
-        # after the epoch (the accumulator forgets states 60 s behind its newest).
-        while nxt < len(states) and (not acc.states or acc.newest_stamp_ns < epoch.stamp_ns):
-            acc.add(states[nxt])
-            nxt += 1
-        motion = motion_for_epoch(acc, filt, epoch.stamp_ns)
-        camera = (camera_for_epoch(camera_matches, acc, filt, epoch.stamp_ns)
-                  if camera_matches else None)
-        return motion, camera
-
-    return run_epochs(drive, config, seed, inputs)
+    record, engine = run_epochs(drive, config, seed, camera_matches, dr_config=dr_config)
+    return record, engine.filter.frame
 
 
 def node_series(result_bag: Path, frame: LocalFrame) -> dict:
@@ -174,7 +140,6 @@ def node_series(result_bag: Path, frame: LocalFrame) -> dict:
     """
     import pymap3d
 
-    from ..bags.read import read_results
     res = read_results(result_bag, particles=False)
     verdicts = {int(r.epoch_stamp_ns): r for r in res.integrity
                 if r.level in (0, 2) and r.epoch_stamp_ns is not None
@@ -246,11 +211,6 @@ def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed
         The dataset's results (metrics of the nodes, the offline run and WLS; replay and
         record summaries; paths).
     """
-    from ..bags.convert import convert_drive
-    from ..bags.read import read_drive
-    from ..live.replay import replay_through_nodes
-    from ..nodes.camera_node import DEFAULTS as CAMERA_DEFAULTS
-    from .bag_eval import evaluate_result_bag_epochs
     from .plots import integrity_plots, risk_plot, trajectory_plot
     folder.mkdir(parents=True, exist_ok=True)
     bag, result_bag = folder / 'dataset_bag', folder / 'result_bag'
@@ -380,19 +340,15 @@ def main(argv: list[str] | None = None) -> int:
     stages = Stages()
     out_dir = new_run_folder(args.out)
     print(f'[demo] writing into {out_dir}', file=sys.stderr)
-    from ..live.replay import use_dds_profile
     use_dds_profile(out_dir)            # before the first ROS participant of this process
     results: dict[str, dict] = {}
 
     # ---- emulated urban drive, camera included
-    from ..datasets.emulated.drive import make_emulated_drive
     duration = None if args.full else args.duration_s
     drive = stages.run('emulated: generate the drive', make_emulated_drive, EMULATED_SEED,
                        faults=EMULATED_FAULTS, bias_m=EMULATED_BIAS_M, duration_s=duration)
     database = None
     if not args.no_camera:
-        from ..datasets.emulated.camera import (build_emulated_map_database, scenario_of,
-                                                with_camera)
         drive = with_camera(drive)
         scenario = scenario_of(drive)
         database = stages.run(
@@ -407,8 +363,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.no_smartloc:
         pass
     elif smartloc_dir.is_dir():
-        from ..datasets.errors import DatasetError
-        from ..datasets.smartloc import discover_files, load_smartloc
         try:
             real = cut_drive(load_smartloc(*discover_files(smartloc_dir)),
                              args.smartloc_duration_s)

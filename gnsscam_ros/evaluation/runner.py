@@ -3,18 +3,20 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..core import integrity
-from ..core.filter import UPDATED, FilterConfig, ParticleFilter
+from ..core.filter import UPDATED, FilterConfig
 from ..core.frames import LocalFrame
-from ..core.fusion import CameraMeasurement, measurements_at_epoch
+from ..core.engine import EpochEngine, EpochReport, InputTiming, best_match
+from ..core.fusion import CameraMeasurement
 from ..core.gnss import check_epoch
-from ..core.motion import integrate_odometry
+from ..core.motion import DeadReckoningConfig, DeadReckoningState, dead_reckon
 from ..core.snapshot import solve_snapshot
-from ..core.types import Drive
+from ..core.types import Drive, GnssEpoch
 from .metrics import integrity_metrics, protection_level_metrics, rmse
 
 
@@ -128,12 +130,36 @@ class Progress:
         sys.stderr.flush()
 
 
+def offline_camera_matches(camera, database, top_k: int = 5) -> list[CameraMeasurement]:
+    """Best database match of every frame of a camera stream, as camera_node produces them
+    (top-``top_k`` query, best first; ``frame_id`` counts every frame) and the engine
+    keeps them (:func:`~gnsscam_ros.core.engine.best_match`).
+
+    Args:
+        camera: Frames (``bags.read.BagCamera`` or ``datasets.emulated.camera.CameraStream``).
+        database: The map database (positions in the map frame).
+        top_k: camera_node's ``top_k``.
+    """
+    out = []
+    positions = database.positions.enu_m
+    for i, stamp, image in camera.frames():
+        found = database.query(image, top_k=top_k)
+        match = best_match(stamp, positions[[f.index for f in found]],
+                           np.array([f.score for f in found]), i)
+        if match is not None:
+            out.append(match)
+    return out
+
+
 def run_filter(drive: Drive, config: FilterConfig, seed: int = 0, progress: bool = False,
-               camera_matches: list[CameraMeasurement] | None = None) -> RunRecord:
+               camera_matches: list[CameraMeasurement] | None = None,
+               states: list[DeadReckoningState] | None = None,
+               dr_config: DeadReckoningConfig | None = None) -> RunRecord:
     """Run the particle filter over a drive; truth is used only for scoring.
 
-    The motion of each interval integrates the odometry (``integrate_odometry``); the
-    camera matches are moved to the epoch with it.
+    The inputs go through the nodes' path (:func:`engine_reports`): imu_node's dead
+    reckoning over the drive's odometry and IMU, and the camera matches, into an
+    :class:`~gnsscam_ros.core.engine.EpochEngine`.
 
     Args:
         drive: The data.
@@ -142,43 +168,65 @@ def run_filter(drive: Drive, config: FilterConfig, seed: int = 0, progress: bool
         progress: Show progress on stderr.
         camera_matches: Best database match of every camera image (position at the image
             time, map frame); None runs GNSS only.
+        states: Dead-reckoning states to use instead of dead-reckoning the drive (tests
+            that lose or restart the dead reckoning).
+        dr_config: imu_node's dead-reckoning parameters (default: its defaults).
 
     Returns:
         Per-epoch estimates, truth, risk bounds (configured and other inverse method) and
         reference risks for every alert limit of the configuration.
     """
-    def inputs(filt: ParticleFilter, epoch) -> tuple:
-        motion, camera = None, None
-        if filt.last_stamp_ns is not None and epoch.stamp_ns > filt.last_stamp_ns:
-            if drive.odometry is not None:
-                motion = integrate_odometry(drive.odometry, filt.last_stamp_ns,
-                                            epoch.stamp_ns)
-            if camera_matches and filt.last_result is not None:
-                camera = measurements_at_epoch(camera_matches, drive.odometry,
-                                               filt.last_stamp_ns, epoch.stamp_ns,
-                                               filt.last_result.yaw_rad)
-        return motion, camera
-
-    return run_epochs(drive, config, seed, inputs, progress)[0]
+    return run_epochs(drive, config, seed, camera_matches, states, dr_config, progress)[0]
 
 
-def run_epochs(drive: Drive, config: FilterConfig, seed: int, inputs,
-               progress: bool = False) -> tuple[RunRecord, LocalFrame]:
+def engine_reports(engine: EpochEngine, epochs: list[GnssEpoch],
+                   states: list[DeadReckoningState] | None,
+                   camera_matches: list[CameraMeasurement] | None) -> Iterator[EpochReport]:
+    """Feed a drive's inputs to an engine in stamp order, as the replayed nodes get them,
+    and yield the report of each GNSS epoch (the engine's state is that epoch's when it
+    is yielded).
+
+    At equal stamps dead reckoning comes before camera images and those before GNSS
+    (the replay's tie order). Every epoch is run once its inputs have reached it, and the
+    rest when the inputs end.
+    """
+    states = list(states or [])
+    matches = list(camera_matches or [])
+    events = ([(s.stamp_ns, 0, k) for k, s in enumerate(states)]
+              + [(m.stamp_ns, 1, k) for k, m in enumerate(matches)]
+              + [(e.stamp_ns, 2, k) for k, e in enumerate(epochs)])
+    events.sort()
+    for _, kind, k in events:
+        if kind == 0:
+            engine.add_dead_reckoning(states[k])
+        elif kind == 1:
+            engine.add_camera(matches[k].stamp_ns, matches[k])
+        else:
+            engine.add_gnss(epochs[k])
+        if engine.queue:
+            yield from engine.ready_reports()
+    yield from engine.ready_reports(flush=True)
+
+
+def run_epochs(drive: Drive, config: FilterConfig, seed: int,
+               camera_matches: list[CameraMeasurement] | None = None,
+               states: list[DeadReckoningState] | None = None,
+               dr_config: DeadReckoningConfig | None = None,
+               progress: bool = False) -> tuple[RunRecord, EpochEngine]:
     """The filter over every GNSS epoch of a drive, scored against its truth.
 
-    Args:
-        drive: The data.
-        config: Filter parameters.
-        seed: Seed of the filter's random generator.
-        inputs: ``inputs(filter, epoch) -> (motion, camera)``, the other arguments of
-            ``ParticleFilter.step`` for the epoch (called once per epoch, in order).
-        progress: Show progress on stderr.
+    Arguments as :func:`run_filter`.
 
     Returns:
-        The run record and the filter's map frame.
+        The run record and the engine after the run (its filter's map frame, its motion
+        accumulator's counts).
     """
     frame = LocalFrame(*drive.origin_llh) if drive.origin_llh is not None else None
-    filt = ParticleFilter(config, frame=frame, rng=np.random.default_rng(seed))
+    if states is None:
+        states = dead_reckon(drive.imu, drive.odometry, dr_config)
+    engine = EpochEngine(config, frame=frame, rng=np.random.default_rng(seed),
+                         timing=InputTiming(gnss_queue_size=None))
+    filt = engine.filter
     limits = config.alert_limits_m
     other = integrity.APPROX if config.inverse_bernoulli == integrity.EXACT else integrity.EXACT
     stamps, estimates, bounds, bounds_other, references = [], [], [], [], []
@@ -190,9 +238,8 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int, inputs,
     camera_alpha: dict[int, float] = {}
     camera_epochs = camera_excluded = 0
     rows = []       # every epoch: (stamp, status, reason, enu, PL, bound, level, sats)
-    for i, epoch in enumerate(drive.gnss):
-        motion, camera = inputs(filt, epoch)
-        result = filt.step(epoch, motion, camera)
+    for i, report in enumerate(engine_reports(engine, drive.gnss, states, camera_matches)):
+        epoch, result = report.epoch, report.result
         if result.camera_alpha is not None:
             camera_epochs += 1
             camera_excluded += int(result.camera_excluded)
@@ -230,7 +277,7 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int, inputs,
         statuses=statuses, seconds=seconds, camera_alpha=camera_alpha,
         camera_excluded_epochs=camera_excluded, camera_epochs=camera_epochs,
         epochs=_epoch_table(rows, filt.frame, drive))
-    return record, filt.frame
+    return record, engine
 
 
 def _epoch_row(result) -> tuple:

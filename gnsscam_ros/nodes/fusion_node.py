@@ -1,13 +1,14 @@
 """fusion_node: the particle filter with integrity risk, one run per GNSS epoch.
 
 Subscribes ``gnss/measurements`` (from gnss_node), ``odometry/dead_reckoning`` (from
-imu_node) and ``camera/matches`` (from camera_node). Each GNSS epoch after the first fix
-waits until the dead reckoning has reached its stamp (at most ``odometry_wait_s``; when no
-dead reckoning has ever arrived, only during the first ``odometry_timeout_s`` of GNSS:
-GNSS-only operation waits for nothing after that), then
-``ParticleFilter.step(epoch, motion, camera)`` runs with the motion of the interval since
-the previous epoch (``core.motion.MotionAccumulator``, the same code as an offline run) and
-the camera matches of that interval moved to the epoch (``core.fusion``).
+imu_node) and ``camera/matches`` (from camera_node) and hands them to the epoch engine
+(``core.engine.EpochEngine``, the same object every offline run uses). Each GNSS epoch after
+the first fix waits until its inputs have reached its stamp: the dead reckoning (at most
+``odometry_wait_s``; when none has ever arrived, only during the first
+``odometry_timeout_s`` of GNSS: GNSS-only operation waits for nothing after that) and the
+camera images due before it (at most ``camera_wait_s``; a camera ``camera_timeout_s``
+behind has stopped). Then the filter runs with the motion of the interval since the
+previous epoch and the best match of each image of that interval moved to the epoch.
 
 Publishes, in this order, ``integrity_risk`` (DiagnosticArray: OK = integrity sufficient,
 ERROR = alarm, STALE = no valid solution), ``pose`` (PoseWithCovarianceStamped, map),
@@ -39,7 +40,6 @@ import math
 import re
 import sys
 import time
-from collections import deque
 from dataclasses import fields, replace
 
 import numpy as np
@@ -48,13 +48,15 @@ from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import NavSatFix, NavSatStatus, PointCloud2
 
-from gnsscam_ros.core.filter import (PROPAGATED, REJECTED, UPDATED, EpochResult, FilterConfig,
-                                     ParticleFilter)
+from gnsscam_ros.core.engine import (CAMERA, DEAD_RECKONING, DROPPED_OLDEST, ERROR as V_ERROR,
+                                     ESTIMATE_STATUSES, NO_MATCH, OK as V_OK,
+                                     STALE as V_STALE, EpochEngine, EpochReport, InputTiming,
+                                     IntegrityVerdict, best_match)
+from gnsscam_ros.core.filter import REJECTED, UPDATED, EpochResult, FilterConfig
 from gnsscam_ros.core.frames import LocalFrame
-from gnsscam_ros.core.fusion import CameraMeasurement, measurements_at_epoch
-from gnsscam_ros.core.motion import OUT_OF_ORDER, RESET, MotionAccumulator
+from gnsscam_ros.core.motion import OUT_OF_ORDER, RESET
 from gnsscam_ros.core.types import GnssEpoch
-from msg_adapters import (ERROR, OK, STALE, WARN, CameraMatches, GeodeticFix, GlobalOdometry,
+from msg_adapters import (ERROR, OK, STALE, WARN, GeodeticFix, GlobalOdometry,
                           IntegrityRisk, MessageError, PoseEstimate, fix_to_navsatfix,
                           global_odometry_to_msg, integrity_risk_to_msg, make_status,
                           odometry_to_dead_reckoning, particles_to_posearray,
@@ -63,6 +65,15 @@ from msg_adapters import (ERROR, OK, STALE, WARN, CameraMatches, GeodeticFix, Gl
 from msg_adapters.geometry import UNESTIMATED_VAR
 
 from .common import BIG, GnssCamNode, ParameterError, latched_qos, reliable_qos, run_node
+
+#: Engine verdict levels -> DiagnosticStatus levels of integrity_risk.
+_LEVELS = {V_OK: OK, V_ERROR: ERROR, V_STALE: STALE}
+#: Node parameters that are fields of the engine's InputTiming (same meaning).
+TIMING_PARAMETERS = {'odometry_buffer_s': 'dead_reckoning_buffer_s',
+                     'camera_buffer_s': 'camera_buffer_s', 'gnss_queue_size': 'gnss_queue_size',
+                     'odometry_wait_s': 'odometry_wait_s',
+                     'odometry_timeout_s': 'odometry_timeout_s',
+                     'camera_wait_s': 'camera_wait_s', 'camera_timeout_s': 'camera_timeout_s'}
 
 _FILTER_DEFAULTS = FilterConfig()
 # FilterConfig fields that are not node parameters (evaluation only).
@@ -83,8 +94,10 @@ DEFAULTS = {
     'stale_report_period_s': 1.0,
     'odometry_wait_s': 0.2,
     'odometry_timeout_s': 1.0,
+    'camera_wait_s': 0.2,
+    'camera_timeout_s': 2.0,
     'odometry_buffer_s': 60.0,
-    'camera_buffer_s': 10.0,
+    'camera_buffer_s': 60.0,
     'max_published_particles': 1000,
     'gnss_queue_size': 10,
     'odometry_queue_depth': 1000,
@@ -142,50 +155,6 @@ def published_particles(particles: np.ndarray, log_w: np.ndarray, max_count: int
     return particles[np.minimum(idx, n - 1)]
 
 
-def camera_measurement(matches: CameraMatches, frame_id: int) -> CameraMeasurement | None:
-    """The best match of an image as the filter's camera measurement (None: no match)."""
-    if not len(matches):
-        return None
-    return CameraMeasurement(stamp_ns=matches.stamp_ns,
-                             position_enu_m=np.asarray(matches.position_m[0], dtype=float),
-                             score=float(matches.score[0]), frame_id=int(frame_id))
-
-
-def motion_for_epoch(accumulator: MotionAccumulator, filt: ParticleFilter, stamp_ns: int):
-    """The motion argument of ``filt.step`` for an epoch at ``stamp_ns`` (None: none)."""
-    t0 = filt.last_stamp_ns
-    if t0 is None or stamp_ns <= t0 or not accumulator.states:
-        return None
-    return accumulator.increment(t0, stamp_ns)
-
-
-def twist_at(accumulator: MotionAccumulator, stamp_ns: int
-             ) -> tuple[float, float, float, float]:
-    """``(speed, yaw rate, speed variance, yaw-rate variance)`` of the newest dead-reckoning
-    state at or before ``stamp_ns`` [m/s, rad/s, (m/s)^2, (rad/s)^2]; unknown (zeros with
-    :data:`UNESTIMATED_VAR`) when there is none within ``accumulator.max_gap_s`` before."""
-    for state in reversed(accumulator.states):
-        if state.stamp_ns <= stamp_ns:
-            if (stamp_ns - state.stamp_ns) * 1e-9 <= accumulator.max_gap_s:
-                return (state.speed_mps, state.yaw_rate_rps, state.speed_var,
-                        state.yaw_rate_var)
-            break
-    return 0.0, 0.0, UNESTIMATED_VAR, UNESTIMATED_VAR
-
-
-def camera_for_epoch(buffer: list[CameraMeasurement], accumulator: MotionAccumulator,
-                     filt: ParticleFilter, stamp_ns: int):
-    """The camera argument of ``filt.step``: matches since the previous epoch, moved to
-    this one with the dead-reckoned speed and yaw rate (None: none)."""
-    t0 = filt.last_stamp_ns
-    if (not buffer or t0 is None or stamp_ns <= t0 or filt.last_result is None
-            or not np.isfinite(filt.last_result.yaw_rad)):
-        return None
-    odometry = accumulator.odometry_series(t0, stamp_ns) if accumulator.states else None
-    moved = measurements_at_epoch(buffer, odometry, t0, stamp_ns, filt.last_result.yaw_rad)
-    return moved or None
-
-
 class FusionNode(GnssCamNode):
     """Particle filter node.
 
@@ -227,6 +196,12 @@ class FusionNode(GnssCamNode):
         self.declare('odometry_timeout_s', DEFAULTS['odometry_timeout_s'],
                      'Dead reckoning silent this long is not waited for [s] (wall time).',
                      (0.0, BIG))
+        self.declare('camera_wait_s', DEFAULTS['camera_wait_s'],
+                     'Longest wait for the camera images due before a GNSS epoch [s] (wall '
+                     'time).', (0.0, BIG))
+        self.declare('camera_timeout_s', DEFAULTS['camera_timeout_s'],
+                     'A camera whose newest image is this far behind the other inputs has '
+                     'stopped and is not waited for [s] (stamp time).', (0.0, BIG))
         self.declare('odometry_buffer_s', DEFAULTS['odometry_buffer_s'],
                      'Dead-reckoning history kept [s] (stamp time).', (1.0, BIG),
                      read_only=True)
@@ -252,18 +227,14 @@ class FusionNode(GnssCamNode):
             config = self._filter_config({})
         except ValueError as err:        # FilterConfig's own checks (likelihood, ...)
             raise ParameterError(f'{node_name}: {err}') from err
-        self.filter = ParticleFilter(config, frame=frame, rng=rng)
-        self.accumulator = MotionAccumulator(self.param('odometry_buffer_s'),
-                                             self.filter.config.max_speed_mps)
-        self.camera_buffer: list[CameraMeasurement] = []
+        self.engine = EpochEngine(config, frame=frame, rng=rng, timing=InputTiming(
+            **{field: self.param(name) for name, field in TIMING_PARAMETERS.items()}))
+        self.filter = self.engine.filter
         self._camera_count = 0
-        self._queue: deque = deque()
         self._started = time.monotonic()
         self._last_gnss_receipt: float | None = None
-        self._first_gnss_receipt: float | None = None
         self._last_dr_receipt: float | None = None
         self._last_stale_report = -math.inf
-        self._last_epoch_ns: int | None = None
         self.last_result: EpochResult | None = None
         self.last_risk: IntegrityRisk | None = None
         self.origin_published = False
@@ -311,6 +282,10 @@ class FusionNode(GnssCamNode):
         return None
 
     def apply_parameters(self, changes: dict) -> None:
+        timing = {TIMING_PARAMETERS[k]: v for k, v in changes.items()
+                  if k in TIMING_PARAMETERS}
+        if timing:
+            self.engine.timing = replace(self.engine.timing, **timing)
         filter_changes = {k: v for k, v in changes.items() if k in FILTER_PARAMETERS}
         if filter_changes:
             self.filter.set_parameters(**filter_changes)
@@ -325,17 +300,15 @@ class FusionNode(GnssCamNode):
         except MessageError as err:
             self.warn_rejected('gnss/measurements', err.reason, str(err))
             return
-        self._last_gnss_receipt = time.monotonic()
-        if self._first_gnss_receipt is None:
-            self._first_gnss_receipt = self._last_gnss_receipt
-        if self._queue and epoch.stamp_ns <= self._queue[-1][0].stamp_ns:
+        now = time.monotonic()
+        self._last_gnss_receipt = now
+        outcome = self.engine.add_gnss(epoch, now)
+        if outcome == OUT_OF_ORDER:
             self.warn_rejected('gnss/measurements', 'out_of_order',
                                f'stamp {epoch.stamp_ns} ns not after the queued epoch')
             return
-        if len(self._queue) >= self.param('gnss_queue_size'):
-            self._queue.popleft()
+        if outcome == DROPPED_OLDEST:
             self.stats.count('dropped_epochs')
-        self._queue.append((epoch, time.monotonic()))
         self.process_ready()
 
     def on_dead_reckoning(self, msg: Odometry) -> None:
@@ -346,7 +319,8 @@ class FusionNode(GnssCamNode):
         except MessageError as err:
             self.warn_rejected('odometry/dead_reckoning', err.reason, str(err))
             return
-        outcome = self.accumulator.add(state)
+        now = time.monotonic()
+        outcome = self.engine.add_dead_reckoning(state, now)
         if outcome == OUT_OF_ORDER:
             self.warn_rejected('odometry/dead_reckoning', 'out_of_order',
                                f'stamp {state.stamp_ns} ns not after the previous state')
@@ -359,8 +333,8 @@ class FusionNode(GnssCamNode):
                 f'dead reckoning reset at {state.stamp_ns} ns (restarted imu_node?): the '
                 'motion across it is treated as unknown, integrity ERROR until the '
                 'protection level recovers')
-        self._last_dr_receipt = time.monotonic()
-        if self._queue:
+        self._last_dr_receipt = now
+        if self.engine.queue:
             self.process_ready()
 
     def on_matches(self, msg: PointCloud2) -> None:
@@ -371,24 +345,24 @@ class FusionNode(GnssCamNode):
         except MessageError as err:
             self.warn_rejected('camera/matches', err.reason, str(err))
             return
-        if self.camera_buffer and matches.stamp_ns < self.camera_buffer[-1].stamp_ns:
+        measurement = best_match(matches.stamp_ns, matches.position_m, matches.score,
+                                 self._camera_count)
+        outcome = self.engine.add_camera(matches.stamp_ns, measurement, time.monotonic())
+        if outcome == OUT_OF_ORDER:
             self.warn_rejected('camera/matches', 'out_of_order',
                                f'stamp {matches.stamp_ns} ns before the previous image')
             return
-        measurement = camera_measurement(matches, self._camera_count)
         self._camera_count += 1
-        if measurement is None:
+        if outcome == NO_MATCH:
             self.stats.count('camera_without_match')
-            return
-        self.camera_buffer.append(measurement)
-        horizon = matches.stamp_ns - int(self.param('camera_buffer_s') * 1e9)
-        self.camera_buffer = [m for m in self.camera_buffer if m.stamp_ns >= horizon]
+        if self.engine.queue:
+            self.process_ready()
 
     def on_timer(self) -> None:
-        """Run epochs whose wait for odometry is over; report STALE without GNSS."""
+        """Run epochs whose wait for their inputs is over; report STALE without GNSS."""
         if not self.context.ok():
             return                       # shutting down (Ctrl-C): nothing to publish to
-        if self._queue:
+        if self.engine.queue:
             self.process_ready()
         now = time.monotonic()
         since = now - (self._last_gnss_receipt or self._started)
@@ -396,106 +370,49 @@ class FusionNode(GnssCamNode):
                 and now - self._last_stale_report >= self.param('stale_report_period_s')):
             self._last_stale_report = now
             self.stats.count('stale_reports')
-            self.publish_integrity(self._stale_risk(
-                self.now_ns(), f'stale: no GNSS measurements for {since:.1f} s'))
+            self.publish_integrity(self.integrity_risk(self.engine.stale_verdict(
+                self.now_ns(), f'stale: no GNSS measurements for {since:.1f} s')))
 
     # --------------------------------------------------------------------- epochs
-    def _ready(self, stamp_ns: int, queued_at: float) -> bool:
-        newest = self.accumulator.newest_stamp_ns
-        if newest is not None and newest >= stamp_ns or not self.filter.initialised:
-            return True          # covered, or the first fix (it needs no motion)
-        now = time.monotonic()
-        timeout = self.param('odometry_timeout_s')
-        if self._last_dr_receipt is None:
-            # No dead reckoning yet. Its first states travel another path than the GNSS
-            # epochs (imu_node, not gnss_node) and may arrive after the second epoch: wait
-            # for them as for any state, until GNSS has flowed for odometry_timeout_s
-            # without any (GNSS-only operation: nothing to wait for).
-            if now - (self._first_gnss_receipt or now) > timeout:
-                return True
-        elif now - self._last_dr_receipt > timeout:
-            return True          # the dead reckoning stopped: nothing to wait for
-        if now - queued_at >= self.param('odometry_wait_s'):
-            self.stats.count('odometry_late')
-            return True
-        return False
-
     def process_ready(self) -> None:
-        """Run every queued epoch that is ready, oldest first."""
-        while self._queue and self._ready(self._queue[0][0].stamp_ns, self._queue[0][1]):
-            epoch, queued_at = self._queue.popleft()
-            self.process_epoch(epoch)
-
-    def process_epoch(self, epoch: GnssEpoch) -> EpochResult:
-        """One filter step and its outputs."""
+        """Run every queued epoch that is ready, oldest first, and publish its outputs."""
         start = time.perf_counter()
-        motion = motion_for_epoch(self.accumulator, self.filter, epoch.stamp_ns)
-        camera = camera_for_epoch(self.camera_buffer, self.accumulator, self.filter,
-                                  epoch.stamp_ns)
-        result = self.filter.step(epoch, motion, camera)
+        for report in self.engine.ready_reports(time.monotonic()):
+            self.publish_report(report, start)
+            start = time.perf_counter()
+
+    def publish_report(self, report: EpochReport, start: float) -> None:
+        """The outputs of one processed epoch (``start``: when its processing began)."""
+        result, epoch = report.result, report.epoch
         self.last_result = result
         self.stats.count(f'epochs_{result.status}')
+        if DEAD_RECKONING in report.late:
+            self.stats.count('odometry_late')
+        if CAMERA in report.late:
+            self.stats.count('camera_late')
         if result.status == REJECTED:
             self.warn_rejected('gnss/measurements', 'filter_rejected', result.reason)
             self.stats.add_time(time.perf_counter() - start)
-            return result
-        self._last_epoch_ns = epoch.stamp_ns
+            return
         if not self.origin_published and self.filter.frame is not None:
             self.publish_origin(epoch.stamp_ns, service_bits(epoch.system))
-        self.publish_integrity(self.integrity_of(result))
+        self.publish_integrity(self.integrity_risk(report.verdict))
         self.stats.add_time(time.perf_counter() - start)
-        if result.status in (UPDATED, PROPAGATED):
+        if result.status in ESTIMATE_STATUSES:
             self._publish_estimate(result, epoch)
-        return result
 
-    def integrity_of(self, result: EpochResult) -> IntegrityRisk:
-        """The integrity_risk content of an epoch result."""
-        cfg = self.filter.config
-        if result.status != UPDATED or result.risk is None:
-            return self._stale_risk(result.stamp_ns, f'no valid solution ({result.status}): '
-                                    f'{result.reason}', result)
-        risk = result.risk
-        bound = float(risk.risk_bound[0])
-        level = float(result.protection_level_m)
-        # OK needs every piece of evidence: the filter's verdict (motion known, PL within
-        # the alert limit) and the bound it implies.
-        ok = bool(result.integrity_ok) and bound <= cfg.target_risk
-        extra = {'status': result.status, 'n_satellites': result.n_satellites,
-                 'kl_nats': float(risk.kl_nats), 'epsilon': float(risk.epsilon),
-                 'inverse_bernoulli': cfg.inverse_bernoulli,
-                 'motion_unknown_s': float(result.motion_unknown_s),
-                 'integrity_valid': bool(result.integrity_valid),
-                 'dead_reckoning_resets': int(self.accumulator.resets)}
-        for a in range(1, len(risk.alert_limits_m)):
-            extra[f'risk_bound_{risk.alert_limits_m[a]:g}m'] = float(risk.risk_bound[a])
-        if result.camera_alpha is not None:
-            extra['camera_images'] = len(result.camera_frame_ids)
-            extra['camera_excluded'] = bool(result.camera_excluded)
-        limit = float(risk.alert_limits_m[0])
-        if ok:
-            message = (f'integrity sufficient: protection level {level:.1f} m <= alert limit '
-                       f'{limit:g} m (risk bound {bound:.3g} <= {cfg.target_risk:g})')
-        else:
-            why = result.integrity_reason or (f'risk bound {bound:.3g} > target '
-                                              f'{cfg.target_risk:g}')
-            message = f'integrity insufficient: {why}'
+    @staticmethod
+    def integrity_risk(verdict: IntegrityVerdict) -> IntegrityRisk:
+        """The ``integrity_risk`` content of an engine verdict."""
+        extra = {'status': verdict.epoch_status or 'no_gnss', **verdict.details}
+        for limit, bound in verdict.risk_bounds_by_limit.items():
+            extra[f'risk_bound_{limit:g}m'] = bound
         return IntegrityRisk(
-            stamp_ns=result.stamp_ns, level=OK if ok else ERROR, message=message,
-            risk_bound=bound, empirical_risk=float(risk.empirical_risk[0]),
-            divergence_risk=float(risk.divergence_risk[0]),
-            alert_limit_m=limit, target_risk=float(cfg.target_risk),
-            epoch_stamp_ns=int(result.stamp_ns), protection_level_m=level, extra=extra)
-
-    def _stale_risk(self, stamp_ns: int, message: str,
-                    result: EpochResult | None = None) -> IntegrityRisk:
-        cfg = self.filter.config
-        extra = {'status': result.status if result is not None else 'no_gnss'}
-        epoch = result.stamp_ns if result is not None else self._last_epoch_ns
-        return IntegrityRisk(stamp_ns=stamp_ns, level=STALE, message=message,
-                             risk_bound=math.nan, empirical_risk=math.nan,
-                             divergence_risk=math.nan, alert_limit_m=float(cfg.alert_limit_m),
-                             target_risk=float(cfg.target_risk), epoch_stamp_ns=epoch,
-                             protection_level_m=math.nan, extra=extra)
+            stamp_ns=verdict.stamp_ns, level=_LEVELS[verdict.level], message=verdict.message,
+            risk_bound=verdict.risk_bound, empirical_risk=verdict.empirical_risk,
+            divergence_risk=verdict.divergence_risk, alert_limit_m=verdict.alert_limit_m,
+            target_risk=verdict.target_risk, epoch_stamp_ns=verdict.epoch_stamp_ns,
+            protection_level_m=verdict.protection_level_m, extra=extra)
 
     def publish_integrity(self, risk: IntegrityRisk) -> None:
         self.pub_integrity.publish(integrity_risk_to_msg(risk))
@@ -542,7 +459,9 @@ class FusionNode(GnssCamNode):
         self.pub_pose.publish(pose_to_msg(PoseEstimate(
             stamp_ns=result.stamp_ns, position_m=result.position_enu_m, yaw_rad=result.yaw_rad,
             covariance=pose_cov, frame_id=map_frame)))
-        speed, yaw_rate, speed_var, yaw_rate_var = twist_at(self.accumulator, result.stamp_ns)
+        speed, yaw_rate, speed_var, yaw_rate_var = (
+            self.engine.twist_at(result.stamp_ns)
+            or (0.0, 0.0, UNESTIMATED_VAR, UNESTIMATED_VAR))
         self.pub_odometry.publish(global_odometry_to_msg(GlobalOdometry(
             stamp_ns=result.stamp_ns, position_m=result.position_enu_m, yaw_rad=result.yaw_rad,
             pose_covariance=pose_cov, speed_mps=speed, yaw_rate_rps=yaw_rate,
@@ -564,12 +483,12 @@ class FusionNode(GnssCamNode):
         since_dr = (math.inf if self._last_dr_receipt is None
                     else now - self._last_dr_receipt)
         values = {'seconds_since_gnss': since_gnss, 'seconds_since_dead_reckoning': since_dr,
-                  'gnss_queue_length': len(self._queue),
-                  'camera_buffer_length': len(self.camera_buffer),
+                  'gnss_queue_length': len(self.engine.queue),
+                  'camera_buffer_length': len(self.engine.camera),
                   'n_particles': self.filter.config.n_particles,
                   'alert_limit_m': self.filter.config.alert_limit_m,
                   'target_risk': self.filter.config.target_risk}
-        values['dead_reckoning_resets'] = self.accumulator.resets
+        values['dead_reckoning_resets'] = self.engine.motion.resets
         if self.last_result is not None:
             values['last_status'] = self.last_result.status
             values['protection_level_m'] = (math.nan if self.last_result.protection_level_m

@@ -1,0 +1,407 @@
+"""The epoch engine: every input of the filter in, one report per GNSS epoch out.
+
+fusion_node, the offline evaluation (``gnsscam_eval``, the campaign, the demo's offline run)
+and the benches all drive the filter through :class:`EpochEngine`, so that "the nodes
+reproduce the offline run" holds by construction instead of by copies:
+
+* dead-reckoning states (imu_node's ``odometry/dead_reckoning``, or offline the states of
+  ``core.motion.dead_reckon`` over the drive's odometry and IMU) go into one
+  ``MotionAccumulator``, which answers the motion of each GNSS interval;
+* camera matches (the best database match of each image) go into a buffer; the matches of
+  an interval are moved to the epoch with the dead-reckoned speed and yaw rate;
+* GNSS epochs are queued until they are *ready* (:meth:`EpochEngine.waiting_for`): every
+  input stream has reached the epoch's stamp, has ended, or has been waited for long
+  enough (bounded waits, wall time, only when a clock is given);
+* each epoch runs ``ParticleFilter.step`` and yields an :class:`EpochReport` with the
+  result and the :class:`IntegrityVerdict` that ``integrity_risk`` publishes.
+
+Which inputs an epoch uses never depends on when the later ones arrive: the motion and
+the camera matches of an interval only use inputs stamped at or before its end (as long as
+no stream runs more than its buffer, 60 s by default, ahead of the GNSS).
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .filter import PROPAGATED, UPDATED, EpochResult, FilterConfig, ParticleFilter
+from .frames import LocalFrame
+from .fusion import CameraMeasurement, measurements_at_epoch
+from .motion import OUT_OF_ORDER, DeadReckoningState, MotionAccumulator
+from .particles import MotionIncrement
+from .types import GnssEpoch
+
+#: Integrity levels of a verdict (``integrity_risk``: DiagnosticStatus OK / ERROR / STALE).
+OK, ERROR, STALE = 'OK', 'ERROR', 'STALE'
+
+#: Outcomes of the ``add_*`` methods besides ``motion.ADDED``/``OUT_OF_ORDER``/``RESET``.
+QUEUED, DROPPED_OLDEST, NO_MATCH = 'queued', 'dropped_oldest', 'no_match'
+#: What a queued epoch waits for (:meth:`EpochEngine.waiting_for`).
+DEAD_RECKONING, CAMERA = 'dead_reckoning', 'camera'
+
+
+@dataclass(frozen=True)
+class InputTiming:
+    """How long inputs are kept and waited for.
+
+    Stamp times are the inputs' own; wall times only count when the caller passes a clock
+    (``now_s``; a node passes ``time.monotonic()``, an offline run passes none and feeds
+    its inputs in stamp order).
+
+    Attributes:
+        dead_reckoning_buffer_s: Dead-reckoning history kept behind the newest state [s]
+            (stamp time).
+        camera_buffer_s: Camera matches kept behind the newest image [s] (stamp time), a
+            memory bound for a camera running ahead of GNSS; matches at or before a
+            processed epoch are dropped anyway (only the current interval's are used).
+        gnss_queue_size: GNSS epochs waiting at most; when full the oldest is dropped
+            (None: unbounded, offline).
+        odometry_wait_s: Longest wait for the dead reckoning to reach an epoch [s] (wall).
+        odometry_timeout_s: Dead reckoning silent this long is not waited for; before any
+            has arrived, GNSS flowing this long without it means GNSS-only operation [s]
+            (wall).
+        camera_wait_s: Longest wait for the camera images due before an epoch [s] (wall).
+        camera_timeout_s: A camera whose newest image is this far behind the newest
+            input of any stream has stopped and is not waited for [s] (stamp time, so
+            that offline runs decide alike).
+    """
+
+    dead_reckoning_buffer_s: float = 60.0
+    camera_buffer_s: float = 60.0
+    gnss_queue_size: int | None = 10
+    odometry_wait_s: float = 0.2
+    odometry_timeout_s: float = 1.0
+    camera_wait_s: float = 0.2
+    camera_timeout_s: float = 2.0
+
+
+@dataclass(frozen=True)
+class IntegrityVerdict:
+    """What ``integrity_risk`` publishes for one epoch (or for silence).
+
+    Attributes:
+        stamp_ns: Time of the verdict [ns] (the epoch's; a STALE report for silence
+            carries the time it was made).
+        level: ``OK`` (integrity sufficient), ``ERROR`` (alarm) or ``STALE`` (no valid
+            solution behind it).
+        message: Human-readable reason.
+        risk_bound: Risk bound at the configured alert limit (NaN when STALE).
+        empirical_risk: Its empirical part (NaN when STALE).
+        divergence_risk: Its divergence part (NaN when STALE).
+        alert_limit_m: Configured alert limit [m].
+        target_risk: Configured target integrity risk.
+        epoch_stamp_ns: Stamp of the GNSS epoch behind the verdict (None: none yet).
+        protection_level_m: Protection level [m] (NaN when STALE, inf when none).
+        epoch_status: Filter status of that epoch ('updated', 'propagated', 'rejected',
+            'waiting'); None when no GNSS epoch is behind the verdict.
+        risk_bounds_by_limit: ``{alert limit [m]: risk bound}`` of the further alert
+            limits (``extra_alert_limits_m``).
+        details: Further figures (satellites, KL, epsilon, motion, camera).
+    """
+
+    stamp_ns: int
+    level: str
+    message: str
+    alert_limit_m: float
+    target_risk: float
+    risk_bound: float = math.nan
+    empirical_risk: float = math.nan
+    divergence_risk: float = math.nan
+    epoch_stamp_ns: int | None = None
+    protection_level_m: float = math.nan
+    epoch_status: str | None = None
+    risk_bounds_by_limit: dict = field(default_factory=dict)
+    details: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class EpochReport:
+    """One processed GNSS epoch.
+
+    Attributes:
+        epoch: The GNSS epoch.
+        result: The filter's result.
+        verdict: Its integrity verdict.
+        late: Inputs that had not reached the epoch when it ran after its bounded wait
+            (``DEAD_RECKONING``, ``CAMERA``).
+    """
+
+    epoch: GnssEpoch
+    result: EpochResult
+    verdict: IntegrityVerdict
+    late: tuple = ()
+
+
+def best_match(stamp_ns: int, positions_m: np.ndarray, scores: np.ndarray,
+               frame_id: int) -> CameraMeasurement | None:
+    """The filter's camera measurement of one image: its best match (None: no match).
+
+    camera_node publishes the top-k matches best first for any consumer; the fusion uses
+    the best one (the paper's match state).
+    """
+    if len(scores) == 0:
+        return None
+    return CameraMeasurement(stamp_ns=int(stamp_ns),
+                             position_enu_m=np.asarray(positions_m[0], dtype=float),
+                             score=float(scores[0]), frame_id=int(frame_id))
+
+
+class EpochEngine:
+    """The particle filter with its input buffers and the readiness of each epoch.
+
+    Args:
+        config: Filter parameters.
+        frame: Map frame (None: anchored at the first robust fix).
+        rng: The filter's random generator.
+        timing: Buffers and waits (:class:`InputTiming`).
+    """
+
+    def __init__(self, config: FilterConfig, frame: LocalFrame | None = None,
+                 rng: np.random.Generator | None = None, timing: InputTiming | None = None):
+        self.timing = timing or InputTiming()
+        self.filter = ParticleFilter(config, frame=frame, rng=rng)
+        self.motion = MotionAccumulator(self.timing.dead_reckoning_buffer_s,
+                                        config.max_speed_mps)
+        self.camera: list[CameraMeasurement] = []
+        self.queue: deque = deque()          # (epoch, queued at [wall s] or None)
+        self.counts: dict[str, int] = {}
+        self._camera_stamps: deque = deque(maxlen=16)   # every image, matched or not
+        self._first_gnss_s: float | None = None
+        self._last_dr_s: float | None = None
+
+    # ------------------------------------------------------------------ inputs
+    def add_dead_reckoning(self, state: DeadReckoningState, now_s: float | None = None) -> str:
+        """Buffer a dead-reckoning state: ``ADDED``, ``OUT_OF_ORDER`` (ignored) or
+        ``RESET`` (a restarted dead reckoner; the interval across it is unknown motion)."""
+        outcome = self.motion.add(state)
+        if outcome != OUT_OF_ORDER:
+            self._last_dr_s = now_s
+        return outcome
+
+    def add_camera(self, stamp_ns: int, measurement: CameraMeasurement | None,
+                   now_s: float | None = None) -> str:
+        """Buffer one image's best match (None: the image matched nothing).
+
+        Returns:
+            ``ADDED``, ``NO_MATCH`` (the image still counts as seen) or ``OUT_OF_ORDER``
+            (older than the previous image: ignored).
+        """
+        if self._camera_stamps and stamp_ns < self._camera_stamps[-1]:
+            return OUT_OF_ORDER
+        self._camera_stamps.append(int(stamp_ns))
+        if measurement is None:
+            return NO_MATCH
+        self.camera.append(measurement)
+        horizon = stamp_ns - int(self.timing.camera_buffer_s * 1e9)
+        self.camera = [m for m in self.camera if m.stamp_ns >= horizon]
+        return 'added'
+
+    def add_gnss(self, epoch: GnssEpoch, now_s: float | None = None) -> str:
+        """Queue a GNSS epoch: ``QUEUED``, ``DROPPED_OLDEST`` (queued; the queue was full)
+        or ``OUT_OF_ORDER`` (not after the newest queued epoch: ignored)."""
+        if self.queue and epoch.stamp_ns <= self.queue[-1][0].stamp_ns:
+            return OUT_OF_ORDER
+        if self._first_gnss_s is None:
+            self._first_gnss_s = now_s
+        outcome = QUEUED
+        size = self.timing.gnss_queue_size
+        if size is not None and len(self.queue) >= size:
+            self.queue.popleft()
+            self._count('dropped_epochs')
+            outcome = DROPPED_OLDEST
+        self.queue.append((epoch, now_s))
+        return outcome
+
+    # ------------------------------------------------------------------ readiness
+    def waiting_for(self, stamp_ns: int, queued_s: float | None = None,
+                    now_s: float | None = None) -> tuple[str, ...]:
+        """The input streams an epoch at ``stamp_ns`` still waits for (empty: ready).
+
+        The first fix needs no motion and no camera. Otherwise the dead reckoning must
+        have reached the stamp unless it is silent (``odometry_timeout_s``, wall time) or
+        was never seen while GNSS flowed that long; the camera must have delivered every
+        image due up to the stamp (no image is due when the time since its newest image
+        is below its frame period) unless it is ``camera_timeout_s`` behind. Bounded
+        waits (``odometry_wait_s``, ``camera_wait_s`` since ``queued_s``) end any wait.
+        """
+        if not self.filter.initialised:
+            return ()
+        waits = []
+        if self._dead_reckoning_due(stamp_ns, now_s):
+            waits.append(DEAD_RECKONING)
+        if self._camera_due(stamp_ns):
+            waits.append(CAMERA)
+        if not waits or now_s is None or queued_s is None:
+            return tuple(waits)
+        waited = now_s - queued_s
+        bound = {DEAD_RECKONING: self.timing.odometry_wait_s,
+                 CAMERA: self.timing.camera_wait_s}
+        return tuple(w for w in waits if waited < bound[w])
+
+    def _latest_input_ns(self) -> int:
+        """Newest stamp any input stream has delivered (GNSS queued, motion, camera)."""
+        stamps = [self.queue[-1][0].stamp_ns] if self.queue else []
+        if self.motion.newest_stamp_ns is not None:
+            stamps.append(self.motion.newest_stamp_ns)
+        if self._camera_stamps:
+            stamps.append(self._camera_stamps[-1])
+        return max(stamps, default=0)
+
+    def _dead_reckoning_due(self, stamp_ns: int, now_s: float | None) -> bool:
+        newest = self.motion.newest_stamp_ns
+        if newest is not None and newest >= stamp_ns:
+            return False
+        timeout = self.timing.odometry_timeout_s
+        if now_s is None:
+            # Offline (inputs in stamp order): due unless it never started or the other
+            # streams are more than the timeout past its newest state (it stopped).
+            return (newest is not None
+                    and (self._latest_input_ns() - newest) * 1e-9 <= timeout)
+        if self._last_dr_s is None:
+            # None yet: its first states travel another path than GNSS (imu_node) and may
+            # come after the second epoch; GNSS flowing this long without any is
+            # GNSS-only operation, with nothing to wait for.
+            return now_s - (self._first_gnss_s if self._first_gnss_s is not None
+                            else now_s) <= timeout
+        return now_s - self._last_dr_s <= timeout
+
+    def _camera_due(self, stamp_ns: int) -> bool:
+        stamps = self._camera_stamps
+        if not stamps or stamps[-1] >= stamp_ns:
+            return False
+        if (self._latest_input_ns() - stamps[-1]) * 1e-9 > self.timing.camera_timeout_s:
+            return False                   # the camera stopped: GNSS (and motion) only
+        if len(stamps) < 2:
+            return False                   # no frame period known yet
+        period_ns = float(np.median(np.diff(np.asarray(stamps, dtype=np.int64))))
+        return stamp_ns - stamps[-1] >= period_ns
+
+    # ------------------------------------------------------------------ epochs
+    def ready_reports(self, now_s: float | None = None,
+                      flush: bool = False) -> Iterator[EpochReport]:
+        """Run the queued epochs that are ready, oldest first, yielding each report before
+        the next epoch runs (``flush``: all of them, e.g. when an offline run's inputs
+        have ended)."""
+        while self.queue:
+            epoch, queued_s = self.queue[0]
+            if not flush and self.waiting_for(epoch.stamp_ns, queued_s, now_s):
+                return
+            self.queue.popleft()
+            late = tuple(w for w in (DEAD_RECKONING, CAMERA)
+                         if not flush and now_s is not None and queued_s is not None
+                         and self._still_due(w, epoch.stamp_ns, now_s))
+            for w in late:
+                self._count(f'{w}_late')
+            yield self.step(epoch, late)
+
+    def _still_due(self, what: str, stamp_ns: int, now_s: float) -> bool:
+        if what == DEAD_RECKONING:
+            return self.filter.initialised and self._dead_reckoning_due(stamp_ns, now_s)
+        return self.filter.initialised and self._camera_due(stamp_ns)
+
+    def step(self, epoch: GnssEpoch, late: tuple = ()) -> EpochReport:
+        """Run the filter on one epoch with the buffered motion and camera matches."""
+        filt = self.filter
+        t0 = filt.last_stamp_ns
+        motion = self.motion_between(t0, epoch.stamp_ns)
+        camera = self.camera_at(t0, epoch.stamp_ns)
+        result = filt.step(epoch, motion, camera)
+        if filt.last_stamp_ns is not None:
+            # Later intervals start after the filter's last epoch: older matches are spent.
+            self.camera = [m for m in self.camera if m.stamp_ns > filt.last_stamp_ns]
+        self._count(f'epochs_{result.status}')
+        return EpochReport(epoch, result, self.verdict_of(result), late)
+
+    def motion_between(self, t0_ns: int | None, t1_ns: int) -> MotionIncrement | None:
+        """The motion argument of ``ParticleFilter.step`` (None: no dead reckoning yet,
+        or the first epoch)."""
+        if t0_ns is None or t1_ns <= t0_ns or not self.motion.states:
+            return None
+        return self.motion.increment(t0_ns, t1_ns)
+
+    def camera_at(self, t0_ns: int | None, t1_ns: int) -> list[CameraMeasurement] | None:
+        """The camera argument of ``ParticleFilter.step``: the matches of ``(t0, t1]``
+        moved to ``t1`` with the dead-reckoned speed and yaw rate (None: none)."""
+        last = self.filter.last_result
+        if (not self.camera or t0_ns is None or t1_ns <= t0_ns or last is None
+                or not np.isfinite(last.yaw_rad)):
+            return None
+        odometry = self.motion.odometry_series(t0_ns, t1_ns) if self.motion.states else None
+        return measurements_at_epoch(self.camera, odometry, t0_ns, t1_ns, last.yaw_rad) or None
+
+    def twist_at(self, stamp_ns: int) -> tuple[float, float, float, float] | None:
+        """``(speed, yaw rate, their variances)`` of the newest dead-reckoning state at or
+        before ``stamp_ns`` and within ``max_gap_s`` of it (None: unknown)."""
+        for state in reversed(self.motion.states):
+            if state.stamp_ns <= stamp_ns:
+                if (stamp_ns - state.stamp_ns) * 1e-9 <= self.motion.max_gap_s:
+                    return (state.speed_mps, state.yaw_rate_rps, state.speed_var,
+                            state.yaw_rate_var)
+                break
+        return None
+
+    # ------------------------------------------------------------------ verdicts
+    def verdict_of(self, result: EpochResult) -> IntegrityVerdict:
+        """The integrity verdict of an epoch result.
+
+        OK needs every piece of evidence: an update, the filter's verdict (settled,
+        motion known, protection level within the alert limit) and the risk bound it
+        implies within the target.
+        """
+        cfg = self.filter.config
+        if result.status != UPDATED or result.risk is None:
+            return self.stale_verdict(result.stamp_ns, f'no valid solution ({result.status}): '
+                                      f'{result.reason}', result)
+        risk = result.risk
+        bound = float(risk.risk_bound[0])
+        level = float(result.protection_level_m)
+        ok = bool(result.integrity_ok) and bound <= cfg.target_risk
+        details = {'n_satellites': result.n_satellites, 'kl_nats': float(risk.kl_nats),
+                   'epsilon': float(risk.epsilon), 'inverse_bernoulli': cfg.inverse_bernoulli,
+                   'motion_unknown_s': float(result.motion_unknown_s),
+                   'integrity_valid': bool(result.integrity_valid),
+                   'dead_reckoning_resets': int(self.motion.resets)}
+        if result.camera_alpha is not None:
+            details['camera_images'] = len(result.camera_frame_ids)
+            details['camera_excluded'] = bool(result.camera_excluded)
+        limit = float(risk.alert_limits_m[0])
+        if ok:
+            message = (f'integrity sufficient: protection level {level:.1f} m <= alert limit '
+                       f'{limit:g} m (risk bound {bound:.3g} <= {cfg.target_risk:g})')
+        else:
+            why = result.integrity_reason or (f'risk bound {bound:.3g} > target '
+                                              f'{cfg.target_risk:g}')
+            message = f'integrity insufficient: {why}'
+        return IntegrityVerdict(
+            stamp_ns=int(result.stamp_ns), level=OK if ok else ERROR, message=message,
+            alert_limit_m=limit, target_risk=float(cfg.target_risk), risk_bound=bound,
+            empirical_risk=float(risk.empirical_risk[0]),
+            divergence_risk=float(risk.divergence_risk[0]),
+            epoch_stamp_ns=int(result.stamp_ns), protection_level_m=level,
+            epoch_status=result.status,
+            risk_bounds_by_limit={float(risk.alert_limits_m[a]): float(risk.risk_bound[a])
+                                  for a in range(1, len(risk.alert_limits_m))},
+            details=details)
+
+    def stale_verdict(self, stamp_ns: int, message: str,
+                      result: EpochResult | None = None) -> IntegrityVerdict:
+        """A STALE verdict: no valid solution behind it (``result``: the epoch that gave
+        none; None: no GNSS, the last epoch's stamp is carried)."""
+        cfg = self.filter.config
+        epoch = result.stamp_ns if result is not None else self.filter.last_stamp_ns
+        return IntegrityVerdict(
+            stamp_ns=int(stamp_ns), level=STALE, message=message,
+            alert_limit_m=float(cfg.alert_limit_m), target_risk=float(cfg.target_risk),
+            epoch_stamp_ns=None if epoch is None else int(epoch),
+            epoch_status=result.status if result is not None else None)
+
+    def _count(self, key: str) -> None:
+        self.counts[key] = self.counts.get(key, 0) + 1
+
+
+#: Filter statuses with an estimate to publish.
+ESTIMATE_STATUSES = (UPDATED, PROPAGATED)
