@@ -8,18 +8,15 @@
 """
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
-import rclpy
+from conftest import RosGraph, ros_domain_id, ros_env, stop
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistWithCovarianceStamped
-from rclpy.context import Context
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Imu, PointCloud2
 
 import msg_adapters as ma
@@ -30,58 +27,6 @@ EXECUTABLES = ('gnss_node', 'camera_node', 'imu_node', 'fusion_node', 'pipeline_
 NODE_NAMES = {'gnss_node': ['gnss_node'], 'camera_node': ['camera_node'],
               'imu_node': ['imu_node'], 'fusion_node': ['fusion_node'],
               'pipeline_node': ['gnss_node', 'camera_node', 'imu_node', 'fusion_node']}
-
-
-def domain_id(offset: int) -> int:
-    """Domain ids apart from test_nodes.py's (120-219) and from parallel workers."""
-    return 10 + (os.getpid() * 11 + offset) % 100
-
-
-def ros_env(tmp_path, domain: int, base=None) -> dict:
-    env = dict(os.environ if base is None else base)
-    env.update(ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-               ROS_LOG_DIR=str(tmp_path / 'ros_log'), OPENBLAS_NUM_THREADS='1',
-               PYTHONUNBUFFERED='1')
-    return env
-
-
-class Probe:
-    """A node in this process, on the same domain as the child processes."""
-
-    def __init__(self, domain: int):
-        self.ctx = Context()
-        rclpy.init(context=self.ctx, domain_id=domain)
-        self.node = rclpy.create_node('process_probe', context=self.ctx)
-        self.executor = rclpy.executors.SingleThreadedExecutor(context=self.ctx)
-        self.executor.add_node(self.node)
-        self.qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
-                              reliability=ReliabilityPolicy.RELIABLE)
-
-    def spin_until(self, condition, timeout_s, what):
-        deadline = time.monotonic() + timeout_s
-        while not condition():
-            assert time.monotonic() < deadline, f'timed out after {timeout_s} s: {what}'
-            self.executor.spin_once(timeout_sec=0.02)
-
-    def node_names(self) -> set:
-        return set(self.node.get_node_names())
-
-    def close(self):
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.ctx)
-
-
-def stop(proc: subprocess.Popen, timeout_s: float = 20.0) -> int:
-    """SIGINT (Ctrl-C, as ros2 run forwards it) and the exit status."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-    try:
-        return proc.wait(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
-        raise
 
 
 # ======================================================================= two processes
@@ -95,21 +40,21 @@ def test_pipeline_process_and_integrity_subscriber_process(tmp_path):
     args = ['--ros-args'] + [a for n in ('gnss_node', 'camera_node', 'imu_node', 'fusion_node')
                              for a in ('--params-file', str(ROOT / 'config' / f'{n}.yaml'))]
     args += ['--params-file', str(override)]
-    domain = domain_id(0)
+    domain = ros_domain_id()
     log = open(tmp_path / 'pipeline.log', 'w')
     proc = subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.nodes.pipeline', *args],
                             env=ros_env(tmp_path, domain), cwd=ROOT, stdout=log,
                             stderr=subprocess.STDOUT)
     probe = None
     try:
-        probe = Probe(domain)
+        probe = RosGraph(domain)
         risks = []
-        probe.node.create_subscription(DiagnosticArray, '/integrity_risk', risks.append,
-                                       probe.qos)
-        pub_gnss = probe.node.create_publisher(PointCloud2, 'gnss/pseudoranges', probe.qos)
-        pub_imu = probe.node.create_publisher(Imu, 'imu/data', probe.qos)
-        pub_odo = probe.node.create_publisher(TwistWithCovarianceStamped, 'odom/twist',
-                                              probe.qos)
+        probe.probe.create_subscription(DiagnosticArray, '/integrity_risk', risks.append,
+                                        probe.qos)
+        pub_gnss = probe.probe.create_publisher(PointCloud2, 'gnss/pseudoranges', probe.qos)
+        pub_imu = probe.probe.create_publisher(Imu, 'imu/data', probe.qos)
+        pub_odo = probe.probe.create_publisher(TwistWithCovarianceStamped, 'odom/twist',
+                                               probe.qos)
         for pub in (pub_gnss, pub_imu, pub_odo):
             probe.spin_until(lambda: pub.get_subscription_count() > 0 or proc.poll() is not None,
                              60.0, f'the pipeline subscribing {pub.topic_name}')
@@ -220,7 +165,7 @@ def test_colcon_install_layout_and_ament_index(colcon_install):
 
 def test_each_executable_starts_and_exits_cleanly_on_sigint(colcon_install, tmp_path):
     _, env = colcon_install
-    domain = domain_id(1)
+    domain = ros_domain_id()
     run_env = ros_env(tmp_path, domain, env)
     procs, logs = {}, {}
     for i, exe in enumerate(EXECUTABLES):
@@ -230,13 +175,13 @@ def test_each_executable_starts_and_exits_cleanly_on_sigint(colcon_install, tmp_
         procs[exe] = subprocess.Popen([str(path), '--ros-args', '-r', f'__ns:=/p{i}'],
                                       env=run_env, cwd=tmp_path, stdout=logs[exe],
                                       stderr=subprocess.STDOUT)
-    probe = Probe(domain)
+    probe = RosGraph(domain)
     try:
         wanted = {f'/p{i}/{n}' for i, exe in enumerate(EXECUTABLES) for n in NODE_NAMES[exe]}
 
         def up():
             names = {f'{ns.rstrip("/")}/{n}' for n, ns in
-                     probe.node.get_node_names_and_namespaces()}
+                     probe.probe.get_node_names_and_namespaces()}
             dead = [e for e, p in procs.items() if p.poll() is not None]
             assert not dead, {e: (tmp_path / f'{e}.log').read_text() for e in dead}
             return wanted <= names
@@ -271,7 +216,7 @@ def node_command(module: str, *ros_args: str) -> list:
 ])
 def test_a_bad_start_up_parameter_prints_one_line_and_its_exit_code(
         tmp_path, module, args, code, line):
-    result = subprocess.run(node_command(module, *args), env=ros_env(tmp_path, domain_id(2)),
+    result = subprocess.run(node_command(module, *args), env=ros_env(tmp_path, ros_domain_id()),
                             cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert result.returncode == code, result.stderr
     assert [ln for ln in result.stderr.splitlines() if ln.strip()] == [line]
@@ -290,7 +235,7 @@ def test_ctrl_c_stops_a_node_with_status_0_and_no_traceback(tmp_path):
     """Stops at different moments after the ready line, while timers fire every 50 ms
     (the RCLError 'context is not valid' came from Ctrl-C landing between the executor's
     context check and its next wait, 1 stop in 12 here, or inside a constructor)."""
-    env = ros_env(tmp_path, domain_id(3))
+    env = ros_env(tmp_path, ros_domain_id())
     delays_s = [0.0, 0.02, 0.05, 0.13, 0.31, 0.5]
     for k, delay in enumerate(delays_s):
         err = tmp_path / f'fusion_{k}.err'

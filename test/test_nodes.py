@@ -8,9 +8,7 @@
 * run-time parameter updates (alert limit, target risk) and refusals with a reason;
 * STALE integrity without GNSS, never a stale OK; camera frame drops are counted.
 """
-import itertools
 import math
-import os
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -19,11 +17,11 @@ import numpy as np
 import pytest
 import rclpy
 import yaml
+from conftest import RosGraph, ros_domain_id
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped, TwistWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, Imu, NavSatFix, PointCloud2
@@ -55,12 +53,6 @@ CONFIG = Path(__file__).resolve().parents[1] / 'config'
 NODE_MODULES = {'gnss_node': gnss_node, 'imu_node': imu_node, 'camera_node': camera_node,
                 'fusion_node': fusion_node}
 S = 1_000_000_000
-_domains = itertools.count()
-
-
-def next_domain_id() -> int:
-    """A ROS domain id no other test of this run (or parallel worker) uses."""
-    return 120 + (os.getpid() * 7 + next(_domains)) % 100
 
 
 # ================================================================= dead reckoning (core)
@@ -251,7 +243,7 @@ def test_params_files_load_through_ros_args(tmp_path):
                              for a in ('--params-file', str(CONFIG / f'{n}.yaml'))]
     args += ['--params-file', str(override)]
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=next_domain_id(), args=args)
+    rclpy.init(context=ctx, domain_id=ros_domain_id(), args=args)
     nodes = []
     try:
         nodes = [GnssNode(context=ctx), ImuNode(context=ctx), CameraNode(context=ctx),
@@ -270,7 +262,7 @@ def test_params_files_load_through_ros_args(tmp_path):
 def test_node_spinner_serves_each_node_and_stops_the_group_when_one_fails():
     from gnsscam_ros.nodes.common import NodeSpinner
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=next_domain_id())
+    rclpy.init(context=ctx, domain_id=ros_domain_id())
     ticks = {'a': 0, 'b': 0}
     a = rclpy.create_node('spin_a', context=ctx)
     b = rclpy.create_node('spin_b', context=ctx)
@@ -325,64 +317,6 @@ def test_diagnostics_report_matched_links_for_the_replay(graph):
         return False
 
     g.spin_until(reported, 5.0, 'the link counts in fusion_node diagnostics')
-
-
-# ========================================================================= harness
-class Graph:
-    """Nodes, a probe node and a single-threaded executor in a fresh context."""
-
-    def __init__(self, args=None):
-        self.ctx = Context()
-        rclpy.init(context=self.ctx, domain_id=next_domain_id(), args=args)
-        self.executor = SingleThreadedExecutor(context=self.ctx)
-        self.nodes = []
-        self.probe = rclpy.create_node('probe', context=self.ctx)
-        self.executor.add_node(self.probe)
-        self.qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
-                              reliability=ReliabilityPolicy.RELIABLE)
-
-    def add(self, node):
-        self.nodes.append(node)
-        self.executor.add_node(node)
-        return node
-
-    def publisher(self, msg_type, topic):
-        return self.probe.create_publisher(msg_type, topic, self.qos)
-
-    def collect(self, msg_type, topic) -> list:
-        box = []
-        self.probe.create_subscription(msg_type, topic, box.append, self.qos)
-        return box
-
-    def spin_until(self, condition, timeout_s=20.0, what='condition'):
-        deadline = time.monotonic() + timeout_s
-        while not condition():
-            assert time.monotonic() < deadline, f'timed out waiting for {what}'
-            self.executor.spin_once(timeout_sec=0.01)
-
-    def spin_for(self, seconds):
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=0.01)
-
-    def connect(self, *publishers):
-        for pub in publishers:
-            self.spin_until(lambda: pub.get_subscription_count() > 0, 10.0,
-                            f'a subscriber on {pub.topic_name}')
-
-    def close(self):
-        self.executor.shutdown()
-        for node in self.nodes:
-            node.destroy_node()
-        self.probe.destroy_node()
-        rclpy.shutdown(context=self.ctx)
-
-
-@pytest.fixture
-def graph():
-    g = Graph()
-    yield g
-    g.close()
 
 
 def overrides(**values):
@@ -913,7 +847,7 @@ def test_configured_map_origin_is_latched_from_the_start(graph):
 
 # ============================================== start-up parameters (issue 14 item 6)
 def test_integers_are_accepted_for_float_parameters_at_start_and_at_run_time():
-    g = Graph(args=['--ros-args', '-p', 'alert_limit_m:=16', '-p', 'camera_gate_m:=30'])
+    g = RosGraph(args=['--ros-args', '-p', 'alert_limit_m:=16', '-p', 'camera_gate_m:=30'])
     try:
         fusion = g.add(FusionNode(context=g.ctx, parameter_overrides=overrides(
             n_particles=100, gnss_timeout_s=5)))

@@ -9,11 +9,9 @@
   ``run`` or a console script of setup.py) and its ``--help`` exits 0.
 """
 import ast
-import itertools
 import os
 import re
 import shutil
-import signal
 import subprocess
 import sys
 import threading
@@ -21,16 +19,14 @@ import time
 from pathlib import Path
 
 import pytest
-import rclpy
+from conftest import RosGraph, ros_env, stop
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.context import Context
 
 from msg_adapters import OK, STALE, IntegrityRisk, integrity_risk_to_msg
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / 'README.md').read_text(encoding='utf-8')
 BLOCK = re.compile(r'^```(\w+)\n(.*?)^```', re.S | re.M)
-_domains = itertools.count()
 
 
 def blocks(language: str) -> list[str]:
@@ -63,11 +59,6 @@ def named_executables() -> tuple[set[str], set[str]]:
             run_cmds |= set(re.findall(r'\./run\s+([\w.-]+)', code))
             ros2_run |= set(re.findall(r'ros2 run gnsscam_ros\s+([\w.-]+)', code))
     return run_cmds, ros2_run
-
-
-def domain_id() -> int:
-    """Domain ids apart from the other test files' (10-232 are taken): 1-9."""
-    return 1 + (os.getpid() + next(_domains)) % 9
 
 
 def script(name: str) -> str:
@@ -154,37 +145,34 @@ def _verdicts():
 
 def _run_consumer(path: Path, tmp_path: Path) -> tuple[int, str]:
     """Start the saved block, publish verdicts until it logged both, then Ctrl-C it."""
-    domain = domain_id()
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-               ROS_LOG_DIR=str(tmp_path / 'ros_log'), PYTHONUNBUFFERED='1',
-               RCUTILS_LOGGING_BUFFERED_STREAM='0')
+    graph = RosGraph()
+    env = ros_env(tmp_path, graph.domain, base=dict(os.environ,
+                                                    RCUTILS_LOGGING_BUFFERED_STREAM='0'))
     proc = subprocess.Popen([sys.executable, str(path)], cwd=tmp_path, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     out = _Reader(proc.stdout)
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=domain)
-    node = rclpy.create_node('readme_probe', context=ctx)
-    pub = node.create_publisher(DiagnosticArray, 'integrity_risk', 10)
+    pub = graph.probe.create_publisher(DiagnosticArray, 'integrity_risk', 10)
     ok, stale = _verdicts()
+
+    last = [0.0]
+
+    def logged_both() -> bool:
+        assert proc.poll() is None, f'the example exited early:\n{out.get()}'
+        if pub.get_subscription_count() > 0 and time.monotonic() - last[0] > 0.2:
+            last[0] = time.monotonic()
+            pub.publish(ok)
+            pub.publish(stale)
+        return ('position usable: protection level 6.5 m' in out.get()
+                and 'STALE: no GNSS' in out.get())
+
     try:
-        deadline = time.monotonic() + 60.0
-        while not ('position usable: protection level 6.5 m' in out.get()
-                   and 'STALE: no GNSS' in out.get()):
-            assert proc.poll() is None, f'the example exited early:\n{out.get()}'
-            assert time.monotonic() < deadline, f'no verdict logged in 60 s:\n{out.get()}'
-            if pub.get_subscription_count() > 0:
-                pub.publish(ok)
-                pub.publish(stale)
-            time.sleep(0.2)
-        proc.send_signal(signal.SIGINT)            # Ctrl-C, as a user stops it
-        rc = proc.wait(timeout=20)
+        graph.spin_until(logged_both, 60.0, 'both verdicts logged by the example')
+        rc = stop(proc)                             # Ctrl-C, as a user stops it
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
-    time.sleep(0.1)
+        graph.close()
     return rc, out.get()
 
 
