@@ -7,8 +7,9 @@ import pytest
 from gnsscam_ros.core.frames import LocalFrame, sagnac_corrected
 from gnsscam_ros.core.types import GLONASS, GPS
 from gnsscam_ros.datasets.city import City, Facades, los_blocked, make_city
-from gnsscam_ros.datasets.emulated.drive import (EmulationConfig, make_emulated_drive,
-                                                 make_scenario, stream_rng)
+from gnsscam_ros.datasets.emulated.config import EmulationConfig, stream_rng
+from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
+from gnsscam_ros.datasets.emulated.scenario import make_scenario
 
 CFG = EmulationConfig()
 

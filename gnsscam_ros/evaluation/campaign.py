@@ -70,7 +70,8 @@ def camera_matches_for_seed(seed: int, cache_dir: Path) -> tuple[list, dict]:
         ``(matches, faults)``: a CameraMeasurement per frame with a match (position at the
         image time) and ``{frame_id: fault code}`` (0 clean, 1 blur, 2 occlusion).
     """
-    from ..datasets.emulated.camera import build_emulated_map_database, scenario_of
+    from ..datasets.emulated.map_database import build_emulated_map_database
+    from ..datasets.emulated.scenario import scenario_of
     from ..io.atomic import write_npz_atomic
     cache_dir = Path(cache_dir)
     drive = make_emulated_drive(seed, camera=True)
