@@ -151,7 +151,7 @@ class SceneCamera:
     """Synthetic street images at 2 Hz (seeded facades; ORB finds features on them)."""
 
     def __init__(self, stamps_ns):
-        from gnsscam_ros.vision.mapdb_cli import synthetic_scene
+        from gnsscam_ros.vision.synthetic import synthetic_scene
         self.stamp_ns = np.asarray(stamps_ns, dtype=np.int64)
         self._scene = synthetic_scene
 
