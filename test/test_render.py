@@ -85,14 +85,17 @@ def test_frames_have_texture(stream):
     assert min(counts) >= 200, counts
 
 
-def test_render_speed(stream):
-    import time
-    stream.clean_image(0)
-    t0 = time.perf_counter()
-    for i in range(0, 100):
-        stream.clean_image(i)
-    ms = (time.perf_counter() - t0) * 10.0
-    assert ms < 40.0, f'{ms:.1f} ms/frame'       # ~5 ms here; generous for slow CI
+def test_texture_cache_is_only_a_speed_up(scenario, stream):
+    # Speed comes from the cached lit facade textures (timing: bench.emulation); a renderer
+    # that keeps almost nothing must draw the same frames.
+    small = StreetRenderer(scenario.city, stream.intrinsics, stream.lighting,
+                           seed=stream.seed, cache_size=2)
+    for i in range(0, 100, 9):
+        img = small.render(stream.pose[i], gain=float(stream.gain[i]),
+                           noise_index=int(stream.noise_index[i]))
+        assert np.array_equal(img, stream.clean_image(i))
+    assert len(small._cache) <= 2
+    assert 2 < len(stream.renderer._cache) <= stream.renderer._cache_size
 
 
 def test_near_plane_clipping_next_to_a_wall(scenario):
