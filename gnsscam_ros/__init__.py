@@ -1,8 +1,13 @@
-"""gnsscam_ros: GNSS-camera particle filter with integrity risk for ROS 2 Jazzy."""
-import os
+"""gnsscam_ros: GNSS-camera particle filter with integrity risk for ROS 2 Jazzy.
 
-# The per-particle arithmetic is made of tall, skinny products ((N, 3) @ (3, k)): a
-# multithreaded OpenBLAS spends 20-40x longer synchronising threads than computing them on
-# this kind of shape (measured: 40 ms vs 1 ms for 100,000 x 12). This runs before numpy is
-# first imported through the package; set the variable yourself to override it.
-os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
+BLAS threads: the per-particle arithmetic is made of tall, skinny products
+((N, 3) @ (3, k)), on which a multithreaded OpenBLAS spends 20-40x longer synchronising
+threads than computing (measured: 40 ms vs 1 ms for 100,000 x 12). Run with
+``OPENBLAS_NUM_THREADS=1`` in the environment: ``./run`` exports it (unless already set),
+and the node processes the package starts itself (``live.replay.replay_through_nodes``,
+used by ``./run demo``) get 1 unless it is set. With ``ros2 run`` or a launch file, set it
+yourself, e.g.
+``OPENBLAS_NUM_THREADS=1 ros2 run gnsscam_ros fusion_node`` or ``SetEnvironmentVariable``
+in the launch description. OpenBLAS reads it once, when numpy is first imported, so the
+package cannot set it for you without changing the environment of whoever imports it.
+"""

@@ -46,7 +46,7 @@ from gnsscam_ros.nodes.gnss_node import GnssNode
 from gnsscam_ros.nodes.imu_node import ImuNode
 from gnsscam_ros.vision.database import MapDatabase, PositionTable
 from gnsscam_ros.vision.features import OrbExtractor, OrbParams
-from gnsscam_ros.vision.mapdb_cli import synthetic_scene
+from gnsscam_ros.vision.synthetic import synthetic_scene
 from oracles import integrate_odometry
 
 CONFIG = Path(__file__).resolve().parents[1] / 'config'

@@ -1,5 +1,5 @@
-"""Tests of the emulated street imagery (datasets.emulated.render) and camera stream
-(datasets.emulated.camera)."""
+"""Tests of the emulated street imagery (datasets.emulated: optics, textures, render), its
+camera stream (camera) and map database (views, map_database, retrieval)."""
 import dataclasses
 import os
 
@@ -7,13 +7,17 @@ import cv2
 import numpy as np
 import pytest
 
+from gnsscam_ros.datasets.emulated import textures
 from gnsscam_ros.datasets.emulated.camera import (FAULT_BLUR, FAULT_CLEAN, FAULT_OCCLUSION,
-                                                  build_emulated_map_database, database_poses,
-                                                  evaluate_retrieval, make_camera_stream,
-                                                  map_database_views, with_camera)
-from gnsscam_ros.datasets.emulated.drive import make_emulated_drive, make_scenario
-from gnsscam_ros.datasets.emulated.render import (CameraIntrinsics, Lighting, StreetRenderer,
-                                                  facade_texture, render_view, visibility_order)
+                                                  make_camera_stream, with_camera)
+from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
+from gnsscam_ros.datasets.emulated.map_database import build_emulated_map_database
+from gnsscam_ros.datasets.emulated.optics import CameraIntrinsics, Lighting
+from gnsscam_ros.datasets.emulated.render import StreetRenderer, render_view, visibility_order
+from gnsscam_ros.datasets.emulated.retrieval import evaluate_retrieval
+from gnsscam_ros.datasets.emulated.scenario import make_scenario
+from gnsscam_ros.datasets.emulated.textures import facade_texture
+from gnsscam_ros.datasets.emulated.views import database_poses, map_database_views
 
 SEED = 2
 ORB = cv2.ORB_create(1000)
@@ -41,8 +45,7 @@ def test_texture_deterministic_and_repeated():
     assert a is b and not a.flags.writeable
     assert a.shape == (300, 400, 3) and a.dtype == np.uint8
     # The cache is only a speed-up: a fresh texture is identical.
-    from gnsscam_ros.datasets.emulated import render
-    assert np.array_equal(render._make_texture(3, 400, 300, 20.0), a)
+    assert np.array_equal(textures._make_texture(3, 400, 300, 20.0), a)
     assert not np.array_equal(facade_texture(4, 20.0, 15.0), a)
     # Same style, other width: the upper floors' window grid (anchored at the left edge)
     # repeats; only weathering and clutter differ.
@@ -82,14 +85,17 @@ def test_frames_have_texture(stream):
     assert min(counts) >= 200, counts
 
 
-def test_render_speed(stream):
-    import time
-    stream.clean_image(0)
-    t0 = time.perf_counter()
-    for i in range(0, 100):
-        stream.clean_image(i)
-    ms = (time.perf_counter() - t0) * 10.0
-    assert ms < 40.0, f'{ms:.1f} ms/frame'       # ~5 ms here; generous for slow CI
+def test_texture_cache_is_only_a_speed_up(scenario, stream):
+    # Speed comes from the cached lit facade textures (timing: bench.emulation); a renderer
+    # that keeps almost nothing must draw the same frames.
+    small = StreetRenderer(scenario.city, stream.intrinsics, stream.lighting,
+                           seed=stream.seed, cache_size=2)
+    for i in range(0, 100, 9):
+        img = small.render(stream.pose[i], gain=float(stream.gain[i]),
+                           noise_index=int(stream.noise_index[i]))
+        assert np.array_equal(img, stream.clean_image(i))
+    assert len(small._cache) <= 2
+    assert 2 < len(stream.renderer._cache) <= stream.renderer._cache_size
 
 
 def test_near_plane_clipping_next_to_a_wall(scenario):

@@ -32,9 +32,9 @@ from gnsscam_ros.live.record import BagRecorder
 from gnsscam_ros.live.replay import BagReplayer, main as replay_main, replay_through_nodes
 from gnsscam_ros.core.filter import FilterConfig
 from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
+from gnsscam_ros.datasets.emulated.views import route_range_of
 from gnsscam_ros.evaluation.bag_eval import evaluate_result_bag
-from gnsscam_ros.evaluation.demo import (node_series, offline_camera_matches, offline_run,
-                                         route_range_of)
+from gnsscam_ros.evaluation.demo import node_series, offline_camera_matches, offline_run
 from gnsscam_ros.evaluation.evaluate import evaluate_drive
 from gnsscam_ros.evaluation.runner import summarize
 
@@ -151,7 +151,7 @@ class SceneCamera:
     """Synthetic street images at 2 Hz (seeded facades; ORB finds features on them)."""
 
     def __init__(self, stamps_ns):
-        from gnsscam_ros.vision.mapdb_cli import synthetic_scene
+        from gnsscam_ros.vision.synthetic import synthetic_scene
         self.stamp_ns = np.asarray(stamps_ns, dtype=np.int64)
         self._scene = synthetic_scene
 
@@ -204,7 +204,8 @@ def test_camera_matches_flow_and_equal_offline(tmp_path):
 
 
 def test_route_range_limits_the_database_to_the_drive():
-    from gnsscam_ros.datasets.emulated.camera import database_poses, scenario_of
+    from gnsscam_ros.datasets.emulated.scenario import scenario_of
+    from gnsscam_ros.datasets.emulated.views import database_poses
     drive = make_emulated_drive(3, duration_s=60.0)
     scenario = scenario_of(drive)
     s0, s1 = route_range_of(scenario, drive)

@@ -15,7 +15,7 @@ from gnsscam_ros.vision.database import (InvertedIndex, MapDatabase, PositionTab
                                          read_positions_csv)
 from gnsscam_ros.vision.errors import ImageError, MapDatabaseError, VisionError
 from gnsscam_ros.vision.features import OrbExtractor, OrbParams, load_gray, to_gray
-from gnsscam_ros.vision.mapdb_cli import perturb_view, synthetic_scene
+from gnsscam_ros.vision.synthetic import perturb_view, synthetic_scene
 from gnsscam_ros.vision.vocab_tree import VocabularyTree, hamming
 
 SMALL_TREE = dict(branching=10, depth=4, iterations=4, seed=0)

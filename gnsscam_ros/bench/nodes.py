@@ -210,7 +210,7 @@ def bench_camera(fps: float = 30.0, seconds: float = 5.0, n_database: int = 60,
     """
     from gnsscam_ros.vision.database import MapDatabase, PositionTable
     from gnsscam_ros.vision.features import OrbExtractor, OrbParams
-    from gnsscam_ros.vision.mapdb_cli import perturb_view, synthetic_scene
+    from gnsscam_ros.vision.synthetic import perturb_view, synthetic_scene
 
     work = tempfile.mkdtemp(prefix='gnsscam_bench_cam_')
     images = [synthetic_scene(i, seed=11) for i in range(n_database)]

@@ -65,9 +65,10 @@ def bench_once(particles: int = 10_000, duration_s: float = 120.0, seed: int = 3
         tempfile.mkdtemp(prefix='gnsscam_replay_bench_'))
     try:
         if camera:
-            from ..datasets.emulated.camera import (build_emulated_map_database, scenario_of,
-                                                    with_camera)
-            from ..evaluation.demo import route_range_of
+            from ..datasets.emulated.camera import with_camera
+            from ..datasets.emulated.map_database import build_emulated_map_database
+            from ..datasets.emulated.scenario import scenario_of
+            from ..datasets.emulated.views import route_range_of
             drive = with_camera(drive)
             scenario = scenario_of(drive)
             log('bench: map database of the route (cached after the first build) ...')

@@ -1,1 +1,3 @@
-"""Datasets: the emulated urban drive and the smartLoc (libRSF text) loader."""
+"""Datasets: the emulated urban drive (``emulated``), the smartLoc (libRSF text) loader,
+pseudorange fault injection into any drive (``faults``) and cutting a drive short (``cut``).
+"""

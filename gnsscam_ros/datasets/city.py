@@ -117,10 +117,6 @@ class City:
         """Tallest building [m] (0 for an empty city)."""
         return float(self.blocks[:, 4].max()) if len(self.blocks) else 0.0
 
-    def node_enu(self, i: int, j: int) -> np.ndarray:
-        """(2,) east/north of the intersection of streets ``i`` (N-S) and ``j`` (E-W) [m]."""
-        return np.array([self.street_e_m[i], self.street_n_m[j]])
-
     def facades_near(self, point_enu: np.ndarray, radius_m: float = 80.0,
                      facing: bool = True) -> np.ndarray:
         """Facades close to a point, e.g. candidates for a camera image.

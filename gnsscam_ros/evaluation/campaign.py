@@ -21,7 +21,8 @@ import numpy as np
 
 from ..core.engine import best_match
 from ..core.filter import PARTICLE_RAIM, FilterConfig
-from ..datasets.emulated.camera import build_emulated_map_database, scenario_of
+from ..datasets.emulated.map_database import build_emulated_map_database
+from ..datasets.emulated.scenario import scenario_of
 from ..datasets.emulated.drive import make_emulated_drive
 from ..io.atomic import write_csv_atomic, write_npz_atomic
 from ..io.tables import format_table
@@ -66,7 +67,7 @@ def camera_matches_for_seed(seed: int, cache_dir: Path) -> tuple[list, dict]:
     """Render and match every camera frame of a seed's drive (cached on disk).
 
     The map database comes from the seed's own database pass (other lighting and
-    viewpoints, ``datasets.camera``); each frame's best match (top-1) is kept.
+    viewpoints, ``datasets.emulated.views``); each frame's best match (top-1) is kept.
 
     Returns:
         ``(matches, faults)``: a CameraMeasurement per frame with a match (position at the

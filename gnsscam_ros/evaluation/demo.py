@@ -44,9 +44,13 @@ from ..core.filter import FilterConfig
 from ..core.frames import LocalFrame
 from ..core.fusion import CameraMeasurement
 from ..core.motion import DeadReckoningConfig
-from ..core.types import Drive, ImuSeries, OdometrySeries, Trajectory
-from ..datasets.emulated.camera import build_emulated_map_database, scenario_of, with_camera
+from ..core.types import Drive
+from ..datasets.cut import cut_drive
+from ..datasets.emulated.camera import with_camera
 from ..datasets.emulated.drive import make_emulated_drive
+from ..datasets.emulated.map_database import build_emulated_map_database
+from ..datasets.emulated.scenario import scenario_of
+from ..datasets.emulated.views import route_range_of
 from ..datasets.errors import DatasetError
 from ..datasets.smartloc import discover_files, load_smartloc
 from ..io.atomic import write_json_atomic
@@ -65,47 +69,6 @@ EMULATED_SEED, EMULATED_FAULTS, EMULATED_BIAS_M = 3, 6, 100.0
 
 
 # ============================================================================ helpers
-def route_range_of(scenario, drive: Drive, margin_m: float = 50.0) -> tuple[float, float]:
-    """Arc lengths ``(0, s_end + margin)`` [m] of the route a (cut) emulated drive covers.
-
-    The map database only needs the streets the drive passes: limiting it to them keeps
-    the first build of a short demo within a minute or two instead of rendering the whole
-    city.
-    """
-    duration_s = float(drive.info.get('duration_s', scenario.duration_s))
-    s_end = float(np.interp(duration_s, scenario.t_s, scenario.s_m))
-    return 0.0, min(s_end + margin_m, float(scenario.route.length_m))
-
-
-def cut_drive(drive: Drive, duration_s: float | None) -> Drive:
-    """The first ``duration_s`` seconds of a drive (None or <= 0: the whole drive).
-
-    The cut starts at the first GNSS epoch; odometry, IMU and truth are kept over the same
-    span (truth one second longer, so that the last epoch is bracketed).
-    """
-    if not duration_s or duration_s <= 0 or not drive.gnss:
-        return drive
-    t0 = drive.gnss[0].stamp_ns
-    t1 = t0 + int(round(duration_s * 1e9))
-
-    def keep(stamps, end=t1):
-        return (np.asarray(stamps) >= t0 - 10**9) & (np.asarray(stamps) <= end)
-
-    odo, imu, truth = drive.odometry, drive.imu, drive.truth
-    if odo is not None:
-        k = keep(odo.stamp_ns)
-        odo = OdometrySeries(odo.stamp_ns[k], odo.speed_mps[k], odo.yaw_rate_rps[k],
-                             odo.speed_var[k], odo.yaw_rate_var[k])
-    if imu is not None:
-        k = keep(imu.stamp_ns)
-        imu = ImuSeries(imu.stamp_ns[k], imu.accel_mps2[k], imu.gyro_rps[k])
-    if truth is not None:
-        k = keep(truth.stamp_ns, t1 + 10**9)
-        truth = Trajectory(truth.stamp_ns[k], truth.ecef_m[k],
-                           None if truth.yaw_rad is None else truth.yaw_rad[k])
-    return dataclasses.replace(
-        drive, gnss=[e for e in drive.gnss if e.stamp_ns <= t1], odometry=odo, imu=imu,
-        truth=truth, info={**drive.info, 'cut_s': float(duration_s)})
 
 
 def offline_run(drive: Drive, config: FilterConfig, seed: int,

@@ -374,14 +374,9 @@ def _type_name(default) -> str:
     return f'a value of type {type(default).__name__}'
 
 
-def level_worst(*levels: int) -> int:
-    """The most severe of diagnostic levels (OK < WARN < ERROR < STALE)."""
-    return max(levels) if levels else OK
-
-
 __all__ = ['BIG', 'EXIT_FAILED', 'EXIT_INPUT', 'EXIT_OK', 'EXIT_PARAMETER', 'GnssCamNode',
            'InputFileError', 'NodeStats', 'OK', 'ParameterError', 'StartupError', 'WARN',
-           'latched_qos', 'level_worst', 'reliable_qos', 'run_node', 'sensor_qos',
+           'latched_qos', 'reliable_qos', 'run_node', 'sensor_qos',
            'NodeSpinner', 'stop_process', 'wants_help', 'print_node_help', 'spin_node',
            'start_nodes', 'quietly']
 
