@@ -1,7 +1,7 @@
 """GNSS-camera fusion with the KL-divergence mixture-of-experts weights (paper §5).
 
 For the K camera images between two GNSS epochs, each image j gives a distribution Q_j over
-the particles (``core.camera``). Its weight minimises ``KL(alpha_j Q_j || P)`` against the
+the particles (:func:`camera_log_q`). Its weight minimises ``KL(alpha_j Q_j || P)`` against the
 GNSS distribution P over the same particles:
 
     alpha_j = exp(k_j),  k_j = sum_i Q_j log(P / Q_j) / sum_i Q_j - 1 = -KL(Q_j || P) - 1

@@ -1,4 +1,4 @@
-"""Accuracy and integrity metrics (design.md §4, paper §7.3).
+"""Accuracy and integrity metrics (paper §7.3).
 
 Definitions, per epoch with a GNSS update, for one alert limit AL:
 
