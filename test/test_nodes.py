@@ -9,7 +9,6 @@
 * STALE integrity without GNSS, never a stale OK; camera frame drops are counted.
 """
 import math
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -279,9 +278,7 @@ def test_node_spinner_serves_each_node_and_stops_the_group_when_one_fails():
     b.create_timer(0.01, tick_b)
     spinner = NodeSpinner([a, b], ctx)
     try:
-        started = time.monotonic()
         spinner.wait()                      # returns once b's callback raised
-        assert time.monotonic() - started < 10.0
         assert ticks['b'] == 5 and ticks['a'] > 0
         assert not ctx.ok()                 # the failure shut the group down
     finally:

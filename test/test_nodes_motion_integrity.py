@@ -26,7 +26,8 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, TwistWithCovarianceStamped
 from sensor_msgs.msg import Imu, PointCloud2
-from test_nodes import Graph, overrides
+from conftest import RosGraph
+from test_nodes import overrides
 
 import msg_adapters as ma
 from gnsscam_ros.core.filter import PROPAGATED, UPDATED
@@ -53,7 +54,7 @@ def drive():
 
 @pytest.fixture
 def graph():
-    g = Graph()
+    g = RosGraph()
     yield g
     g.close()
 
@@ -71,7 +72,7 @@ def fusion_params(drive, **extra):
 class DriveRun:
     """Publishes a drive into the graph in stamp order and collects the outputs."""
 
-    def __init__(self, g: Graph, drive):
+    def __init__(self, g: RosGraph, drive):
         self.g, self.drive = g, drive
         self.gnss = g.add(GnssNode(context=g.ctx))
         self.imu = g.add(ImuNode(context=g.ctx, parameter_overrides=overrides(**IMU_PARAMS)))
