@@ -22,6 +22,11 @@ from .types import GnssEpoch
 
 LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 
+# Likelihoods of the GNSS update (the ``likelihood`` parameter).
+PARTICLE_RAIM = 'particle_raim'    # the paper's mixture over satellites, weights by EM
+ROBUST = 'robust'                  # Gaussian with a uniform outlier floor per satellite
+LIKELIHOODS = (PARTICLE_RAIM, ROBUST)
+
 
 @dataclass(frozen=True)
 class GnssCheck:
