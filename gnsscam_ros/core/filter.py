@@ -122,7 +122,7 @@ class ParticleFilter:
 
     def __init__(self, config: FilterConfig, frame: LocalFrame | None = None,
                  rng: np.random.Generator | None = None):
-        self.config = config
+        self.config = config                            # builds self.likelihood
         self.frame = frame
         self.rng = rng if rng is not None else np.random.default_rng()
         self.particles: np.ndarray | None = None        # (N, 4) chosen set
@@ -137,6 +137,16 @@ class ParticleFilter:
         self.acquired_stamp_ns: int | None = None      # end of heading acquisition
         self._motion_unknown_s = 0.0                    # of the epoch being processed
         self.last_result: EpochResult | None = None
+
+    @property
+    def config(self) -> FilterConfig:
+        """The parameters in force; setting them builds the GNSS likelihood they name."""
+        return self._config
+
+    @config.setter
+    def config(self, config: FilterConfig) -> None:
+        self.likelihood: gnss.Likelihood = gnss.make_likelihood(config.gnss)
+        self._config = config
 
     @property
     def initialised(self) -> bool:
@@ -292,12 +302,7 @@ class ParticleFilter:
         residual /= prep.sigma_m
         z = residual.reshape(m, n, -1)
         log_sigma = np.log(prep.sigma_m)
-        if cfg.likelihood == PARTICLE_RAIM:
-            lik = gnss.particle_raim_log_likelihood(z, log_sigma, self.log_w,
-                                                    cfg.dirichlet_alpha)
-        else:
-            lik = gnss.robust_log_likelihood(z, log_sigma, cfg.outlier_prob,
-                                             cfg.outlier_range_m, inlier_share=False)
+        lik = self.likelihood.log_likelihood(z, log_sigma, self.log_w)
         evidence = self._evidence_weight(dt_s)
         log_lik = lik.log_lik * evidence
         joint = self.log_w[None, :] + log_lik
@@ -324,11 +329,7 @@ class ParticleFilter:
             result.camera_alpha = fusion.alpha[:, chosen]
             result.camera_kl_nats = fusion.kl_nats[:, chosen]
             result.camera_excluded = bool(fusion.excluded[chosen])
-        if lik.gamma is not None:
-            result.gamma = lik.gamma[chosen]
-        else:                                 # robust: inlier shares of the chosen set only
-            result.gamma = gnss.robust_log_likelihood(
-                z[chosen:chosen + 1], log_sigma, cfg.outlier_prob, cfg.outlier_range_m).gamma[0]
+        result.gamma = self.likelihood.mixture_weights(lik, z, log_sigma, chosen)
         result.n_satellites = int(prep.pr_m.shape[0])
         return result
 
