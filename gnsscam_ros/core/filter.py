@@ -24,9 +24,8 @@ from .config import FilterConfig
 from .fusion import CameraMeasurement, camera_log_q, fuse_camera
 from .frames import LocalFrame
 from .gnss import LIKELIHOODS, PARTICLE_RAIM, ROBUST
-from .particles import (POS, YAW, MotionIncrement, effective_sample_size, motion_samples,
-                        normalize_log_weights, propagate, systematic_resample,
-                        weighted_mean_cov)
+from .particles import (POS, SYSTEMATIC, YAW, MotionIncrement, effective_sample_size,
+                        motion_samples, normalize_log_weights, propagate, weighted_mean_cov)
 from .snapshot import solve_snapshot
 from .types import GnssEpoch
 
@@ -159,8 +158,7 @@ class ParticleFilter:
                 or new.n_posteriors != self.config.n_posteriors):
             self.bias = BiasHypotheses(new.bias_hypotheses.model, new.n_posteriors, self.rng)
         if new.n_particles != self.config.n_particles and self.initialised:
-            idx = systematic_resample(self.log_w, self.rng)
-            idx = self.rng.choice(idx, size=new.n_particles, replace=True)
+            idx = SYSTEMATIC.resize(self.log_w, self.rng, new.n_particles)
             self.particles = self.particles[idx]
             self.log_w = np.full(new.n_particles, -np.log(new.n_particles))
         self.config = new
@@ -365,10 +363,8 @@ class ParticleFilter:
         n_out = cfg.n_particles if acquired else n
         resampled = ess < cfg.resample_ess_fraction * n or n_out != n
         if resampled:
-            idx = systematic_resample(log_w, self.rng)
-            if n_out != n:   # end of heading acquisition: thin the set to its working size
-                idx = idx[np.round(np.linspace(0, n - 1, n_out)).astype(int)]
-            particles = particles[idx]
+            # At the end of heading acquisition n_out is the working size: the set thins.
+            particles = particles[SYSTEMATIC.resample(log_w, self.rng, n_out)]
             log_w = np.full(n_out, -np.log(n_out))
         self.particles, self.log_w = particles, normalize_log_weights(log_w)
         self.posteriors, self.posterior_log_w = priors, post_log_w
@@ -402,13 +398,13 @@ class ParticleFilter:
         cfg = self.config
         s, n = post_log_w.shape
         index = np.arange(cfg.n_posteriors) % s
-        stride = max(n // cfg.n_particles, 1)
-        if stride > 1:
+        thin = SYSTEMATIC.thin(n, cfg.n_particles)
+        if thin.step > 1:
             # Heading acquisition holds more particles than the working size; the bound
-            # sees an evenly thinned set of the working size (the sets are in no order).
-            pos, post_log_w = pos[:, ::stride], post_log_w[:, ::stride]
+            # sees an evenly thinned set of about the working size.
+            pos, post_log_w = pos[:, thin], post_log_w[:, thin]
             post_log_w = post_log_w - logsumexp(post_log_w, axis=1, keepdims=True)
-            prior_log_w = self.log_w[::stride] - logsumexp(self.log_w[::stride])
+            prior_log_w = self.log_w[thin] - logsumexp(self.log_w[thin])
         else:
             prior_log_w = self.log_w
         prior_offsets = self.bias.offsets_m.copy()
