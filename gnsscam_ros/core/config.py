@@ -20,6 +20,7 @@ generated block of that file after changing a parameter here.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import operator
 import sys
 import textwrap
@@ -145,6 +146,7 @@ def parameter(default, doc: str, unit: str = '', *, low=None, high=None,
     return field(default=default, metadata={_META: spec})
 
 
+@functools.lru_cache(maxsize=None)
 def _field_specs(cls, part: str = '') -> tuple[ParameterSpec, ...]:
     return tuple(dataclasses.replace(f.metadata[_META], name=f.name, part=part)
                  for f in dataclasses.fields(cls))
@@ -360,12 +362,6 @@ class IntegrityConfig(_Part):
         return np.array([self.alert_limit_m, *extra], dtype=float)
 
 
-#: ``(attribute of FilterConfig, part class)`` in parameter order.
-PARTS = (('particle_set', ParticleSetConfig), ('motion', MotionConfig), ('gnss', GnssConfig),
-         ('bias_hypotheses', BiasConfig), ('camera', CameraConfig),
-         ('integrity', IntegrityConfig))
-
-
 # -------------------------------------------------------------------------- composition
 @dataclass(frozen=True, init=False)
 class FilterConfig:
@@ -449,6 +445,8 @@ class FilterConfig:
         return self.bias_hypotheses.model
 
 
+#: ``(attribute of FilterConfig, part class)`` in parameter order.
+PARTS = tuple((f.name, f.default_factory) for f in dataclasses.fields(FilterConfig))
 _SPECS = tuple(spec for name, cls in PARTS for spec in _field_specs(cls, name))
 #: Flat name -> attribute of its part in FilterConfig.
 _PART_OF = {spec.name: spec.part for spec in _SPECS}
