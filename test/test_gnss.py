@@ -1,5 +1,6 @@
 """GNSS module: checks, Earth rotation, clock handling and likelihoods on exact geometry."""
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -134,3 +135,29 @@ def test_single_satellite_constellation_is_set_aside():
     epoch = epoch_at(TRUTH_ENU, sv_ecef=sky(7, seed=3), system=system)
     prep = prepared(epoch)
     assert prep.pr_m.shape == (6,) and prep.n_systems == 1
+
+
+def test_likelihood_objects_are_the_registry_of_the_likelihood_parameter():
+    from gnsscam_ros.core.filter import FilterConfig
+    assert gnss.LIKELIHOODS == tuple(gnss.LIKELIHOOD_MODELS) == ('particle_raim', 'robust')
+    raim = gnss.make_likelihood(FilterConfig(likelihood='particle_raim', dirichlet_alpha=1.2))
+    robust = gnss.make_likelihood(FilterConfig(outlier_prob=0.2).gnss)
+    assert raim == gnss.ParticleRaimLikelihood(1.2)
+    assert robust == gnss.RobustLikelihood(0.2, FilterConfig().outlier_range_m)
+    with pytest.raises(ValueError, match='likelihood must be one of'):
+        gnss.make_likelihood(SimpleNamespace(likelihood='gauss'))
+    # The objects compute what the functions compute, and the chosen set's weights.
+    rng = np.random.default_rng(3)
+    z = rng.normal(size=(3, 50, 7))
+    log_sigma = np.log(rng.uniform(2.0, 5.0, 7))
+    prior = np.full(50, -np.log(50))
+    lik = raim.log_likelihood(z, log_sigma, prior)
+    ref = gnss.particle_raim_log_likelihood(z, log_sigma, prior, 1.2)
+    np.testing.assert_array_equal(lik.log_lik, ref.log_lik)
+    np.testing.assert_array_equal(raim.mixture_weights(lik, z, log_sigma, 2), ref.gamma[2])
+    lik = robust.log_likelihood(z, log_sigma, prior)
+    ref = gnss.robust_log_likelihood(z, log_sigma, 0.2, 300.0)
+    np.testing.assert_array_equal(lik.log_lik, ref.log_lik)
+    assert lik.gamma is None                     # not computed for every set
+    np.testing.assert_allclose(robust.mixture_weights(lik, z, log_sigma, 1), ref.gamma[1],
+                               rtol=1e-12)

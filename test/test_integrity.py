@@ -75,3 +75,22 @@ def test_hazard_mass_counts_weight_beyond_the_limit():
     pos[:, :, 2] = 100.0
     np.testing.assert_allclose(integrity.hazard_mass(pos, log_w, np.zeros(3),
                                                      np.array([8.0])), [0.375])
+
+
+def test_inverse_methods_are_the_registry_of_the_parameter():
+    methods = ('exact', 'approx')
+    assert integrity.INVERSE_METHODS == tuple(integrity.INVERSE_BERNOULLI) == methods
+    q, eps = np.array([0.0, 0.02, 0.3]), 0.05
+    for name, inverse in integrity.INVERSE_BERNOULLI.items():
+        assert integrity.inverse_method(name) is inverse
+        np.testing.assert_array_equal(integrity.inverse_bernoulli(q, eps, name),
+                                      inverse.gap(q, eps))
+        q_max = integrity.max_empirical_risk(0.1, eps, name)
+        assert q_max == inverse.max_empirical_risk(0.1, eps)
+        assert np.isclose(integrity.upper_risk(q_max, eps, name), 0.1)
+    np.testing.assert_array_equal(integrity.inverse_method('exact').gap(q, eps),
+                                  integrity.inverse_bernoulli_exact(q, eps))
+    for call in (lambda: integrity.inverse_method('bisect'),
+                 lambda: integrity.max_empirical_risk(0.1, eps, 'bisect')):
+        with pytest.raises(ValueError, match='unknown inverse Bernoulli method'):
+            call()

@@ -231,7 +231,7 @@ def test_fusion_parameters_are_filter_config_defaults():
     for name in fusion_node.FILTER_PARAMETERS:
         assert fusion_node.DEFAULTS[name] == getattr(cfg, name), name
     assert set(fusion_node.FILTER_PARAMETERS) | set(fusion_node.NOT_PARAMETERS) == set(
-        cfg.__dataclass_fields__)
+        cfg.as_flat())
 
 
 def test_params_files_load_through_ros_args(tmp_path):

@@ -3,9 +3,9 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from gnsscam_ros.core.particles import (MotionIncrement, effective_sample_size, motion_samples,
-                                        normalize_log_weights, propagate, systematic_resample,
-                                        weighted_mean_cov)
+from gnsscam_ros.core.particles import (SYSTEMATIC, MotionIncrement, effective_sample_size,
+                                        motion_samples, normalize_log_weights, propagate,
+                                        systematic_resample, weighted_mean_cov)
 
 
 def test_equal_weights_resample_to_identity(rng):
@@ -74,3 +74,43 @@ def test_weighted_mean_cov_matches_numpy(rng):
     mean, cov = weighted_mean_cov(pts, np.log(w / w.sum()))
     np.testing.assert_allclose(mean, np.average(pts, axis=0, weights=w))
     np.testing.assert_allclose(cov, np.cov(pts.T, aweights=w, bias=True))
+
+
+def _comb(log_w, pointers):
+    """The selection the four resampling uses made before they shared one resampler."""
+    cdf = np.cumsum(np.exp(log_w - np.max(log_w)))
+    cdf /= cdf[-1]
+    return np.minimum(np.searchsorted(cdf, pointers, side='right'), log_w.shape[0] - 1)
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.floats(-30, 0), min_size=2, max_size=300), st.integers(1, 400),
+       st.integers(0, 2 ** 31))
+def test_the_resampler_selects_what_each_use_selected_before(raw, count, seed):
+    log_w = normalize_log_weights(np.array(raw))
+    n = len(raw)
+    # The filter's resampling, thinned to a working size at the end of heading acquisition.
+    a, b = np.random.default_rng(seed), np.random.default_rng(seed)
+    full = _comb(log_w, (a.random() + np.arange(n)) / n)
+    np.testing.assert_array_equal(SYSTEMATIC.resample(log_w, b), full)
+    a, b = np.random.default_rng(seed), np.random.default_rng(seed)
+    full = _comb(log_w, (a.random() + np.arange(n)) / n)
+    thinned = full[np.round(np.linspace(0, n - 1, count)).astype(int)]
+    np.testing.assert_array_equal(SYSTEMATIC.resample(log_w, b, count), thinned)
+    # A new set size while running: resampled, then drawn with replacement.
+    a, b = np.random.default_rng(seed), np.random.default_rng(seed)
+    resized = a.choice(_comb(log_w, (a.random() + np.arange(n)) / n), size=count,
+                       replace=True)
+    np.testing.assert_array_equal(SYSTEMATIC.resize(log_w, b, count), resized)
+    assert a.random() == b.random()                   # the same draws were consumed
+    # The published cloud: deterministic mid-slot pointers over `count` slots.
+    published = (np.arange(n) if n <= count
+                 else _comb(log_w, (np.arange(count) + 0.5) / count))
+    np.testing.assert_array_equal(SYSTEMATIC.subsample(log_w, count), published)
+    np.testing.assert_array_equal(SYSTEMATIC.subsample(log_w, 0), np.arange(n))
+
+
+def test_thinning_keeps_every_kth_particle_and_at_least_the_count():
+    assert SYSTEMATIC.thin(10_000, 1000) == slice(None, None, 10)
+    assert len(range(10_000)[SYSTEMATIC.thin(10_000, 3000)]) == 3334
+    assert SYSTEMATIC.thin(500, 1000).step == 1

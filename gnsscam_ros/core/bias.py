@@ -29,6 +29,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# Bias models of the posteriors behind the risk bound (the ``bias_model`` parameter).
+BIAS_CN0 = 'cn0'         # Gauss-Markov bias per satellite, size from C/N0 (default)
+BIAS_NONE = 'none'       # motion perturbations only (the paper's construction)
+BIAS_MODELS = (BIAS_CN0, BIAS_NONE)
+
 #: Covariance floor added before inverting particle covariances [m^2]: a set collapsed by
 #: resampling must not give a singular matrix.
 COV_FLOOR_M2 = 1e-4

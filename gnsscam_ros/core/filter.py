@@ -19,23 +19,21 @@ import numpy as np
 from scipy.special import logsumexp
 
 from . import gnss, integrity
-from .bias import BiasHypotheses, BiasModel
+from .bias import BIAS_CN0, BIAS_MODELS, BIAS_NONE, BiasHypotheses
+from .config import FilterConfig
 from .fusion import CameraMeasurement, camera_log_q, fuse_camera
 from .frames import LocalFrame
-from .particles import (POS, YAW, MotionIncrement, effective_sample_size, motion_samples,
-                        normalize_log_weights, propagate, systematic_resample,
-                        weighted_mean_cov)
+from .gnss import LIKELIHOODS, PARTICLE_RAIM, ROBUST
+from .particles import (POS, SYSTEMATIC, YAW, MotionIncrement, effective_sample_size,
+                        motion_samples, normalize_log_weights, propagate, weighted_mean_cov)
 from .snapshot import solve_snapshot
 from .types import GnssEpoch
 
-PARTICLE_RAIM = 'particle_raim'
-ROBUST = 'robust'
-LIKELIHOODS = (PARTICLE_RAIM, ROBUST)
-
-# Bias models of the posteriors behind the risk bound (core.bias).
-BIAS_CN0 = 'cn0'         # Gauss-Markov bias per satellite, size from C/N0 (default)
-BIAS_NONE = 'none'       # motion perturbations only (the paper's construction)
-BIAS_MODELS = (BIAS_CN0, BIAS_NONE)
+# Importable from here as before: the parameter names and values of the configuration
+# (``core.config``), the likelihoods (``core.gnss``) and the bias models (``core.bias``).
+__all__ = ['BIAS_CN0', 'BIAS_MODELS', 'BIAS_NONE', 'HEADING_LOST_RAD', 'LIKELIHOODS',
+           'MAX_ORIGIN_DISTANCE_M', 'PARTICLE_RAIM', 'PROPAGATED', 'REJECTED', 'ROBUST',
+           'UPDATED', 'WAITING', 'EpochResult', 'FilterConfig', 'ParticleFilter']
 
 # Epoch outcomes.
 UPDATED = 'updated'            # GNSS update applied; integrity computed
@@ -50,197 +48,6 @@ MAX_ORIGIN_DISTANCE_M = 100_000.0
 #: Heading uncertainty accrued over a dead-reckoning gap beyond which the heading counts
 #: as lost and is acquired again (distance ``heading_acquisition_m``) [rad].
 HEADING_LOST_RAD = 0.5
-
-
-@dataclass(frozen=True)
-class FilterConfig:
-    """Filter parameters (the node parameters of ``config/fusion.yaml`` map onto these).
-
-    Attributes:
-        n_particles: Particles per posterior N.
-        n_posteriors: Posteriors M behind the risk bound and the protection level. With
-            the exact inverse Bernoulli the bound can never fall below
-            ``1 - exp(-log((M + 1) / delta) / M)``: 0.375 for M = 10, 0.037 for M = 200
-            (delta = 0.1). Bias hypotheses make extra posteriors cheap (no likelihood).
-        n_motion_samples: Motion samples drawn around the odometry and weighed by the
-            measurements (the estimate is the best of them); posterior j uses sample
-            ``j mod n_motion_samples`` and its own bias hypothesis. With
-            ``bias_model = 'none'`` every posterior has its own sample (this is ignored).
-        measurement_var_m2: Pseudorange variance [m^2] (paper Table 1: 10).
-        use_reported_variance: Use max(measurement_var_m2, the receiver's variance).
-        propagation_var_m2: Horizontal position process noise per axis per second [m^2/s]
-            (paper Table 1 uses 3 m^2; with odometry this good, 0.3 measured better on
-            smartLoc, see README).
-        vertical_propagation_var_m2: Height process noise per second [m^2/s]; a road
-            vehicle's height changes slowly and GNSS observes it poorly.
-        yaw_propagation_var_rad2: Heading process noise per second [rad^2/s].
-        motion_perturbation_scale: Inflation of the odometry noise for the M samples.
-        likelihood: 'particle_raim' (paper's mixture) or 'robust' (Gaussian + outlier floor).
-        error_correlation_time_s: GNSS errors closer in time than this are not independent
-            evidence: each epoch's log-likelihood is tempered by min(1, dt / this); 0 = off.
-        clock_kernel_max_m: Cap on how much the prior's spread widens the clock's inlier
-            kernel [m]. NLOS errors are positive; a kernel wide enough to take them in biases
-            the clock, and through it the height, by tens of metres.
-        heading_acquisition_m: The heading is unknown at start and observable only once the
-            vehicle has moved well beyond the GNSS errors. Until it has travelled this far
-            the set holds ``acquisition_particles`` particles (when that is more than
-            ``n_particles``), so that the 4D (position, height, heading) search is covered
-            densely and does not lock onto a wrong heading by sampling luck.
-        acquisition_particles: Set size during heading acquisition; 0 or fewer than
-            ``n_particles``: no enlargement. An absolute count, not a multiple of N: how
-            many particles cover the search (the initial spread times the heading circle)
-            depends on that volume, not on the working size, so a large N gains nothing
-            from an enlargement and would pay ten times its epoch cost for the first 100 m.
-        dirichlet_alpha: Dirichlet prior concentration in the EM pooling.
-        outlier_prob: Outlier probability of the robust likelihood.
-        outlier_range_m: Width of the robust likelihood's uniform outlier density [m].
-        resample_ess_fraction: Resample when ESS < this * N.
-        init_position_sd_m: Horizontal spread of the initial set around the first fix [m].
-        init_vertical_sd_m: Vertical spread of the initial set [m]; snapshot heights in a
-            street canyon are tens of metres off, so this is wider than the horizontal one.
-        min_satellites: Fewest satellites for an update.
-        elevation_mask_deg: Satellites below are dropped [deg].
-        cn0_mask_dbhz: Satellites below are dropped [dB-Hz].
-        alert_limit_m: Alert limit of the integrity flag [m].
-        target_risk: Integrity is insufficient when the risk bound exceeds this.
-        risk_delta: Confidence parameter delta of the bound.
-        inverse_bernoulli: 'exact' (bisection) or 'approx' (the paper's closed form, which
-            collapses to 0 when no posterior mass is hazardous: reproduction only).
-        bias_model: 'cn0' (each posterior carries a Gauss-Markov pseudorange bias per
-            satellite, its size from C/N0, propagated into the estimate; core.bias) or
-            'none' (posteriors differ by motion perturbations only, as in the paper).
-        bias_floor_m: Smallest bias standard deviation at high C/N0 [m].
-        bias_residual_scale: Bias standard deviation at high C/N0 per metre of smoothed
-            residual RMS at the estimate (calibrated on smartLoc, see README).
-        bias_cn0_knee_dbhz: Below this C/N0 the bias grows 10 dB per decade [dB-Hz].
-        bias_correlation_time_s: Correlation time of the biases [s] (smartLoc: ~50 s).
-        max_speed_mps: Fastest the vehicle may move while its motion is unknown (dead
-            reckoning lost or reset) [m/s]: the set spreads by this speed times the gap.
-        max_yaw_rate_rps: Fastest heading change while the motion is unknown [rad/s].
-        integrity_settling_s: Integrity is not certified before the heading is acquired
-            (at the start, and again after a dead-reckoning gap long enough to lose it)
-            and this long after [s]: the set starts on a snapshot fix, which carries the
-            biases' whole effect, while the bias hypotheses start from none and need the
-            filter's own memory to grow into it (measured: the level fell below the error
-            at the end of acquisition on the emulated drive).
-        horizontal_risk: Alert limits on horizontal error (True) or 3D error.
-        extra_alert_limits_m: Further alert limits whose risk is computed (evaluation).
-        use_camera: Fuse camera matches when they are given (False = Particle RAIM only).
-        camera_temperature_m: Softmax temperature of the camera distribution [m].
-        camera_gate_m: Beyond this distance from a match a particle is no more likely
-            under the camera than the rest of the map (the "elsewhere" cell) [m].
-        camera_elsewhere_prob: GNSS probability that the vehicle is outside the cloud.
-        camera_kl_threshold_nats: The camera is excluded for an epoch when every image's
-            KL(Q_j || P) against the GNSS distribution exceeds this [nats]; with every
-            match beyond the gate KL -> log(1 / camera_elsewhere_prob) = 6.9.
-    """
-
-    n_particles: int = 1000
-    n_posteriors: int = 200
-    n_motion_samples: int = 10
-    measurement_var_m2: float = 10.0
-    use_reported_variance: bool = True
-    propagation_var_m2: float = 0.3
-    vertical_propagation_var_m2: float = 0.3
-    yaw_propagation_var_rad2: float = 3e-4
-    motion_perturbation_scale: float = 3.0
-    likelihood: str = ROBUST
-    error_correlation_time_s: float = 5.0
-    clock_kernel_max_m: float = 3.0
-    heading_acquisition_m: float = 100.0
-    acquisition_particles: int = 10_000
-    dirichlet_alpha: float = 1.01
-    outlier_prob: float = 0.3
-    outlier_range_m: float = 300.0
-    resample_ess_fraction: float = 0.5
-    init_position_sd_m: float = 30.0
-    init_vertical_sd_m: float = 60.0
-    min_satellites: int = 4
-    elevation_mask_deg: float = 0.0
-    cn0_mask_dbhz: float = 0.0
-    alert_limit_m: float = 8.0
-    target_risk: float = 0.1
-    risk_delta: float = 0.1
-    inverse_bernoulli: str = integrity.EXACT
-    bias_model: str = BIAS_CN0
-    bias_floor_m: float = 2.0
-    bias_residual_scale: float = 0.23
-    bias_cn0_knee_dbhz: float = 41.6
-    bias_correlation_time_s: float = 50.0
-    max_speed_mps: float = 40.0
-    max_yaw_rate_rps: float = 1.0
-    integrity_settling_s: float = 30.0
-    horizontal_risk: bool = True
-    extra_alert_limits_m: tuple = ()
-    use_camera: bool = True
-    camera_temperature_m: float = 5.0
-    camera_gate_m: float = 20.0
-    camera_elsewhere_prob: float = 1e-3
-    camera_kl_threshold_nats: float = 5.0
-
-    def __post_init__(self):
-        problems = []
-        if self.n_particles < 2:
-            problems.append('n_particles must be >= 2')
-        if self.acquisition_particles < 0:
-            problems.append('acquisition_particles must be >= 0')
-        if self.n_posteriors < 1:
-            problems.append('n_posteriors must be >= 1')
-        if self.n_motion_samples < 1:
-            problems.append('n_motion_samples must be >= 1')
-        if self.bias_model not in BIAS_MODELS:
-            problems.append(f'bias_model must be one of {BIAS_MODELS}')
-        for name in ('measurement_var_m2', 'alert_limit_m', 'camera_temperature_m',
-                     'camera_kl_threshold_nats', 'camera_gate_m'):
-            if not getattr(self, name) > 0.0:
-                problems.append(f'{name} must be > 0')
-        for name in ('propagation_var_m2', 'vertical_propagation_var_m2',
-                     'yaw_propagation_var_rad2',
-                     'motion_perturbation_scale', 'error_correlation_time_s',
-                     'heading_acquisition_m', 'bias_floor_m', 'bias_residual_scale',
-                     'bias_correlation_time_s',
-                     'max_speed_mps', 'max_yaw_rate_rps', 'integrity_settling_s'):
-            if not getattr(self, name) >= 0.0:
-                problems.append(f'{name} must be >= 0')
-        if self.likelihood not in LIKELIHOODS:
-            problems.append(f'likelihood must be one of {LIKELIHOODS}')
-        if self.inverse_bernoulli not in integrity.INVERSE_METHODS:
-            problems.append(f'inverse_bernoulli must be one of {integrity.INVERSE_METHODS}')
-        if not 0.0 < self.target_risk < 1.0:
-            problems.append('target_risk must be in (0, 1)')
-        if not 0.0 < self.risk_delta <= 1.0:
-            problems.append('risk_delta must be in (0, 1]')
-        if not 0.0 <= self.resample_ess_fraction <= 1.0:
-            problems.append('resample_ess_fraction must be in [0, 1]')
-        if not self.dirichlet_alpha >= 1.0:
-            problems.append('dirichlet_alpha must be >= 1')
-        if not 0.0 < self.camera_elsewhere_prob < 1.0:
-            problems.append('camera_elsewhere_prob must be in (0, 1)')
-        if not 0.0 < self.outlier_prob < 1.0:
-            problems.append('outlier_prob must be in (0, 1)')
-        if self.min_satellites < 4:
-            problems.append('min_satellites must be >= 4 (position and clock)')
-        if problems:
-            raise ValueError('invalid filter configuration: ' + '; '.join(problems))
-
-    @property
-    def alert_limits_m(self) -> np.ndarray:
-        """The flag's alert limit first, then the extra ones."""
-        extra = [a for a in self.extra_alert_limits_m if a != self.alert_limit_m]
-        return np.array([self.alert_limit_m, *extra], dtype=float)
-
-    @property
-    def motion_sample_count(self) -> int:
-        """Motion samples weighed per epoch (every posterior's own without bias model)."""
-        if self.bias_model == BIAS_NONE:
-            return self.n_posteriors
-        return min(self.n_motion_samples, self.n_posteriors)
-
-    @property
-    def bias(self) -> BiasModel:
-        return BiasModel(floor_m=self.bias_floor_m, residual_scale=self.bias_residual_scale,
-                         cn0_knee_dbhz=self.bias_cn0_knee_dbhz,
-                         correlation_time_s=self.bias_correlation_time_s)
 
 
 @dataclass
@@ -314,7 +121,7 @@ class ParticleFilter:
 
     def __init__(self, config: FilterConfig, frame: LocalFrame | None = None,
                  rng: np.random.Generator | None = None):
-        self.config = config
+        self.config = config                            # builds self.likelihood
         self.frame = frame
         self.rng = rng if rng is not None else np.random.default_rng()
         self.particles: np.ndarray | None = None        # (N, 4) chosen set
@@ -323,12 +130,22 @@ class ParticleFilter:
         self.posterior_log_w: np.ndarray | None = None  # (S, N)
         # The M posteriors of the last update as the risk bound saw them.
         self.posterior_set: integrity.PosteriorSet | None = None
-        self.bias = BiasHypotheses(config.bias, config.n_posteriors, self.rng)
+        self.bias = BiasHypotheses(config.bias_hypotheses.model, config.n_posteriors, self.rng)
         self.last_stamp_ns: int | None = None
         self.distance_since_init_m = 0.0
         self.acquired_stamp_ns: int | None = None      # end of heading acquisition
         self._motion_unknown_s = 0.0                    # of the epoch being processed
         self.last_result: EpochResult | None = None
+
+    @property
+    def config(self) -> FilterConfig:
+        """The parameters in force; setting them builds the GNSS likelihood they name."""
+        return self._config
+
+    @config.setter
+    def config(self, config: FilterConfig) -> None:
+        self.likelihood: gnss.Likelihood = gnss.make_likelihood(config.gnss)
+        self._config = config
 
     @property
     def initialised(self) -> bool:
@@ -337,11 +154,11 @@ class ParticleFilter:
     def set_parameters(self, **changes) -> None:
         """Change parameters between epochs (validated; the old ones stay on error)."""
         new = replace(self.config, **changes)
-        if (new.bias != self.config.bias or new.n_posteriors != self.config.n_posteriors):
-            self.bias = BiasHypotheses(new.bias, new.n_posteriors, self.rng)
+        if (new.bias_hypotheses.model != self.config.bias_hypotheses.model
+                or new.n_posteriors != self.config.n_posteriors):
+            self.bias = BiasHypotheses(new.bias_hypotheses.model, new.n_posteriors, self.rng)
         if new.n_particles != self.config.n_particles and self.initialised:
-            idx = systematic_resample(self.log_w, self.rng)
-            idx = self.rng.choice(idx, size=new.n_particles, replace=True)
+            idx = SYSTEMATIC.resize(self.log_w, self.rng, new.n_particles)
             self.particles = self.particles[idx]
             self.log_w = np.full(new.n_particles, -np.log(new.n_particles))
         self.config = new
@@ -483,12 +300,7 @@ class ParticleFilter:
         residual /= prep.sigma_m
         z = residual.reshape(m, n, -1)
         log_sigma = np.log(prep.sigma_m)
-        if cfg.likelihood == PARTICLE_RAIM:
-            lik = gnss.particle_raim_log_likelihood(z, log_sigma, self.log_w,
-                                                    cfg.dirichlet_alpha)
-        else:
-            lik = gnss.robust_log_likelihood(z, log_sigma, cfg.outlier_prob,
-                                             cfg.outlier_range_m, inlier_share=False)
+        lik = self.likelihood.log_likelihood(z, log_sigma, self.log_w)
         evidence = self._evidence_weight(dt_s)
         log_lik = lik.log_lik * evidence
         joint = self.log_w[None, :] + log_lik
@@ -515,11 +327,7 @@ class ParticleFilter:
             result.camera_alpha = fusion.alpha[:, chosen]
             result.camera_kl_nats = fusion.kl_nats[:, chosen]
             result.camera_excluded = bool(fusion.excluded[chosen])
-        if lik.gamma is not None:
-            result.gamma = lik.gamma[chosen]
-        else:                                 # robust: inlier shares of the chosen set only
-            result.gamma = gnss.robust_log_likelihood(
-                z[chosen:chosen + 1], log_sigma, cfg.outlier_prob, cfg.outlier_range_m).gamma[0]
+        result.gamma = self.likelihood.mixture_weights(lik, z, log_sigma, chosen)
         result.n_satellites = int(prep.pr_m.shape[0])
         return result
 
@@ -555,10 +363,8 @@ class ParticleFilter:
         n_out = cfg.n_particles if acquired else n
         resampled = ess < cfg.resample_ess_fraction * n or n_out != n
         if resampled:
-            idx = systematic_resample(log_w, self.rng)
-            if n_out != n:   # end of heading acquisition: thin the set to its working size
-                idx = idx[np.round(np.linspace(0, n - 1, n_out)).astype(int)]
-            particles = particles[idx]
+            # At the end of heading acquisition n_out is the working size: the set thins.
+            particles = particles[SYSTEMATIC.resample(log_w, self.rng, n_out)]
             log_w = np.full(n_out, -np.log(n_out))
         self.particles, self.log_w = particles, normalize_log_weights(log_w)
         self.posteriors, self.posterior_log_w = priors, post_log_w
@@ -592,13 +398,13 @@ class ParticleFilter:
         cfg = self.config
         s, n = post_log_w.shape
         index = np.arange(cfg.n_posteriors) % s
-        stride = max(n // cfg.n_particles, 1)
-        if stride > 1:
+        thin = SYSTEMATIC.thin(n, cfg.n_particles)
+        if thin.step > 1:
             # Heading acquisition holds more particles than the working size; the bound
-            # sees an evenly thinned set of the working size (the sets are in no order).
-            pos, post_log_w = pos[:, ::stride], post_log_w[:, ::stride]
+            # sees an evenly thinned set of about the working size.
+            pos, post_log_w = pos[:, thin], post_log_w[:, thin]
             post_log_w = post_log_w - logsumexp(post_log_w, axis=1, keepdims=True)
-            prior_log_w = self.log_w[::stride] - logsumexp(self.log_w[::stride])
+            prior_log_w = self.log_w[thin] - logsumexp(self.log_w[thin])
         else:
             prior_log_w = self.log_w
         prior_offsets = self.bias.offsets_m.copy()

@@ -14,6 +14,7 @@ per particle (it is strongly correlated with height) at the cost of one small ma
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -21,6 +22,11 @@ from .frames import LocalFrame, sagnac_corrected
 from .types import GnssEpoch
 
 LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
+
+# Likelihoods of the GNSS update: the values of the ``likelihood`` parameter, each the
+# name of one :class:`Likelihood` (``LIKELIHOOD_MODELS``).
+PARTICLE_RAIM = 'particle_raim'    # the paper's mixture over satellites, weights by EM
+ROBUST = 'robust'                  # Gaussian with a uniform outlier floor per satellite
 
 
 @dataclass(frozen=True)
@@ -288,3 +294,84 @@ def robust_log_likelihood(z: np.ndarray, log_sigma: np.ndarray, outlier_prob: fl
     dens += floor
     log_lik = np.log(dens, out=dens).sum(axis=-1)
     return GnssLikelihood(log_lik=log_lik, gamma=gamma)
+
+
+class Likelihood(Protocol):
+    """A GNSS likelihood of the filter update, built once from the configuration
+    (:func:`make_likelihood`)."""
+
+    def log_likelihood(self, z: np.ndarray, log_sigma: np.ndarray, prior_log_w: np.ndarray
+                       ) -> GnssLikelihood:
+        """Per-particle log-likelihoods (M, N) of the normalised residuals ``z`` (M, N, k),
+        with ``log_sigma`` (k,) and the prior log-weights (N,) or (M, N)."""
+
+    def mixture_weights(self, lik: GnssLikelihood, z: np.ndarray, log_sigma: np.ndarray,
+                        chosen: int) -> np.ndarray:
+        """The (k,) satellite weights of set ``chosen`` (reported with the epoch), from
+        the result ``lik`` of :meth:`log_likelihood` on the same input."""
+
+
+@dataclass(frozen=True)
+class ParticleRaimLikelihood:
+    """The paper's mixture over satellites (:func:`particle_raim_log_likelihood`).
+
+    Attributes:
+        dirichlet_alpha: Dirichlet concentration of the EM pooling.
+    """
+
+    dirichlet_alpha: float
+
+    @classmethod
+    def from_config(cls, config) -> 'ParticleRaimLikelihood':
+        return cls(dirichlet_alpha=config.dirichlet_alpha)
+
+    def log_likelihood(self, z, log_sigma, prior_log_w) -> GnssLikelihood:
+        return particle_raim_log_likelihood(z, log_sigma, prior_log_w, self.dirichlet_alpha)
+
+    def mixture_weights(self, lik, z, log_sigma, chosen) -> np.ndarray:
+        return lik.gamma[chosen]                 # the EM weights, computed for every set
+
+
+@dataclass(frozen=True)
+class RobustLikelihood:
+    """Gaussian with a uniform outlier floor per satellite (:func:`robust_log_likelihood`).
+
+    Attributes:
+        outlier_prob: Outlier probability eps.
+        outlier_range_m: Width of the uniform outlier density [m].
+    """
+
+    outlier_prob: float
+    outlier_range_m: float
+
+    @classmethod
+    def from_config(cls, config) -> 'RobustLikelihood':
+        return cls(outlier_prob=config.outlier_prob, outlier_range_m=config.outlier_range_m)
+
+    def log_likelihood(self, z, log_sigma, prior_log_w) -> GnssLikelihood:
+        # The inlier shares cost one more pass over all M * N particles: only the chosen
+        # set's are reported (mixture_weights).
+        return robust_log_likelihood(z, log_sigma, self.outlier_prob, self.outlier_range_m,
+                                     inlier_share=False)
+
+    def mixture_weights(self, lik, z, log_sigma, chosen) -> np.ndarray:
+        return robust_log_likelihood(z[chosen:chosen + 1], log_sigma, self.outlier_prob,
+                                     self.outlier_range_m).gamma[0]
+
+
+#: The likelihood of each value of the ``likelihood`` parameter.
+LIKELIHOOD_MODELS = {PARTICLE_RAIM: ParticleRaimLikelihood, ROBUST: RobustLikelihood}
+LIKELIHOODS = tuple(LIKELIHOOD_MODELS)
+
+
+def make_likelihood(config) -> Likelihood:
+    """The likelihood a configuration names (``config.likelihood``), with its parameters
+    (any object with the parameter attributes: ``FilterConfig`` or its ``gnss`` part).
+
+    Raises:
+        ValueError: An unknown likelihood name.
+    """
+    model = LIKELIHOOD_MODELS.get(config.likelihood)
+    if model is None:
+        raise ValueError(f'likelihood must be one of {LIKELIHOODS}')
+    return model.from_config(config)

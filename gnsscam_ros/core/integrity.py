@@ -21,12 +21,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
+# Inverses of the Bernoulli KL: the values of the ``inverse_bernoulli`` parameter, each
+# the name of one :class:`InverseBernoulli` (``INVERSE_BERNOULLI``).
 EXACT = 'exact'
 APPROX = 'approx'
-INVERSE_METHODS = (EXACT, APPROX)
 
 
 def bernoulli_kl(q: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -73,13 +75,83 @@ def inverse_bernoulli_approx(q, eps) -> np.ndarray:
     return np.sqrt(2.0 * np.asarray(eps, dtype=float) * q * (1.0 - q))
 
 
+class InverseBernoulli(Protocol):
+    """One way of inverting the Bernoulli KL: the bound's margin and its protection-level
+    threshold (the values of the ``inverse_bernoulli`` parameter name them,
+    ``INVERSE_BERNOULLI``)."""
+
+    def gap(self, q, eps) -> np.ndarray:
+        """``D_Ber^-1(q, eps)``: the margin added to the empirical risk(s) ``q``."""
+
+    def max_empirical_risk(self, target: float, eps: float) -> float:
+        """Largest ``q`` whose bound ``q + gap(q, eps)`` is at most ``target``
+        (:func:`max_empirical_risk`), for ``eps >= 0``."""
+
+
+@dataclass(frozen=True)
+class ExactInverse:
+    """The exact inverse, by bisection.
+
+    Attributes:
+        iterations: Halvings of the threshold's scalar bisection (60 reach double
+            precision; the vectorised margin always takes 64).
+    """
+
+    iterations: int = 60
+
+    def gap(self, q, eps) -> np.ndarray:
+        return inverse_bernoulli_exact(q, eps)
+
+    def max_empirical_risk(self, target: float, eps: float) -> float:
+        # The bound is at most the target exactly when kl(q || target) >= eps (see
+        # max_empirical_risk), and kl(q || target) falls as q rises to the target.
+        t = target
+        if -math.log1p(-t) < eps:
+            return 0.0
+        lo, hi = 0.0, t
+        for _ in range(self.iterations):
+            mid = 0.5 * (lo + hi)
+            if _bernoulli_kl_scalar(mid, t) >= eps:
+                lo = mid
+            else:
+                hi = mid
+        return lo
+
+
+@dataclass(frozen=True)
+class ApproxInverse:
+    """The paper's closed form (:func:`inverse_bernoulli_approx`); reproduction only."""
+
+    def gap(self, q, eps) -> np.ndarray:
+        return inverse_bernoulli_approx(q, eps)
+
+    def max_empirical_risk(self, target: float, eps: float) -> float:
+        # q + sqrt(2 eps q (1 - q)) = t is (1 + 2 eps) q^2 - 2 (t + eps) q + t^2 = 0.
+        t = target
+        a, b = 1.0 + 2.0 * eps, t + eps
+        return float(min(max((b - math.sqrt(max(b * b - a * t * t, 0.0))) / a, 0.0), t))
+
+
+#: The inverse each value of the ``inverse_bernoulli`` parameter names.
+INVERSE_BERNOULLI = {EXACT: ExactInverse(), APPROX: ApproxInverse()}
+INVERSE_METHODS = tuple(INVERSE_BERNOULLI)
+
+
+def inverse_method(method: str) -> InverseBernoulli:
+    """The inverse named ``method`` ('exact' or 'approx').
+
+    Raises:
+        ValueError: An unknown name.
+    """
+    inverse = INVERSE_BERNOULLI.get(method)
+    if inverse is None:
+        raise ValueError(f'unknown inverse Bernoulli method {method!r}; use {INVERSE_METHODS}')
+    return inverse
+
+
 def inverse_bernoulli(q, eps, method: str = EXACT) -> np.ndarray:
     """``D_Ber^-1(q, eps)`` by the named method ('exact' or 'approx')."""
-    if method == EXACT:
-        return inverse_bernoulli_exact(q, eps)
-    if method == APPROX:
-        return inverse_bernoulli_approx(q, eps)
-    raise ValueError(f'unknown inverse Bernoulli method {method!r}; use {INVERSE_METHODS}')
+    return inverse_method(method).gap(q, eps)
 
 
 def upper_risk(q, eps, method: str = EXACT) -> np.ndarray:
@@ -109,27 +181,15 @@ def max_empirical_risk(target: float, eps: float, method: str = EXACT,
         target: Target risk in (0, 1).
         eps: Divergence budget [nats], >= 0.
         method: 'exact' or 'approx'.
+        iterations: Bisection halvings of the exact inverse.
 
     Returns:
         ``q_max`` in [0, target]; 0 when even ``q = 0`` is bounded above the target.
     """
-    t, eps = float(target), max(float(eps), 0.0)
-    if method == APPROX:
-        # (1 + 2 eps) q^2 - 2 (t + eps) q + t^2 = 0
-        a, b = 1.0 + 2.0 * eps, t + eps
-        return float(min(max((b - math.sqrt(max(b * b - a * t * t, 0.0))) / a, 0.0), t))
-    if method != EXACT:
-        raise ValueError(f'unknown inverse Bernoulli method {method!r}; use {INVERSE_METHODS}')
-    if -math.log1p(-t) < eps:
-        return 0.0
-    lo, hi = 0.0, t
-    for _ in range(iterations):
-        mid = 0.5 * (lo + hi)
-        if _bernoulli_kl_scalar(mid, t) >= eps:
-            lo = mid
-        else:
-            hi = mid
-    return lo
+    inverse = inverse_method(method)
+    if iterations != ExactInverse.iterations and isinstance(inverse, ExactInverse):
+        inverse = ExactInverse(iterations)
+    return inverse.max_empirical_risk(float(target), max(float(eps), 0.0))
 
 
 def divergence_budget(kl_nats: float, n_posteriors: int, delta: float) -> float:

@@ -1,4 +1,5 @@
-"""Particle sets: propagation with odometry perturbations, weights and resampling.
+"""Particle sets: propagation with odometry perturbations, weights and resampling
+(:class:`SystematicResampler`).
 
 A particle is ``(east_m, north_m, up_m, yaw_rad)`` in the local ENU ``map`` frame; yaw is
 counter-clockwise from east. Sets are ``(..., N, 4)`` arrays with log-weights ``(..., N)``.
@@ -61,6 +62,80 @@ def effective_sample_size(log_w: np.ndarray) -> np.ndarray:
     return np.exp(-logsumexp(2.0 * log_w, axis=-1))
 
 
+@dataclass(frozen=True)
+class SystematicResampler:
+    """Systematic selection from a weighted set: one comb of evenly spaced pointers
+    ``(u + s) / n_slots`` over the CDF of the weights, a single offset ``u`` in [0, 1) for
+    every slot ``s``.
+
+    Every resampling and thinning of a particle set goes through here: the filter's
+    resampling (:meth:`resample`, ``u`` drawn; thinned to the working size at the end of
+    heading acquisition), a new set size while running (:meth:`resize`), the published
+    cloud (:meth:`subsample`, ``u = 1/2``: deterministic, so publishing never draws from
+    the filter's generator) and the evenly thinned set the risk bound sees during heading
+    acquisition (:meth:`thin`, no selection by weight).
+    """
+
+    @staticmethod
+    def indices(log_w: np.ndarray, offset: float, n_slots: int | None = None,
+                slots: np.ndarray | None = None) -> np.ndarray:
+        """Indices the comb selects.
+
+        Args:
+            log_w: (N,) log-weights (normalised or not).
+            offset: ``u`` in [0, 1).
+            n_slots: Teeth of the comb (default N).
+            slots: Which teeth to use, (K,) integers in ``[0, n_slots)`` (default all, in
+                order).
+
+        Returns:
+            (K,) indices into the set; non-decreasing when ``slots`` is.
+        """
+        n = log_w.shape[0]
+        n_slots = n if n_slots is None else n_slots
+        slots = np.arange(n_slots) if slots is None else slots
+        cdf = np.cumsum(np.exp(log_w - log_w.max()))
+        cdf /= cdf[-1]
+        pointers = (offset + slots) / n_slots
+        return np.minimum(np.searchsorted(cdf, pointers, side='right'), n - 1)
+
+    def resample(self, log_w: np.ndarray, rng: np.random.Generator,
+                 count: int | None = None) -> np.ndarray:
+        """Resample N particles with one uniform draw: N indices, or ``count`` of them.
+
+        With ``count`` the comb keeps its N teeth and uses ``count`` evenly spaced ones
+        (the end of heading acquisition thins the set to its working size this way).
+        """
+        n = log_w.shape[0]
+        slots = (None if count is None or count == n
+                 else np.round(np.linspace(0, n - 1, count)).astype(int))
+        return self.indices(log_w, rng.random(), n, slots)
+
+    def resize(self, log_w: np.ndarray, rng: np.random.Generator, count: int) -> np.ndarray:
+        """``count`` indices for a set of another size: resampled, then drawn from the
+        resampled set with replacement (a size change while running)."""
+        return rng.choice(self.resample(log_w, rng), size=count, replace=True)
+
+    def subsample(self, log_w: np.ndarray, count: int) -> np.ndarray:
+        """At most ``count`` indices, deterministic (pointers at ``(k + 1/2) / count``);
+        every index when ``count <= 0`` or the set is no larger."""
+        n = log_w.shape[0]
+        if count <= 0 or n <= count:
+            return np.arange(n)
+        return self.indices(log_w, 0.5, count)
+
+    @staticmethod
+    def thin(n: int, count: int) -> slice:
+        """Every ``n // count``-th particle of a set of ``n`` (about ``count`` of them, at
+        least ``count``; the sets are in no order, so this is an even thinning); the
+        weights of what is kept need normalising again."""
+        return slice(None, None, max(n // count, 1))
+
+
+#: The resampler of the filter and of its published cloud.
+SYSTEMATIC = SystematicResampler()
+
+
 def systematic_resample(log_w: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Systematic resampling: one uniform draw, N evenly spaced pointers.
 
@@ -71,11 +146,7 @@ def systematic_resample(log_w: np.ndarray, rng: np.random.Generator) -> np.ndarr
     Returns:
         (N,) indices of the selected particles, non-decreasing.
     """
-    n = log_w.shape[0]
-    cdf = np.cumsum(np.exp(log_w - log_w.max()))
-    cdf /= cdf[-1]
-    pointers = (rng.random() + np.arange(n)) / n
-    return np.minimum(np.searchsorted(cdf, pointers, side='right'), n - 1)
+    return SYSTEMATIC.resample(log_w, rng)
 
 
 def motion_samples(motion: MotionIncrement, n_samples: int, scale: float,

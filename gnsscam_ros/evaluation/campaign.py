@@ -14,7 +14,7 @@ import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -253,8 +253,8 @@ def run_campaign(seeds=(1, 2, 3), base: FilterConfig | None = None,
     for c in cases_out:
         for k, v in c.get('camera', {}).get('mean_alpha', {}).items():
             alphas.setdefault(k, []).append(v)
-    out = {'cases': cases_out, 'seeds': list(seeds), 'config': asdict(base),
-           'method_configs': {m: asdict(method_config(m, base)) for m in methods},
+    out = {'cases': cases_out, 'seeds': list(seeds), 'config': base.as_flat(),
+           'method_configs': {m: method_config(m, base).as_flat() for m in methods},
            'camera_mean_alpha': {k: float(np.mean(v)) for k, v in alphas.items()},
            'seconds': time.monotonic() - start, 'workers': workers}
     if plots_dir is not None:

@@ -29,7 +29,6 @@ time) are printed.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import math
 import os
 import sys
@@ -181,10 +180,7 @@ def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed
     print(f'[demo] {key}: {conversion.messages} messages, {conversion.duration_s:.0f} s, '
           f'{conversion.bag_bytes / 1e6:.0f} MB', file=sys.stderr)
     data = read_drive(bag)              # what the nodes receive (float32 fields included)
-    params = {'fusion_node': {**{f.name: getattr(config, f.name)
-                                 for f in dataclasses.fields(config)
-                                 if f.name != 'extra_alert_limits_m'},
-                              'seed': int(seed)}}
+    params = {'fusion_node': {**config.as_parameters(), 'seed': int(seed)}}
     if data.origin_llh is not None:
         params['fusion_node'].update(use_map_origin=True,
                                      map_origin_llh=[float(v) for v in data.origin_llh])
@@ -248,7 +244,7 @@ def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed
               'camera_matches_offline': None if matches is None else len(matches),
               'bags': {'dataset': str(bag), 'result': str(result_bag)},
               'plots': [str(p) for p in paths], 'seed': seed,
-              'config': dataclasses.asdict(config)}
+              'config': config.as_flat()}
     write_json_atomic(folder / 'results.json', result)
     return result
 

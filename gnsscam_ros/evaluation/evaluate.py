@@ -1,7 +1,6 @@
 """Evaluate the filter on one drive, next to the robust snapshot WLS baseline."""
 from __future__ import annotations
 
-from dataclasses import asdict
 
 from ..core.filter import FilterConfig
 from ..core.frames import LocalFrame
@@ -42,6 +41,6 @@ def evaluate_drive_record(drive: Drive, config: FilterConfig, seed: int = 0,
     out['dataset'] = {'name': drive.name, 'gnss_epochs': len(drive.gnss),
                       **{k: v for k, v in drive.info.items()
                          if isinstance(v, (str, int, float, bool)) or v is None}}
-    out['config'] = asdict(config)
+    out['config'] = config.as_flat()
     out['seed'] = seed
     return out, record

@@ -26,7 +26,8 @@ fields as the bag converter writes them (frame ``map``, status FIX, covariance u
 integrity verdict (level OK / ERROR / STALE as ``integrity_risk``, its message,
 protection level and alert limit) for diagnostic_aggregator and rqt_robot_monitor.
 
-Every FilterConfig field except ``extra_alert_limits_m`` is a parameter of the same name;
+Every FilterConfig parameter (``FilterConfig.parameter_specs()``; all but
+``extra_alert_limits_m``) is a node parameter of the same name;
 all of them can be changed while running (validated as a whole FilterConfig; a refused
 update keeps the old values), e.g. ``alert_limit_m`` and ``target_risk``. An integer given
 for a float parameter (``-p alert_limit_m:=16``) is that float.
@@ -37,10 +38,9 @@ start-up (``-p likelihood:=gauss``; one line on stderr naming it).
 from __future__ import annotations
 
 import math
-import re
 import sys
 import time
-from dataclasses import fields, replace
+from dataclasses import replace
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
@@ -55,6 +55,7 @@ from gnsscam_ros.core.engine import (CAMERA, DEAD_RECKONING, DROPPED_OLDEST, ERR
 from gnsscam_ros.core.filter import REJECTED, UPDATED, EpochResult, FilterConfig
 from gnsscam_ros.core.frames import LocalFrame
 from gnsscam_ros.core.motion import OUT_OF_ORDER, RESET
+from gnsscam_ros.core.particles import SYSTEMATIC
 from gnsscam_ros.core.types import GnssEpoch
 from msg_adapters import (ERROR, OK, STALE, WARN, GeodeticFix, GlobalOdometry,
                           IntegrityRisk, MessageError, PoseEstimate, fix_to_navsatfix,
@@ -76,14 +77,17 @@ TIMING_PARAMETERS = {'odometry_buffer_s': 'dead_reckoning_buffer_s',
                      'camera_wait_s': 'camera_wait_s', 'camera_timeout_s': 'camera_timeout_s'}
 
 _FILTER_DEFAULTS = FilterConfig()
-# FilterConfig fields that are not node parameters (evaluation only).
-NOT_PARAMETERS = ('extra_alert_limits_m',)
-FILTER_PARAMETERS = tuple(f.name for f in fields(FilterConfig) if f.name not in NOT_PARAMETERS)
+# Every filter parameter's default, meaning, unit and range: its part's field metadata
+# (gnsscam_ros/core/config.py). FilterConfig fields that are not node parameters are for
+# evaluation only.
+_FILTER_SPECS = tuple(s for s in FilterConfig.parameter_specs() if s.node_parameter)
+NOT_PARAMETERS = tuple(s.name for s in FilterConfig.parameter_specs() if not s.node_parameter)
+FILTER_PARAMETERS = tuple(s.name for s in _FILTER_SPECS)
 
 # Code defaults; config/fusion_node.yaml documents the same values (a test checks). The
 # filter ones are FilterConfig's.
 DEFAULTS = {
-    **{name: getattr(_FILTER_DEFAULTS, name) for name in FILTER_PARAMETERS},
+    **_FILTER_DEFAULTS.as_parameters(),
     'seed': -1,
     'use_map_origin': False,
     'map_origin_llh': [0.0, 0.0, 0.0],
@@ -105,33 +109,6 @@ DEFAULTS = {
     'diagnostics_period_s': 1.0,
 }
 
-# Ranges of the filter parameters (FilterConfig.__post_init__ has the final word).
-_PROBABILITY = (0.0, 1.0)
-_FILTER_RANGES = {
-    'n_particles': (2, 10_000_000), 'n_posteriors': (1, 10_000),
-    'n_motion_samples': (1, 10_000),
-    'acquisition_particles': (0, 10_000_000), 'min_satellites': (4, 1000),
-    'outlier_prob': _PROBABILITY, 'target_risk': _PROBABILITY, 'risk_delta': _PROBABILITY,
-    'resample_ess_fraction': _PROBABILITY, 'camera_elsewhere_prob': _PROBABILITY,
-    'elevation_mask_deg': (-90.0, 90.0), 'cn0_mask_dbhz': (0.0, 100.0),
-    'dirichlet_alpha': (1.0, BIG),
-}
-
-
-def _attribute_docs(cls) -> dict[str, str]:
-    """``{attribute: description}`` from a Google-style ``Attributes:`` docstring."""
-    doc = cls.__doc__ or ''
-    body = doc.split('Attributes:', 1)[-1]
-    out, name = {}, None
-    for line in body.splitlines():
-        m = re.match(r'^\s{8}(\w+): (.*)$', line)
-        if m:
-            name = m.group(1)
-            out[name] = m.group(2).strip()
-        elif name and line.strip():
-            out[name] += ' ' + line.strip()
-    return out
-
 
 def yaw_variance(yaw_rad: np.ndarray, log_w: np.ndarray) -> float:
     """Circular variance of weighted headings as an angle variance ``-2 ln R`` [rad^2]."""
@@ -146,13 +123,7 @@ def published_particles(particles: np.ndarray, log_w: np.ndarray, max_count: int
     """The particle cloud to publish: all of it, or a weighted deterministic subsample of
     ``max_count`` (systematic pointers at (k + 1/2) / K; never the filter's random
     generator, so publishing cannot change the filter's run)."""
-    n = particles.shape[0]
-    if max_count <= 0 or n <= max_count:
-        return particles
-    cdf = np.cumsum(np.exp(log_w - np.max(log_w)))
-    cdf /= cdf[-1]
-    idx = np.searchsorted(cdf, (np.arange(max_count) + 0.5) / max_count, side='right')
-    return particles[np.minimum(idx, n - 1)]
+    return particles[SYSTEMATIC.subsample(log_w, max_count)]
 
 
 class FusionNode(GnssCamNode):
@@ -165,11 +136,12 @@ class FusionNode(GnssCamNode):
 
     def __init__(self, node_name: str = 'fusion_node', **kwargs):
         super().__init__(node_name, **kwargs)
-        docs = _attribute_docs(FilterConfig)
-        for name in FILTER_PARAMETERS:
-            self.declare(name, DEFAULTS[name], docs.get(name, name) + ' (FilterConfig)',
-                         _FILTER_RANGES.get(name, (0.0, BIG) if isinstance(
-                             DEFAULTS[name], float) else None))
+        for spec in _FILTER_SPECS:
+            # ROS ranges are closed and finite: FilterConfig refuses an open bound itself.
+            about = f' Admissible: {spec.constraint}.' if spec.constraint else ''
+            self.declare(spec.name, DEFAULTS[spec.name],
+                         f'{spec.description}{about} (FilterConfig.{spec.part})',
+                         None if spec.range is None else spec.range.closed(BIG))
         self.declare('seed', DEFAULTS['seed'],
                      'Seed of the filter random generator; -1 = fresh entropy.',
                      (-1, 2 ** 62), read_only=True)

@@ -1,0 +1,559 @@
+"""Filter parameters: one source for each parameter's default, meaning, unit and range.
+
+The parameters come in parts, small frozen dataclasses: the particle set
+(:class:`ParticleSetConfig`), the motion model (:class:`MotionConfig`), GNSS and its
+likelihood (:class:`GnssConfig`), the bias hypotheses (:class:`BiasConfig`), the camera
+(:class:`CameraConfig`) and integrity (:class:`IntegrityConfig`). Each field carries its
+metadata (:func:`parameter`: doc, unit, range or choices); from it come the parts'
+validation, their ``Attributes:`` docstrings, the fusion node's parameter descriptors and
+the comments of ``config/fusion_node.yaml`` (:func:`render_yaml_block`; a test checks
+that the file is current).
+
+:class:`FilterConfig` composes the parts. Its flat names (``n_particles``,
+``alert_limit_m``, ...) are the public parameter names, unique across the parts: the node
+parameters, ``FilterConfig(alert_limit_m=25.0)``, ``config.n_particles`` and
+``dataclasses.replace(config, alert_limit_m=16.0)`` all use them.
+
+Run as ``python -m gnsscam_ros.core.config config/fusion_node.yaml`` to rewrite the
+generated block of that file after changing a parameter here.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import operator
+import sys
+import textwrap
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .bias import BIAS_CN0, BIAS_MODELS, BIAS_NONE, BiasModel
+from .gnss import LIKELIHOODS, ROBUST
+from .integrity import EXACT, INVERSE_METHODS
+
+#: Key of the field metadata that holds a parameter's description.
+_META = 'gnsscam_parameter'
+
+
+@dataclass(frozen=True)
+class Range:
+    """Admissible values of a numeric parameter; a bound of None is no bound.
+
+    ROS parameter ranges are closed, so an open bound (``low_open``) is enforced by the
+    configuration's own validation only.
+    """
+
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+
+    def contains(self, value) -> bool:
+        """Whether ``value`` lies in the range (NaN never does)."""
+        if self.low is not None and not (value > self.low if self.low_open
+                                         else value >= self.low):
+            return False
+        return self.high is None or bool(value < self.high if self.high_open
+                                         else value <= self.high)
+
+    def closed(self, unbounded: float) -> tuple[float, float]:
+        """``(low, high)`` with a missing bound replaced by ``-unbounded`` / ``unbounded``
+        (the form of a ROS parameter range)."""
+        return (-unbounded if self.low is None else self.low,
+                unbounded if self.high is None else self.high)
+
+    def __str__(self) -> str:
+        low, high = _number(self.low), _number(self.high)
+        if self.low is not None and self.high is not None:
+            return (f'in {"(" if self.low_open else "["}{low}, {high}'
+                    f'{")" if self.high_open else "]"}')
+        if self.low is not None:
+            return f'{">" if self.low_open else ">="} {low}'
+        if self.high is not None:
+            return f'{"<" if self.high_open else "<="} {high}'
+        return 'any value'
+
+
+def _number(value) -> str:
+    return f'{value:g}' if isinstance(value, float) else str(value)
+
+
+@dataclass(frozen=True)
+class ParameterSpec:
+    """One filter parameter as the node, the YAML file and the validation see it.
+
+    Attributes:
+        name: Flat parameter name (unique across the parts).
+        default: Default value.
+        doc: Meaning, without the unit.
+        unit: Unit ('' for none), e.g. 'm^2/s'.
+        range: Admissible numeric values (None: not numeric or unchecked).
+        choices: Admissible string values (empty: any).
+        part: Attribute of :class:`FilterConfig` holding the parameter's part.
+        node_parameter: Declared as a fusion_node parameter (False: evaluation only).
+    """
+
+    name: str
+    default: object
+    doc: str
+    unit: str = ''
+    range: Range | None = None
+    choices: tuple = ()
+    part: str = ''
+    node_parameter: bool = True
+
+    @property
+    def description(self) -> str:
+        """Meaning and unit, one paragraph."""
+        return f'{self.doc} Unit: {self.unit}.' if self.unit else self.doc
+
+    @property
+    def constraint(self) -> str:
+        """The admissible values in words ('' when any value of the type is)."""
+        if self.choices:
+            return 'one of ' + ', '.join(self.choices)
+        return '' if self.range is None else str(self.range)
+
+    def problem(self, value) -> str | None:
+        """Why ``value`` is refused (None when it is admissible)."""
+        if self.choices and value not in self.choices:
+            return f'{self.name} must be one of {self.choices}'
+        if self.range is not None and not self.range.contains(value):
+            return f'{self.name} must be {self.range}'
+        return None
+
+
+def parameter(default, doc: str, unit: str = '', *, low=None, high=None,
+              low_open: bool = False, high_open: bool = False, choices: tuple = (),
+              node: bool = True):
+    """A part's field with its parameter metadata.
+
+    Args:
+        default: Default value (immutable).
+        doc: Meaning, without the unit; sentences ending with a full stop.
+        unit: Unit ('' for none).
+        low, high: Bounds of the admissible values (None: unbounded).
+        low_open, high_open: The bound itself is excluded.
+        choices: Admissible string values.
+        node: Declared as a fusion_node parameter.
+    """
+    value_range = (None if low is None and high is None
+                   else Range(low, high, low_open, high_open))
+    spec = ParameterSpec(name='', default=default, doc=doc, unit=unit, range=value_range,
+                         choices=tuple(choices), node_parameter=node)
+    return field(default=default, metadata={_META: spec})
+
+
+@functools.lru_cache(maxsize=None)
+def _field_specs(cls, part: str = '') -> tuple[ParameterSpec, ...]:
+    return tuple(dataclasses.replace(f.metadata[_META], name=f.name, part=part)
+                 for f in dataclasses.fields(cls))
+
+
+def _problems(specs, values: dict) -> list[str]:
+    return [p for p in (s.problem(values[s.name]) for s in specs) if p]
+
+
+def _invalid(problems: list[str]) -> ValueError:
+    return ValueError('invalid filter configuration: ' + '; '.join(problems))
+
+
+class _Part:
+    """Base of the parts: validation from the field metadata."""
+
+    def __post_init__(self):
+        problems = _problems(_field_specs(type(self)),
+                             {f.name: getattr(self, f.name) for f in dataclasses.fields(self)})
+        if problems:
+            raise _invalid(problems)
+
+
+def _part(cls):
+    """Make ``cls`` a frozen part whose ``Attributes:`` docstring comes from its fields."""
+    cls = dataclass(frozen=True)(cls)
+    lines = ['', '    Attributes:']
+    for spec in _field_specs(cls):
+        text = f'{spec.name}: {spec.description}'
+        if spec.constraint:
+            text += f' Admissible: {spec.constraint}.'
+        lines += textwrap.wrap(text, 92, initial_indent=' ' * 8, subsequent_indent=' ' * 12,
+                               break_long_words=False, break_on_hyphens=False)
+    cls.__doc__ = (cls.__doc__ or '').rstrip() + '\n' + '\n'.join(lines) + '\n'
+    return cls
+
+
+# ---------------------------------------------------------------------------- the parts
+@_part
+class ParticleSetConfig(_Part):
+    """The particle sets: sizes, initialisation, heading acquisition and resampling."""
+
+    n_particles: int = parameter(1000, 'Particles per posterior N.', low=2, high=10_000_000)
+    n_posteriors: int = parameter(
+        200, 'Posteriors M behind the risk bound and the protection level. With the exact '
+        'inverse Bernoulli the bound can never fall below '
+        '``1 - exp(-log((M + 1) / delta) / M)``: 0.375 for M = 10, 0.037 for M = 200 '
+        '(delta = 0.1). Bias hypotheses make extra posteriors cheap (no likelihood).',
+        low=1, high=10_000)
+    n_motion_samples: int = parameter(
+        10, 'Motion samples drawn around the odometry and weighed by the measurements (the '
+        'estimate is the best of them); posterior j uses sample ``j mod n_motion_samples`` '
+        "and its own bias hypothesis. With ``bias_model = 'none'`` every posterior has its "
+        'own sample (this is ignored).', low=1, high=10_000)
+    resample_ess_fraction: float = parameter(
+        0.5, 'Resample when the effective sample size falls below this fraction of N.',
+        low=0.0, high=1.0)
+    init_position_sd_m: float = parameter(
+        30.0, 'Horizontal spread of the initial set around the first fix.', 'm', low=0.0)
+    init_vertical_sd_m: float = parameter(
+        60.0, 'Vertical spread of the initial set; snapshot heights in a street canyon are '
+        'tens of metres off, so this is wider than the horizontal one.', 'm', low=0.0)
+    heading_acquisition_m: float = parameter(
+        100.0, 'The heading is unknown at start and observable only once the vehicle has '
+        'moved well beyond the GNSS errors. Until it has travelled this far the set holds '
+        '``acquisition_particles`` particles (when that is more than ``n_particles``), so '
+        'that the 4D (position, height, heading) search is covered densely and does not '
+        'lock onto a wrong heading by sampling luck.', 'm', low=0.0)
+    acquisition_particles: int = parameter(
+        10_000, 'Set size during heading acquisition; 0 or fewer than ``n_particles``: no '
+        'enlargement. An absolute count, not a multiple of N: how many particles cover the '
+        'search (the initial spread times the heading circle) depends on that volume, not '
+        'on the working size, so a large N gains nothing from an enlargement and would pay '
+        'ten times its epoch cost for the first 100 m.', low=0, high=10_000_000)
+
+
+@_part
+class MotionConfig(_Part):
+    """Motion model: process noise, odometry perturbations, motion while unknown."""
+
+    propagation_var_m2: float = parameter(
+        0.3, 'Horizontal position process noise per axis per second (paper Table 1 uses '
+        '3 m^2; with odometry this good, 0.3 measured better on smartLoc, see README).',
+        'm^2/s', low=0.0)
+    vertical_propagation_var_m2: float = parameter(
+        0.3, "Height process noise per second; a road vehicle's height changes slowly and "
+        'GNSS observes it poorly.', 'm^2/s', low=0.0)
+    yaw_propagation_var_rad2: float = parameter(
+        3e-4, 'Heading process noise per second.', 'rad^2/s', low=0.0)
+    motion_perturbation_scale: float = parameter(
+        3.0, 'Inflation of the odometry noise for the motion samples.', low=0.0)
+    max_speed_mps: float = parameter(
+        40.0, 'Fastest the vehicle may move while its motion is unknown (dead reckoning '
+        'lost or reset): the set spreads by this speed times the gap.', 'm/s', low=0.0)
+    max_yaw_rate_rps: float = parameter(
+        1.0, 'Fastest heading change while the motion is unknown.', 'rad/s', low=0.0)
+
+
+@_part
+class GnssConfig(_Part):
+    """GNSS measurements: satellite checks, variances, receiver clock and likelihood."""
+
+    min_satellites: int = parameter(
+        4, 'Fewest satellites for an update (position and clock need 4).', low=4, high=1000)
+    elevation_mask_deg: float = parameter(
+        0.0, 'Satellites below this elevation are dropped.', 'deg', low=-90.0, high=90.0)
+    cn0_mask_dbhz: float = parameter(
+        0.0, 'Satellites below this C/N0 are dropped.', 'dB-Hz', low=0.0, high=100.0)
+    measurement_var_m2: float = parameter(
+        10.0, 'Pseudorange variance (paper Table 1: 10).', 'm^2', low=0.0, low_open=True)
+    use_reported_variance: bool = parameter(
+        True, "Use max(measurement_var_m2, the receiver's variance).")
+    clock_kernel_max_m: float = parameter(
+        3.0, "Cap on how much the prior's spread widens the clock's inlier kernel. NLOS "
+        'errors are positive; a kernel wide enough to take them in biases the clock, and '
+        'through it the height, by tens of metres.', 'm', low=0.0)
+    error_correlation_time_s: float = parameter(
+        5.0, 'GNSS errors closer in time than this are not independent evidence: each '
+        "epoch's log-likelihood is tempered by min(1, dt / this); 0 = off.", 's', low=0.0)
+    likelihood: str = parameter(
+        ROBUST, "'particle_raim' (the paper's mixture) or 'robust' (Gaussian with an "
+        'outlier floor).', choices=LIKELIHOODS)
+    dirichlet_alpha: float = parameter(
+        1.01, 'Dirichlet prior concentration in the EM pooling (particle_raim).', low=1.0)
+    outlier_prob: float = parameter(
+        0.3, 'Outlier probability of the robust likelihood.', low=0.0, high=1.0,
+        low_open=True, high_open=True)
+    outlier_range_m: float = parameter(
+        300.0, "Width of the robust likelihood's uniform outlier density.", 'm', low=0.0,
+        low_open=True)
+
+
+@_part
+class BiasConfig(_Part):
+    """Bias hypotheses of the posteriors behind the risk bound (``core.bias``)."""
+
+    bias_model: str = parameter(
+        BIAS_CN0, "'cn0' (each posterior carries a Gauss-Markov pseudorange bias per "
+        'satellite, its size from C/N0, propagated into the estimate; core.bias) or '
+        "'none' (posteriors differ by motion perturbations only, as in the paper).",
+        choices=BIAS_MODELS)
+    bias_floor_m: float = parameter(
+        2.0, 'Smallest bias standard deviation at high C/N0.', 'm', low=0.0)
+    bias_residual_scale: float = parameter(
+        0.23, 'Bias standard deviation at high C/N0 per metre of smoothed residual RMS at '
+        'the estimate (calibrated on smartLoc, see README).', low=0.0)
+    bias_cn0_knee_dbhz: float = parameter(
+        41.6, 'Below this C/N0 the bias grows 10 dB per decade.', 'dB-Hz', low=0.0)
+    bias_correlation_time_s: float = parameter(
+        50.0, 'Correlation time of the biases (smartLoc: about 50 s).', 's', low=0.0)
+
+    @property
+    def model(self) -> BiasModel:
+        """The bias model of these parameters."""
+        return BiasModel(floor_m=self.bias_floor_m, residual_scale=self.bias_residual_scale,
+                         cn0_knee_dbhz=self.bias_cn0_knee_dbhz,
+                         correlation_time_s=self.bias_correlation_time_s)
+
+
+@_part
+class CameraConfig(_Part):
+    """Camera fusion (``core.fusion``)."""
+
+    use_camera: bool = parameter(
+        True, 'Fuse camera matches when they are given (false = Particle RAIM only).')
+    camera_temperature_m: float = parameter(
+        5.0, 'Softmax temperature of the camera distribution.', 'm', low=0.0, low_open=True)
+    camera_gate_m: float = parameter(
+        20.0, 'Beyond this distance from a match a particle is no more likely under the '
+        'camera than the rest of the map (the "elsewhere" cell).', 'm', low=0.0,
+        low_open=True)
+    camera_elsewhere_prob: float = parameter(
+        1e-3, 'GNSS probability that the vehicle is outside the cloud.', low=0.0, high=1.0,
+        low_open=True, high_open=True)
+    camera_kl_threshold_nats: float = parameter(
+        5.0, "The camera is excluded for an epoch when every image's KL(Q_j || P) against "
+        'the GNSS distribution exceeds this; with every match beyond the gate KL tends to '
+        'log(1 / camera_elsewhere_prob) = 6.9.', 'nats', low=0.0, low_open=True)
+
+
+@_part
+class IntegrityConfig(_Part):
+    """Integrity: alert limits, target risk, the bound's confidence and settling."""
+
+    alert_limit_m: float = parameter(
+        8.0, 'Alert limit of the integrity flag.', 'm', low=0.0, low_open=True)
+    extra_alert_limits_m: tuple = parameter(
+        (), 'Further alert limits whose risk is computed (evaluation only).', 'm',
+        node=False)
+    target_risk: float = parameter(
+        0.1, 'Integrity is insufficient when the risk bound exceeds this.', low=0.0,
+        high=1.0, low_open=True, high_open=True)
+    risk_delta: float = parameter(
+        0.1, 'Confidence parameter delta of the bound.', low=0.0, high=1.0, low_open=True)
+    inverse_bernoulli: str = parameter(
+        EXACT, "'exact' (bisection) or 'approx' (the paper's closed form, which collapses "
+        'to 0 when no posterior mass is hazardous: reproduction only).',
+        choices=INVERSE_METHODS)
+    horizontal_risk: bool = parameter(
+        True, 'Alert limits on horizontal error (true) or 3D error.')
+    integrity_settling_s: float = parameter(
+        30.0, 'Integrity is not certified before the heading is acquired (at the start, and '
+        'again after a dead-reckoning gap long enough to lose it) and this long after: the '
+        'set starts on a snapshot fix, which carries the whole effect of the biases, while '
+        "the bias hypotheses start from none and need the filter's own memory to grow into "
+        'it (measured: the level fell below the error at the end of acquisition on the '
+        'emulated drive).', 's', low=0.0)
+
+    @property
+    def alert_limits_m(self) -> np.ndarray:
+        """The flag's alert limit first, then the extra ones."""
+        extra = [a for a in self.extra_alert_limits_m if a != self.alert_limit_m]
+        return np.array([self.alert_limit_m, *extra], dtype=float)
+
+
+# -------------------------------------------------------------------------- composition
+@dataclass(frozen=True, init=False)
+class FilterConfig:
+    """Filter parameters: the parts, read and set through their flat names.
+
+    ``FilterConfig(n_particles=300, alert_limit_m=25.0)`` sets parameters by flat name
+    (the rest keep their defaults); parts may be given whole
+    (``FilterConfig(camera=CameraConfig(use_camera=False))``), flat names override them.
+    ``config.n_particles`` reads a parameter, ``config.particle_set`` its part, and
+    ``dataclasses.replace(config, alert_limit_m=16.0)`` makes a validated copy. Every
+    parameter's meaning, unit and range: :meth:`parameter_specs` (or the part classes'
+    docstrings); the fusion node declares every one with ``node_parameter`` set under its
+    flat name.
+
+    Raises:
+        ValueError: An inadmissible value; the message names every one.
+        TypeError: An unknown name, or a part of the wrong class.
+    """
+
+    particle_set: ParticleSetConfig = field(default_factory=ParticleSetConfig)
+    motion: MotionConfig = field(default_factory=MotionConfig)
+    gnss: GnssConfig = field(default_factory=GnssConfig)
+    bias_hypotheses: BiasConfig = field(default_factory=BiasConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    integrity: IntegrityConfig = field(default_factory=IntegrityConfig)
+
+    def __init__(self, **values):
+        unknown = set(values) - set(_PART_OF) - {name for name, _ in PARTS}
+        if unknown:
+            raise TypeError(f'FilterConfig got unexpected parameters: {sorted(unknown)}')
+        merged, problems = {}, []
+        for name, cls in PARTS:
+            base = values.get(name)
+            if base is None:
+                base = cls()
+            elif not isinstance(base, cls):
+                raise TypeError(f'FilterConfig part {name} must be a {cls.__name__}')
+            own = {f.name: values.get(f.name, getattr(base, f.name))
+                   for f in dataclasses.fields(cls)}
+            problems += _problems(_field_specs(cls), own)
+            merged[name] = (cls, own)
+        if problems:
+            raise _invalid(problems)
+        for name, (cls, own) in merged.items():
+            object.__setattr__(self, name, cls(**own))
+
+    @classmethod
+    def from_flat(cls, values: dict) -> 'FilterConfig':
+        """The configuration of ``{flat name: value}`` (missing ones at their defaults)."""
+        return cls(**values)
+
+    @classmethod
+    def parameter_specs(cls) -> tuple[ParameterSpec, ...]:
+        """Every parameter (node parameters and evaluation-only ones), in part order."""
+        return _SPECS
+
+    def as_flat(self) -> dict:
+        """``{flat name: value}`` of every parameter (JSON records, copies)."""
+        return {spec.name: getattr(self, spec.name) for spec in _SPECS}
+
+    def as_parameters(self) -> dict:
+        """``{name: value}`` of the fusion node parameters (``as_flat`` without the
+        evaluation-only ones)."""
+        return {spec.name: getattr(self, spec.name) for spec in _SPECS if spec.node_parameter}
+
+    @property
+    def alert_limits_m(self) -> np.ndarray:
+        """The flag's alert limit first, then the extra ones."""
+        return self.integrity.alert_limits_m
+
+    @property
+    def motion_sample_count(self) -> int:
+        """Motion samples weighed per epoch (every posterior's own without bias model)."""
+        if self.bias_model == BIAS_NONE:
+            return self.n_posteriors
+        return min(self.n_motion_samples, self.n_posteriors)
+
+    @property
+    def bias(self) -> BiasModel:
+        """The bias model of the bias hypotheses (``bias_hypotheses.model``)."""
+        return self.bias_hypotheses.model
+
+
+#: ``(attribute of FilterConfig, part class)`` in parameter order.
+PARTS = tuple((f.name, f.default_factory) for f in dataclasses.fields(FilterConfig))
+_SPECS = tuple(spec for name, cls in PARTS for spec in _field_specs(cls, name))
+#: Flat name -> attribute of its part in FilterConfig.
+_PART_OF = {spec.name: spec.part for spec in _SPECS}
+
+
+def _add_flat_properties() -> None:
+    """Read access by flat name: ``config.n_particles`` is ``config.particle_set.n_particles``."""
+    taken = set(dir(FilterConfig))
+    if len(_PART_OF) != len(_SPECS) or taken & set(_PART_OF):
+        clash = sorted(taken & set(_PART_OF)) or 'a name in two parts'
+        raise RuntimeError(f'FilterConfig parameter names must be unique: {clash}')
+    for spec in _SPECS:
+        setattr(FilterConfig, spec.name,
+                property(operator.attrgetter(f'{spec.part}.{spec.name}'),
+                         doc=spec.description))
+
+
+_add_flat_properties()
+
+
+# ------------------------------------------------------------------------ the YAML file
+#: The lines around the generated block of ``config/fusion_node.yaml``.
+YAML_BEGIN = ('    # ---- Filter parameters (FilterConfig). Generated from '
+              'gnsscam_ros/core/config.py:')
+YAML_BEGIN_2 = ('    # ---- edit there, then run python -m gnsscam_ros.core.config '
+                'config/fusion_node.yaml')
+YAML_END = "    # ---- fusion_node's own parameters ----"
+_WIDTH = 99
+_INDENT = '    '
+
+
+def yaml_value(value) -> str:
+    """``value`` as a YAML scalar or flow sequence that loads back as the same value."""
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, str):
+        return '"' + value.replace('\\', '\\\\').replace('"', '\\"') + '"'
+    if isinstance(value, float):
+        if not np.isfinite(value):
+            return '.nan' if np.isnan(value) else ('.inf' if value > 0 else '-.inf')
+        text = repr(value)
+        # YAML 1.1 (PyYAML) reads 1e-05 as a string: it wants a dot in the mantissa.
+        if 'e' in text and '.' not in text:
+            text = text.replace('e', '.0e')
+        return text
+    if isinstance(value, (tuple, list)):
+        return '[' + ', '.join(yaml_value(v) for v in value) + ']'
+    return str(value)
+
+
+def _comment(text: str, keep: str = '') -> list[str]:
+    """``text`` as wrapped comment lines; ``keep`` (a part of it) is not broken."""
+    glued = keep.replace(' ', '\0')
+    lines = textwrap.wrap(text.replace(keep, glued) if keep else text, _WIDTH,
+                          initial_indent=_INDENT + '# ', subsequent_indent=_INDENT + '# ',
+                          break_long_words=False, break_on_hyphens=False)
+    return [line.replace('\0', ' ') for line in lines]
+
+
+def render_yaml_block() -> str:
+    """The filter parameters of ``config/fusion_node.yaml``: per part a heading, per
+    parameter a comment (meaning, unit, default, admissible values) and its default."""
+    lines = [YAML_BEGIN, YAML_BEGIN_2]
+    for part, cls in PARTS:
+        specs = [s for s in _field_specs(cls, part) if s.node_parameter]
+        title = (cls.__doc__ or '').strip().splitlines()[0].rstrip('.')
+        lines += [''] + _comment(f'== {title} (FilterConfig.{part})')
+        for spec in specs:
+            text = f'{spec.description} Default: {yaml_value(spec.default)}'
+            text += f'; {spec.constraint}.' if spec.constraint else '.'
+            lines += _comment(text, spec.constraint)
+            lines.append(f'{_INDENT}{spec.name}: {yaml_value(spec.default)}')
+    return '\n'.join(lines) + '\n\n'
+
+
+def update_yaml(text: str) -> str:
+    """``text`` (``config/fusion_node.yaml``) with its generated block rendered anew.
+
+    Raises:
+        ValueError: The markers around the block are missing.
+    """
+    start = text.find(YAML_BEGIN)
+    end = text.find(YAML_END)
+    if start < 0 or end < start:
+        raise ValueError(f'the generated block must start with {YAML_BEGIN.strip()!r} and '
+                         f'end before {YAML_END.strip()!r}')
+    return text[:start] + render_yaml_block() + text[end:]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Rewrite the generated block of the YAML files given (``config/fusion_node.yaml``)."""
+    paths = sys.argv[1:] if argv is None else argv
+    if not paths:
+        print('usage: python -m gnsscam_ros.core.config config/fusion_node.yaml',
+              file=sys.stderr)
+        return 2
+    for name in paths:
+        path = Path(name)
+        old = path.read_text(encoding='utf-8')
+        new = update_yaml(old)
+        if new != old:
+            path.write_text(new, encoding='utf-8')
+            print(f'{path}: updated')
+        else:
+            print(f'{path}: up to date')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,179 @@
+"""The filter configuration: parts with one source per parameter, flat names on top.
+
+* every parameter has a doc, a unit matching its name's suffix, and an admissible default;
+* validation follows the metadata (ranges, open bounds, choices) and names every problem;
+* flat construction, reading and ``dataclasses.replace`` work as on a flat dataclass;
+* config/fusion_node.yaml's filter block is the one the metadata renders.
+"""
+import dataclasses
+import math
+import pickle
+from pathlib import Path
+
+import pytest
+import yaml
+
+from gnsscam_ros.core import config as cfgmod
+from gnsscam_ros.core.config import (PARTS, CameraConfig, FilterConfig, ParameterSpec, Range,
+                                     render_yaml_block, update_yaml, yaml_value)
+
+ROOT = Path(__file__).resolve().parents[1]
+SPECS = FilterConfig.parameter_specs()
+# Unit implied by a name's suffix (units in names); the longest matching suffix wins.
+SUFFIX_UNITS = {'_m': 'm', '_m2': 'm^2/s', '_rad2': 'rad^2/s', '_s': 's', '_deg': 'deg',
+                '_dbhz': 'dB-Hz', '_mps': 'm/s', '_rps': 'rad/s', '_nats': 'nats'}
+
+
+def test_every_parameter_is_documented_once_with_the_unit_of_its_name():
+    names = [s.name for s in SPECS]
+    assert len(names) == len(set(names))
+    assert {s.part for s in SPECS} == {name for name, _ in PARTS}
+    for spec in SPECS:
+        assert spec.doc.endswith('.') and '[' not in spec.doc, spec.name
+        suffix = max((k for k in SUFFIX_UNITS if spec.name.endswith(k)), key=len, default='')
+        if suffix == '_m2':          # a variance: per second or not, as the doc says
+            assert spec.unit in ('m^2', 'm^2/s'), spec.name
+        elif suffix:
+            assert spec.unit == SUFFIX_UNITS[suffix], spec.name
+        else:
+            assert spec.unit == '', spec.name
+        assert spec.problem(spec.default) is None, spec.name
+        assert isinstance(spec.default, (bool, int, float, str, tuple)), spec.name
+
+
+def test_defaults_and_flat_reads_come_from_the_parts():
+    config = FilterConfig()
+    flat = config.as_flat()
+    assert list(flat) == [s.name for s in SPECS]
+    for spec in SPECS:
+        part = getattr(config, spec.part)
+        assert getattr(config, spec.name) == getattr(part, spec.name) == spec.default
+    assert list(config.as_parameters()) == [s.name for s in SPECS if s.node_parameter]
+    assert 'extra_alert_limits_m' not in config.as_parameters()
+    assert FilterConfig.from_flat(flat) == config
+    assert [f.name for f in dataclasses.fields(FilterConfig)] == [n for n, _ in PARTS]
+
+
+def test_flat_construction_replace_and_parts():
+    config = FilterConfig(alert_limit_m=25, n_particles=300, use_camera=False)
+    assert (config.alert_limit_m, config.n_particles, config.use_camera) == (25, 300, False)
+    assert config.integrity.alert_limit_m == 25 and config.camera.use_camera is False
+    changed = dataclasses.replace(config, alert_limit_m=16.0, likelihood='particle_raim')
+    assert changed.alert_limit_m == 16.0 and changed.likelihood == 'particle_raim'
+    assert changed.n_particles == 300 and config.alert_limit_m == 25      # a copy
+    assert changed.camera is config.camera or changed.camera == config.camera
+    # A whole part, with flat names overriding it.
+    whole = FilterConfig(camera=CameraConfig(camera_gate_m=7.0), camera_temperature_m=2.0)
+    assert (whole.camera_gate_m, whole.camera_temperature_m) == (7.0, 2.0)
+    assert pickle.loads(pickle.dumps(changed)) == changed
+    assert hash(changed) == hash(dataclasses.replace(changed))
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        changed.n_particles = 5
+    with pytest.raises(TypeError, match='alert_limit'):
+        FilterConfig(alert_limit=3.0)
+    with pytest.raises(TypeError, match='CameraConfig'):
+        FilterConfig(camera=FilterConfig().integrity)
+
+
+def test_alert_limits_and_derived_values():
+    config = FilterConfig(alert_limit_m=8.0, extra_alert_limits_m=(16.0, 8.0, 25.0))
+    assert config.alert_limits_m.tolist() == [8.0, 16.0, 25.0]
+    assert FilterConfig(bias_model='none', n_posteriors=30).motion_sample_count == 30
+    assert FilterConfig(n_posteriors=5, n_motion_samples=10).motion_sample_count == 5
+    assert config.bias == config.bias_hypotheses.model
+    assert config.bias.floor_m == config.bias_floor_m
+
+
+def _outside(spec: ParameterSpec):
+    """Values just outside each bound of the spec's range (and NaN for floats)."""
+    r = spec.range
+    out = []
+    step = 1 if isinstance(spec.default, int) else 1e-9
+    if r.low is not None:
+        out.append(r.low if r.low_open else r.low - step)
+    if r.high is not None:
+        out.append(r.high if r.high_open else r.high + step)
+    if isinstance(spec.default, float):
+        out.append(math.nan)
+    return out
+
+
+@pytest.mark.parametrize('spec', [s for s in SPECS if s.range is not None],
+                         ids=lambda s: s.name)
+def test_ranges_refuse_what_lies_outside_and_take_the_bounds_they_include(spec):
+    part_cls = dict(PARTS)[spec.part]
+    for value in _outside(spec):
+        with pytest.raises(ValueError, match=f'{spec.name} must be'):
+            FilterConfig(**{spec.name: value})
+        with pytest.raises(ValueError, match=spec.name):
+            part_cls(**{spec.name: value})
+    r = spec.range
+    for bound, is_open in ((r.low, r.low_open), (r.high, r.high_open)):
+        if bound is not None and not is_open:
+            assert getattr(FilterConfig(**{spec.name: bound}), spec.name) == bound
+
+
+def test_choices_and_every_problem_in_one_message():
+    for spec in (s for s in SPECS if s.choices):
+        for choice in spec.choices:
+            assert getattr(FilterConfig(**{spec.name: choice}), spec.name) == choice
+    with pytest.raises(ValueError) as info:
+        FilterConfig(likelihood='magic', target_risk=1.5, n_particles=1)
+    message = str(info.value)
+    assert message.startswith('invalid filter configuration: ')
+    assert "likelihood must be one of ('particle_raim', 'robust')" in message
+    assert 'target_risk must be in (0, 1)' in message and 'n_particles' in message
+
+
+def test_ranges_render_as_written_and_close_for_ros():
+    assert str(Range(0.0, 1.0, True, True)) == 'in (0, 1)'
+    assert str(Range(0.0, low_open=True)) == '> 0' and str(Range(1.0)) == '>= 1'
+    assert str(Range(2, 10_000_000)) == 'in [2, 10000000]'
+    assert Range(0.0).closed(1e12) == (0.0, 1e12)
+    assert Range(high=3).closed(10) == (-10, 3)
+    assert not Range(0.0).contains(math.nan)
+
+
+def test_yaml_values_load_back_as_themselves():
+    for value in (True, 3, 0.0003, 1e-05, 1e20, 'robust', 'a "b"', (), (8.0, 16.0)):
+        loaded = yaml.safe_load(f'x: {yaml_value(value)}')['x']
+        assert loaded == (list(value) if isinstance(value, tuple) else value), value
+        assert type(loaded) is (list if isinstance(value, tuple) else type(value)), value
+
+
+def test_fusion_node_yaml_filter_block_is_generated_from_the_metadata():
+    path = ROOT / 'config' / 'fusion_node.yaml'
+    text = path.read_text(encoding='utf-8')
+    assert update_yaml(text) == text, (
+        f'{path} is out of date: python -m gnsscam_ros.core.config config/fusion_node.yaml')
+    block = render_yaml_block()
+    assert block in text
+    params = yaml.safe_load(text)['fusion_node']['ros__parameters']
+    comments = ' '.join(line.strip()[2:] for line in block.splitlines()
+                        if line.strip().startswith('# '))
+    for spec in SPECS:
+        if spec.node_parameter:
+            assert params[spec.name] == spec.default, spec.name
+            assert f'{spec.description} Default: {yaml_value(spec.default)}' in comments
+        else:
+            assert spec.name not in params
+    assert max(len(line) for line in text.splitlines()) <= 99
+
+
+def test_update_yaml_needs_its_markers_and_main_rewrites(tmp_path):
+    with pytest.raises(ValueError, match='generated block'):
+        update_yaml('fusion_node:\n  ros__parameters:\n    seed: -1\n')
+    stale = tmp_path / 'fusion_node.yaml'
+    stale.write_text('head\n' + cfgmod.YAML_BEGIN + '\n    n_particles: 3\n'
+                     + cfgmod.YAML_END + '\n    seed: -1\n', encoding='utf-8')
+    assert cfgmod.main([str(stale)]) == 0
+    text = stale.read_text(encoding='utf-8')
+    assert text.startswith('head\n') and text.endswith(cfgmod.YAML_END + '\n    seed: -1\n')
+    assert update_yaml(text) == text and '    n_particles: 1000\n' in text
+    assert cfgmod.main([]) == 2
+
+
+def test_part_docstrings_list_their_parameters():
+    for _, cls in PARTS:
+        for spec in (s for s in SPECS if dict(PARTS)[s.part] is cls):
+            assert f'        {spec.name}: ' in cls.__doc__, spec.name
