@@ -575,13 +575,14 @@ def _result_bag(path: Path, epochs, with_particles=True, with_fix=True, with_tru
                     target_risk=0.1, epoch_stamp_ns=s)))
                 continue
             ok = ep.get('ok', ep['bound8'] <= 0.1)
-            extra = {'risk_bound_16m': ep['bound16'], 'inverse_bernoulli': 'exact'}
+            extra = {'inverse_bernoulli': 'exact'}
             if 'valid' in ep:
                 extra['integrity_valid'] = ep['valid']
             put('integrity_risk', s, integrity_risk_to_msg(IntegrityRisk(
                 stamp_ns=s, level=OK if ok else ERROR, message='', risk_bound=ep['bound8'],
                 empirical_risk=ep['bound8'] / 2, divergence_risk=ep['bound8'] / 2,
-                alert_limit_m=8.0, target_risk=0.1, epoch_stamp_ns=s, extra=extra)))
+                alert_limit_m=8.0, target_risk=0.1, epoch_stamp_ns=s, extra=extra,
+                epoch_status='updated', risk_bounds_by_limit={16.0: ep['bound16']})))
             put('pose', s, pose_to_msg(PoseEstimate(
                 stamp_ns=s, position_m=ep['enu'], yaw_rad=0.3,
                 covariance=pose_covariance(np.diag([4.0, 4.0, 9.0]), 0.01))))
@@ -617,7 +618,9 @@ def test_read_results_written_by_rclpy(tmp_path):
     first = res.integrity[0]
     assert (first.level, first.risk_bound, first.alert_limit_m, first.target_risk) == (
         2, 0.4, 8.0, 0.1)
-    assert first.epoch_stamp_ns == T0 and first.extra['risk_bound_16m'] == '0.01'
+    assert first.epoch_stamp_ns == T0 and first.risk_bounds_by_limit == {16.0: 0.01}
+    assert first.epoch_status == 'updated' and first.extra == {'inverse_bernoulli': 'exact'}
+    assert res.integrity[-1].epoch_status is None
     np.testing.assert_array_equal(res.pose_enu_m, [e['enu'] for e in epochs[:-1]])
     assert res.pose_frame_id == 'map' and res.pose_cov[0, 2, 2] == 9.0
     back = frame.geodetic_to_enu(res.fix_llh[:, 0], res.fix_llh[:, 1], res.fix_llh[:, 2])

@@ -408,10 +408,11 @@ def read_results(path: str | Path, namespace: str = '/', particles: bool = True
     """Read ``pose``, ``fix``, ``particles``, ``integrity_risk`` (and ``ground_truth/pose``,
     ``map/origin`` if present) from a bag recorded from the nodes.
 
-    ``integrity_risk`` is parsed by ``msg_adapters.parse_integrity_risk``: the status with
-    a ``risk_bound`` value, level OK/ERROR/STALE, values ``risk_bound``, ``empirical_risk``,
-    ``divergence_risk``, ``alert_limit_m``, ``target_risk``, ``epoch_stamp`` and extras
-    (``risk_bound_16m`` for further alert limits, ``inverse_bernoulli``, ...).
+    ``integrity_risk`` is parsed by ``msg_adapters.parse_integrity_risk`` into
+    :class:`~msg_adapters.IntegrityRisk`: level OK/ERROR/STALE, ``risk_bound``,
+    ``empirical_risk``, ``divergence_risk``, ``alert_limit_m``, ``target_risk``,
+    ``epoch_stamp_ns``, ``protection_level_m``, ``epoch_status``, ``risk_bounds_by_limit``
+    (further alert limits) and the other values in ``extra`` (``inverse_bernoulli``, ...).
 
     Args:
         path: The result bag.

@@ -526,7 +526,7 @@ class BagReplayer(Node):
         except MessageError:
             return
         # Periodic STALE reports without GNSS repeat the last epoch: not a new epoch.
-        if risk.epoch_stamp_ns is None or risk.extra.get('status') == 'no_gnss':
+        if risk.epoch_stamp_ns is None or risk.epoch_status is None:
             return
         with self._cond:
             self._epochs_seen.add(int(risk.epoch_stamp_ns))
