@@ -122,11 +122,12 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from msg_adapters import MessageError, parse_integrity_risk, status_values
+from msg_adapters.wire import header_stamp_ns
 
 from ..nodes.common import NodeSpinner, stop_process
 from ..bags import schema
 from ..bags.errors import BagError, BagReadError, BagTypeError
-from ..bags.read import header_stamp_ns, open_bag
+from ..bags.read import open_bag
 
 EXIT_OK, EXIT_USAGE, EXIT_INPUT = 0, 2, 3
 _NO_PUB_EVENTS = PublisherEventCallbacks(use_default_callbacks=False)
