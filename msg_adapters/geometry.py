@@ -19,8 +19,8 @@ from std_msgs.msg import Header
 from .errors import MessageError
 from .kit import RCLPY, MessageKit
 from .stamps import make_header, ns_to_stamp, stamp_to_ns
-from .wire import (ANTENNA_FRAME, COVARIANCE_TYPE_KNOWN, COVARIANCE_TYPE_UNKNOWN, MAP_FRAME,
-                   SERVICE_GPS, STATUS_FIX)
+from .wire import (ANTENNA_FRAME, COVARIANCE_TYPE_KNOWN, COVARIANCE_TYPE_UNKNOWN, FIX,
+                   MAP_FRAME, POSE, SERVICE_GPS, STATUS_FIX)
 
 UNESTIMATED_VAR = 1e6     # variance of the pose axes the filter does not estimate [rad^2]
 
@@ -99,7 +99,7 @@ def pose_covariance(position_cov_m2: np.ndarray, yaw_var_rad2: float) -> np.ndar
     return cov
 
 
-def msg_to_pose(msg: PoseWithCovarianceStamped, what: str = 'pose') -> PoseEstimate:
+def msg_to_pose(msg: PoseWithCovarianceStamped, what: str = POSE) -> PoseEstimate:
     """PoseWithCovarianceStamped -> :class:`PoseEstimate`.
 
     Raises:
@@ -201,7 +201,7 @@ def fix_to_navsatfix(fix: GeodeticFix, kit: MessageKit = RCLPY):
         position_covariance=cov, position_covariance_type=cov_type)
 
 
-def navsatfix_to_fix(msg, what: str = 'fix') -> GeodeticFix:
+def navsatfix_to_fix(msg, what: str = FIX) -> GeodeticFix:
     """NavSatFix -> :class:`GeodeticFix`.
 
     Raises:

@@ -6,13 +6,13 @@ import numpy as np
 from .errors import MessageError
 from .kit import RCLPY, MessageKit
 from .stamps import make_header
-from .wire import CAMERA_FRAME
+from .wire import CAMERA_FRAME, IMAGE
 
 # Encoding -> channels. The camera pipeline (ORB on grey) takes 8-bit images only.
 ENCODINGS = {'mono8': 1, 'bgr8': 3, 'rgb8': 3}
 
 
-def image_to_array(msg, what: str = 'camera/image_raw') -> tuple[np.ndarray, str]:
+def image_to_array(msg, what: str = IMAGE) -> tuple[np.ndarray, str]:
     """An Image message -> ``(array, encoding)``.
 
     The array is (H, W) for mono8 and (H, W, 3) for bgr8/rgb8, uint8, a view of the

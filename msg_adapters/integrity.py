@@ -30,6 +30,7 @@ from std_msgs.msg import Header
 
 from .errors import MessageError
 from .stamps import ns_to_stamp, stamp_to_ns
+from .wire import INTEGRITY
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 LEVEL_NAMES = {OK: 'OK', WARN: 'WARN', ERROR: 'ERROR', STALE: 'STALE'}
@@ -203,7 +204,7 @@ def integrity_risk_to_msg(risk: IntegrityRisk) -> DiagnosticArray:
     return make_diagnostic_array(risk.stamp_ns, [status])
 
 
-def parse_integrity_risk(msg: DiagnosticArray, what: str = 'integrity_risk'
+def parse_integrity_risk(msg: DiagnosticArray, what: str = INTEGRITY
                          ) -> IntegrityRisk:
     """The ``integrity_risk`` DiagnosticArray -> :class:`IntegrityRisk`.
 

@@ -33,7 +33,8 @@ from .errors import MessageError
 from .geometry import UNESTIMATED_VAR, quaternion_to_yaw, yaw_to_quaternion
 from .kit import RCLPY, MessageKit
 from .stamps import make_header, ns_to_stamp, stamp_to_ns
-from .wire import BASE_FRAME, IMU_FRAME, MAP_FRAME, ODOM_FRAME
+from .wire import (BASE_FRAME, DEAD_RECKONING, IMU, IMU_FRAME, MAP_FRAME, ODOM_FRAME,
+                   ODOMETRY_GLOBAL, TWIST)
 
 
 @dataclass(frozen=True)
@@ -70,7 +71,7 @@ class TwistSample:
     yaw_rate_var: float = 0.0
 
 
-def imu_to_sample(msg: Imu, what: str = 'imu/data') -> ImuSample:
+def imu_to_sample(msg: Imu, what: str = IMU) -> ImuSample:
     """Imu -> :class:`ImuSample`.
 
     Raises:
@@ -106,7 +107,7 @@ def sample_to_imu(sample: ImuSample, frame_id: str = IMU_FRAME, kit: MessageKit 
         linear_acceleration_covariance=np.zeros(9))
 
 
-def twist_to_sample(msg: TwistWithCovarianceStamped, what: str = 'odom/twist'
+def twist_to_sample(msg: TwistWithCovarianceStamped, what: str = TWIST
                     ) -> TwistSample:
     """TwistWithCovarianceStamped -> :class:`TwistSample`.
 
@@ -163,7 +164,7 @@ def dead_reckoning_to_odometry(state: DeadReckoningState, frame_id: str = ODOM_F
     return msg
 
 
-def odometry_to_dead_reckoning(msg: Odometry, what: str = 'odometry/dead_reckoning'
+def odometry_to_dead_reckoning(msg: Odometry, what: str = DEAD_RECKONING
                                ) -> DeadReckoningState:
     """The ``odometry/dead_reckoning`` message -> :class:`DeadReckoningState`.
 
@@ -243,7 +244,7 @@ def global_odometry_to_msg(odom: GlobalOdometry) -> Odometry:
     return msg
 
 
-def odometry_to_global(msg: Odometry, what: str = 'odometry/global') -> GlobalOdometry:
+def odometry_to_global(msg: Odometry, what: str = ODOMETRY_GLOBAL) -> GlobalOdometry:
     """The ``odometry/global`` message -> :class:`GlobalOdometry`.
 
     Raises:

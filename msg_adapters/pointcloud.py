@@ -18,8 +18,8 @@ from gnsscam_ros.core.types import GnssEpoch
 from .errors import MessageError
 from .kit import RCLPY, MessageKit
 from .stamps import make_header, stamp_to_ns
-from .wire import (EARTH_FRAME, GNSS_DTYPE, MAP_FRAME, MATCH_DTYPE, POINTFIELD_CODE,
-                   POINTFIELD_NAMES, POINTFIELD_TYPES)
+from .wire import (EARTH_FRAME, GNSS, GNSS_DTYPE, MAP_FRAME, MATCH_DTYPE, MATCHES,
+                   POINTFIELD_CODE, POINTFIELD_NAMES, POINTFIELD_TYPES)
 
 
 def structured_to_pointcloud2(points: np.ndarray, stamp_ns: int, frame_id: str,
@@ -145,7 +145,7 @@ def gnss_epoch_to_pointcloud2(epoch: GnssEpoch, frame_id: str = EARTH_FRAME,
 
 
 def pointcloud2_to_gnss_epoch(msg, frame_id: str | None = EARTH_FRAME,
-                              what: str = 'gnss/pseudoranges') -> GnssEpoch:
+                              what: str = GNSS) -> GnssEpoch:
     """The ``gnss/pseudoranges`` cloud -> :class:`GnssEpoch`.
 
     Non-finite values are passed through: judging satellites (NaN, duplicates, masks) is
@@ -215,7 +215,7 @@ def matches_to_pointcloud2(matches: CameraMatches, kit: MessageKit = RCLPY):
 
 
 def pointcloud2_to_matches(msg, frame_id: str | None = MAP_FRAME,
-                           what: str = 'camera/matches') -> CameraMatches:
+                           what: str = MATCHES) -> CameraMatches:
     """The ``camera/matches`` cloud -> :class:`CameraMatches`.
 
     Raises:

@@ -38,6 +38,28 @@ def test_stamps_round_trip_and_range():
     with pytest.raises(ma.MessageError) as err:
         ma.ns_to_stamp(-1)
     assert err.value.reason == 'stamp'
+    with pytest.raises(ValueError):                   # a MessageError is a ValueError
+        ma.wire.split_ns(2 ** 31 * 10 ** 9)
+    assert ma.wire.join_ns(*ma.wire.split_ns(STAMP + 7)) == STAMP + 7
+
+
+def test_header_stamp_of_serialised_messages():
+    from rclpy.serialization import serialize_message
+    raw = serialize_message(ma.sample_to_imu(ma.ImuSample(STAMP + 5, np.zeros(3), np.ones(3))))
+    assert ma.header_stamp_ns(raw) == STAMP + 5
+    with pytest.raises(ma.MessageError):
+        ma.header_stamp_ns(b'\x00\x01\x00')
+
+
+# --------------------------------------------------------------------------- wire
+def test_wire_tie_order_is_the_dead_reckonings_rule():
+    from gnsscam_ros.core import motion
+    sources = {ma.wire.TWIST: motion.ODOMETRY, ma.wire.IMU: motion.IMU}
+    dr = [sources[t] for t in ma.wire.TIE_ORDER if t in sources]
+    assert tuple(dr) == motion.DR_SOURCES
+    assert ma.wire.TIE_ORDER[-2:] == (ma.wire.IMAGE, ma.wire.GNSS)   # after the motion
+    assert ma.service_bits([1, 2, 4, 8, 16, 32, 1]) == 1 | 2 | 4 | 8
+    assert ma.service_bits([]) == 0
 
 
 # --------------------------------------------------------------------- PointCloud2
