@@ -8,7 +8,8 @@ class MessageError(ValueError):
 
     Attributes:
         reason: Short machine-readable cause (``'fields'``, ``'non_finite'``,
-            ``'empty'``, ``'encoding'``, ``'size'``, ``'frame'``, ``'stamp'``, ``'value'``),
+            ``'empty'``, ``'encoding'``, ``'size'``, ``'frame'``, ``'stamp'``, ``'type'``,
+            ``'value'``),
             used by the nodes as the key of their rejection counters.
     """
 

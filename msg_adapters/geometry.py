@@ -6,6 +6,7 @@
 * ``particles``: ``geometry_msgs/PoseArray``, one pose per particle (east, north, up, yaw).
 * ``fix``, ``gnss/fix``: ``sensor_msgs/NavSatFix``; covariance in the ENU order of the
   message definition [m^2].
+* ``ground_truth/pose``: ``geometry_msgs/PoseStamped`` (:func:`pose_stamped`).
 """
 from __future__ import annotations
 
@@ -13,19 +14,22 @@ from dataclasses import dataclass
 
 import numpy as np
 from geometry_msgs.msg import Pose, PoseArray, PoseWithCovarianceStamped, Quaternion
-from sensor_msgs.msg import NavSatFix, NavSatStatus
 from std_msgs.msg import Header
 
 from .errors import MessageError
-from .stamps import ns_to_stamp, stamp_to_ns
+from .kit import RCLPY, MessageKit
+from .stamps import make_header, ns_to_stamp, stamp_to_ns
+from .wire import (ANTENNA_FRAME, COVARIANCE_TYPE_KNOWN, COVARIANCE_TYPE_UNKNOWN, FIX,
+                   MAP_FRAME, POSE, SERVICE_GPS, STATUS_FIX)
 
 UNESTIMATED_VAR = 1e6     # variance of the pose axes the filter does not estimate [rad^2]
 
 
-def yaw_to_quaternion(yaw_rad: float) -> Quaternion:
+def yaw_to_quaternion(yaw_rad: float, kit: MessageKit = RCLPY):
     """Rotation about z by ``yaw_rad`` [rad] as a unit quaternion."""
     half = 0.5 * float(yaw_rad)
-    return Quaternion(x=0.0, y=0.0, z=float(np.sin(half)), w=float(np.cos(half)))
+    return kit['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=float(np.sin(half)),
+                                               w=float(np.cos(half)))
 
 
 def quaternion_to_yaw(q: Quaternion) -> float:
@@ -57,7 +61,7 @@ class PoseEstimate:
     position_m: np.ndarray
     yaw_rad: float
     covariance: np.ndarray
-    frame_id: str = 'map'
+    frame_id: str = MAP_FRAME
 
     @property
     def position_covariance_m2(self) -> np.ndarray:
@@ -95,7 +99,7 @@ def pose_covariance(position_cov_m2: np.ndarray, yaw_var_rad2: float) -> np.ndar
     return cov
 
 
-def msg_to_pose(msg: PoseWithCovarianceStamped, what: str = 'pose') -> PoseEstimate:
+def msg_to_pose(msg: PoseWithCovarianceStamped, what: str = POSE) -> PoseEstimate:
     """PoseWithCovarianceStamped -> :class:`PoseEstimate`.
 
     Raises:
@@ -113,7 +117,7 @@ def msg_to_pose(msg: PoseWithCovarianceStamped, what: str = 'pose') -> PoseEstim
 
 # ------------------------------------------------------------------------- particles
 def particles_to_posearray(particles: np.ndarray, stamp_ns: int,
-                           frame_id: str = 'map') -> PoseArray:
+                           frame_id: str = MAP_FRAME) -> PoseArray:
     """(N, 4) particles (east, north, up, yaw) -> PoseArray.
 
     Building the Python message costs ~6 us per particle; nodes subsample large sets.
@@ -166,27 +170,14 @@ class GeodeticFix:
     lon_deg: float
     alt_m: float
     covariance_enu_m2: np.ndarray | None = None
-    status: int = NavSatStatus.STATUS_FIX
-    service: int = NavSatStatus.SERVICE_GPS
-    frame_id: str = 'gnss'
+    status: int = STATUS_FIX
+    service: int = SERVICE_GPS
+    frame_id: str = ANTENNA_FRAME
     covariance_type: int | None = None
 
 
-# `system` field codes of the GNSS cloud -> NavSatStatus service bits.
-_SERVICE_OF_SYSTEM = {1: NavSatStatus.SERVICE_GPS, 4: NavSatStatus.SERVICE_GLONASS,
-                      8: NavSatStatus.SERVICE_GALILEO, 32: NavSatStatus.SERVICE_COMPASS}
-
-
-def service_bits(systems) -> int:
-    """NavSatStatus service bits of a set of ``system`` codes (SBAS/QZSS: no bit)."""
-    bits = 0
-    for s in set(int(v) for v in systems):
-        bits |= _SERVICE_OF_SYSTEM.get(s, 0)
-    return bits
-
-
-def fix_to_navsatfix(fix: GeodeticFix) -> NavSatFix:
-    """:class:`GeodeticFix` -> NavSatFix.
+def fix_to_navsatfix(fix: GeodeticFix, kit: MessageKit = RCLPY):
+    """:class:`GeodeticFix` -> NavSatFix (of ``kit``, :mod:`.kit`).
 
     Raises:
         MessageError: Non-finite coordinates or covariance.
@@ -194,24 +185,23 @@ def fix_to_navsatfix(fix: GeodeticFix) -> NavSatFix:
     values = [fix.lat_deg, fix.lon_deg, fix.alt_m]
     if not np.all(np.isfinite(values)):
         raise MessageError(f'non-finite fix {values}', 'non_finite')
-    msg = NavSatFix(header=Header(stamp=ns_to_stamp(fix.stamp_ns), frame_id=fix.frame_id),
-                    status=NavSatStatus(status=int(fix.status), service=int(fix.service)),
-                    latitude=float(fix.lat_deg), longitude=float(fix.lon_deg),
-                    altitude=float(fix.alt_m))
     if fix.covariance_enu_m2 is None:
-        msg.position_covariance_type = NavSatFix.COVARIANCE_TYPE_UNKNOWN
+        cov, cov_type = np.zeros(9), COVARIANCE_TYPE_UNKNOWN
     else:
-        cov = np.asarray(fix.covariance_enu_m2, dtype=float).reshape(3, 3)
+        cov = np.asarray(fix.covariance_enu_m2, dtype=float).reshape(9)
         if not np.all(np.isfinite(cov)):
             raise MessageError('non-finite fix covariance', 'non_finite')
-        msg.position_covariance = cov.reshape(-1).tolist()
-        msg.position_covariance_type = (NavSatFix.COVARIANCE_TYPE_KNOWN
-                                        if fix.covariance_type is None
-                                        else int(fix.covariance_type))
-    return msg
+        cov_type = (COVARIANCE_TYPE_KNOWN if fix.covariance_type is None
+                    else int(fix.covariance_type))
+    return kit['sensor_msgs/msg/NavSatFix'](
+        header=make_header(fix.stamp_ns, fix.frame_id, kit),
+        status=kit['sensor_msgs/msg/NavSatStatus'](status=int(fix.status),
+                                                   service=int(fix.service)),
+        latitude=float(fix.lat_deg), longitude=float(fix.lon_deg), altitude=float(fix.alt_m),
+        position_covariance=cov, position_covariance_type=cov_type)
 
 
-def navsatfix_to_fix(msg: NavSatFix, what: str = 'fix') -> GeodeticFix:
+def navsatfix_to_fix(msg, what: str = FIX) -> GeodeticFix:
     """NavSatFix -> :class:`GeodeticFix`.
 
     Raises:
@@ -223,9 +213,31 @@ def navsatfix_to_fix(msg: NavSatFix, what: str = 'fix') -> GeodeticFix:
     if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 360.0):
         raise MessageError(f'{what}: latitude/longitude out of range ({lat}, {lon})', 'value')
     cov = None
-    if msg.position_covariance_type != NavSatFix.COVARIANCE_TYPE_UNKNOWN:
+    if msg.position_covariance_type != COVARIANCE_TYPE_UNKNOWN:
         cov = np.array(msg.position_covariance, dtype=float).reshape(3, 3)
     return GeodeticFix(stamp_ns=stamp_to_ns(msg.header.stamp), lat_deg=lat, lon_deg=lon,
                        alt_m=alt, covariance_enu_m2=cov, status=int(msg.status.status),
                        service=int(msg.status.service), frame_id=msg.header.frame_id,
                        covariance_type=int(msg.position_covariance_type))
+
+
+# ---------------------------------------------------------------------- PoseStamped
+def pose_stamped(stamp_ns: int, position_m, quaternion_xyzw, frame_id: str,
+                 kit: MessageKit = RCLPY):
+    """A ``geometry_msgs/PoseStamped`` (of ``kit``, :mod:`.kit`).
+
+    Args:
+        stamp_ns: Header stamp [ns].
+        position_m: (3,) position in ``frame_id`` [m].
+        quaternion_xyzw: (4,) orientation ``(x, y, z, w)``, written as given (the all-zero
+            quaternion of ``ground_truth/pose`` means "heading unknown").
+        frame_id: Header frame.
+        kit: Message classes to build with.
+    """
+    p, q = position_m, quaternion_xyzw
+    point = kit['geometry_msgs/msg/Point'](x=float(p[0]), y=float(p[1]), z=float(p[2]))
+    orientation = kit['geometry_msgs/msg/Quaternion'](x=float(q[0]), y=float(q[1]),
+                                                      z=float(q[2]), w=float(q[3]))
+    return kit['geometry_msgs/msg/PoseStamped'](
+        header=make_header(stamp_ns, frame_id, kit),
+        pose=kit['geometry_msgs/msg/Pose'](position=point, orientation=orientation))

@@ -2,17 +2,17 @@
 from __future__ import annotations
 
 import numpy as np
-from sensor_msgs.msg import Image
-from std_msgs.msg import Header
 
 from .errors import MessageError
-from .stamps import ns_to_stamp
+from .kit import RCLPY, MessageKit
+from .stamps import make_header
+from .wire import CAMERA_FRAME, IMAGE
 
 # Encoding -> channels. The camera pipeline (ORB on grey) takes 8-bit images only.
 ENCODINGS = {'mono8': 1, 'bgr8': 3, 'rgb8': 3}
 
 
-def image_to_array(msg: Image, what: str = 'camera/image_raw') -> tuple[np.ndarray, str]:
+def image_to_array(msg, what: str = IMAGE) -> tuple[np.ndarray, str]:
     """An Image message -> ``(array, encoding)``.
 
     The array is (H, W) for mono8 and (H, W, 3) for bgr8/rgb8, uint8, a view of the
@@ -41,7 +41,7 @@ def image_to_array(msg: Image, what: str = 'camera/image_raw') -> tuple[np.ndarr
 
 
 def array_to_image(array: np.ndarray, stamp_ns: int, encoding: str | None = None,
-                   frame_id: str = 'camera') -> Image:
+                   frame_id: str = CAMERA_FRAME, kit: MessageKit = RCLPY):
     """A uint8 (H, W) or (H, W, 3) array -> Image message.
 
     Args:
@@ -49,6 +49,7 @@ def array_to_image(array: np.ndarray, stamp_ns: int, encoding: str | None = None
         stamp_ns: Header stamp [ns].
         encoding: ``mono8``, ``bgr8`` or ``rgb8`` (default: mono8 for 2-D, bgr8 for 3-D).
         frame_id: Camera frame.
+        kit: Message classes to build with (:mod:`.kit`).
 
     Raises:
         MessageError: Not uint8, empty, or a shape that does not fit the encoding.
@@ -67,8 +68,6 @@ def array_to_image(array: np.ndarray, stamp_ns: int, encoding: str | None = None
     if array.size == 0:
         raise MessageError('empty image', 'empty')
     h, w = array.shape[:2]
-    msg = Image(header=Header(stamp=ns_to_stamp(stamp_ns), frame_id=frame_id), height=h,
-                width=w, encoding=encoding, is_bigendian=0, step=w * channels)
-    # tobytes(): assigning an ndarray to msg.data costs ~15 ms per VGA frame.
-    msg.data = np.ascontiguousarray(array).tobytes()
-    return msg
+    return kit['sensor_msgs/msg/Image'](
+        header=make_header(stamp_ns, frame_id, kit), height=h, width=w, encoding=encoding,
+        is_bigendian=0, step=w * channels, data=kit.octets(np.ascontiguousarray(array)))

@@ -10,13 +10,19 @@
 * values ``risk_bound``, ``empirical_risk``, ``divergence_risk``, ``alert_limit_m``,
   ``target_risk``, ``epoch_stamp`` (integer ns of the GNSS epoch), ``protection_level_m``
   (the smallest radius whose bound meets the target; ``inf`` when none does, ``nan`` when
-  stale), plus informational extras (``status``, ``n_satellites``, ``motion_unknown_s``,
-  ...).
+  stale), ``status`` (the filter status of the epoch behind the verdict: ``updated``,
+  ``propagated``, ``rejected``, ``waiting``; ``no_gnss`` when there is none),
+  ``risk_bound_<L>m`` (the risk bound at a further alert limit of ``L`` m, ``L`` formatted
+  with ``:g``), plus informational extras (``n_satellites``, ``motion_unknown_s``, ...).
   Floats are written with ``repr`` so they parse back exactly; unknown values are ``nan``.
+
+``status`` and ``risk_bound_<L>m`` are typed fields of :class:`IntegrityRisk`
+(``epoch_status``, ``risk_bounds_by_limit``); this module alone knows their keys.
 """
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -24,12 +30,38 @@ from std_msgs.msg import Header
 
 from .errors import MessageError
 from .stamps import ns_to_stamp, stamp_to_ns
+from .wire import INTEGRITY
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 LEVEL_NAMES = {OK: 'OK', WARN: 'WARN', ERROR: 'ERROR', STALE: 'STALE'}
 INTEGRITY_STATUS_NAME = 'gnsscam_ros: integrity risk'
 _FLOAT_KEYS = ('risk_bound', 'empirical_risk', 'divergence_risk', 'alert_limit_m',
                'target_risk')
+_STATUS_KEY = 'status'
+_NO_GNSS = 'no_gnss'            # the wire's status of a verdict with no GNSS epoch behind it
+_BOUND_KEY = re.compile(r'^risk_bound_(.+)m$')
+
+
+def _bound_key(limit_m: float) -> str:
+    return f'risk_bound_{float(limit_m):g}m'
+
+
+def _typed_values(values: dict) -> tuple[str | None, dict[float, float], dict]:
+    """``(epoch status, {alert limit: risk bound}, the other values)`` of wire values.
+
+    Raises:
+        ValueError: A ``risk_bound_<L>m`` whose limit or value is not a number.
+    """
+    status, bounds, rest = None, {}, {}
+    for key, value in values.items():
+        match = _BOUND_KEY.match(str(key))
+        if key == _STATUS_KEY:
+            status = None if value in (None, _NO_GNSS) else str(value)
+        elif match:
+            bounds[float(match.group(1))] = float(value)
+        else:
+            rest[key] = value
+    return status, bounds, rest
 
 
 def level_to_int(level) -> int:
@@ -88,7 +120,16 @@ class IntegrityRisk:
             the first epoch).
         protection_level_m: Protection level [m], None when not computed.
         name: Status name.
-        extra: Other values, as strings.
+        extra: Other values (strings when parsed), without the two below.
+        epoch_status: Filter status of the GNSS epoch behind the verdict (``'updated'``,
+            ``'propagated'``, ``'rejected'``, ``'waiting'``); None when there is none (a
+            periodic report without GNSS; ``no_gnss`` on the wire, also when parsed from
+            a message without a status).
+        risk_bounds_by_limit: ``{alert limit [m]: risk bound}`` at further alert limits
+            (the main limit is ``alert_limit_m``/``risk_bound``).
+
+    A producer that still passes ``status`` or ``risk_bound_<L>m`` in ``extra`` gets them
+    moved into the typed fields (which win when both are given).
     """
 
     stamp_ns: int
@@ -103,6 +144,20 @@ class IntegrityRisk:
     protection_level_m: float | None = None
     name: str = INTEGRITY_STATUS_NAME
     extra: dict = field(default_factory=dict)
+    epoch_status: str | None = None
+    risk_bounds_by_limit: dict[float, float] = field(default_factory=dict)
+
+    def __post_init__(self):
+        if _STATUS_KEY not in self.extra and not any(
+                _BOUND_KEY.match(str(k)) for k in self.extra):
+            return
+        status, bounds, rest = _typed_values(self.extra)
+        # Frozen: the fields are set once, here, from what the producer gave.
+        object.__setattr__(self, 'extra', rest)
+        if self.epoch_status is None:
+            object.__setattr__(self, 'epoch_status', status)
+        object.__setattr__(self, 'risk_bounds_by_limit',
+                           {**bounds, **self.risk_bounds_by_limit})
 
     @property
     def integrity_ok(self) -> bool:
@@ -141,12 +196,15 @@ def integrity_risk_to_msg(risk: IntegrityRisk) -> DiagnosticArray:
     values['epoch_stamp'] = '' if risk.epoch_stamp_ns is None else int(risk.epoch_stamp_ns)
     if risk.protection_level_m is not None:
         values['protection_level_m'] = float(risk.protection_level_m)
+    values[_STATUS_KEY] = _NO_GNSS if risk.epoch_status is None else str(risk.epoch_status)
+    for limit, bound in risk.risk_bounds_by_limit.items():
+        values[_bound_key(limit)] = float(bound)
     values.update(risk.extra)
     status = make_status(risk.name, risk.level, risk.message, values)
     return make_diagnostic_array(risk.stamp_ns, [status])
 
 
-def parse_integrity_risk(msg: DiagnosticArray, what: str = 'integrity_risk'
+def parse_integrity_risk(msg: DiagnosticArray, what: str = INTEGRITY
                          ) -> IntegrityRisk:
     """The ``integrity_risk`` DiagnosticArray -> :class:`IntegrityRisk`.
 
@@ -170,10 +228,12 @@ def parse_integrity_risk(msg: DiagnosticArray, what: str = 'integrity_risk'
         epoch_ns = int(epoch) if epoch else None
         pl = values.pop('protection_level_m', None)
         pl = float(pl) if pl is not None else None
+        epoch_status, bounds, values = _typed_values(values)
     except KeyError as err:
         raise MessageError(f'{what}: value {err.args[0]!r} missing', 'fields') from err
     except ValueError as err:
         raise MessageError(f'{what}: unparsable value ({err})', 'value') from err
     return IntegrityRisk(stamp_ns=stamp_to_ns(msg.header.stamp), level=level,
                          message=status.message, epoch_stamp_ns=epoch_ns,
-                         protection_level_m=pl, name=status.name, extra=values, **floats)
+                         protection_level_m=pl, name=status.name, extra=values,
+                         epoch_status=epoch_status, risk_bounds_by_limit=bounds, **floats)

@@ -31,10 +31,10 @@ from gnsscam_ros.core.motion import DeadReckoningState
 
 from .errors import MessageError
 from .geometry import UNESTIMATED_VAR, quaternion_to_yaw, yaw_to_quaternion
-from .stamps import ns_to_stamp, stamp_to_ns
-
-ODOM_FRAME = 'odom'
-BASE_FRAME = 'base_link'
+from .kit import RCLPY, MessageKit
+from .stamps import make_header, ns_to_stamp, stamp_to_ns
+from .wire import (BASE_FRAME, DEAD_RECKONING, IMU, IMU_FRAME, MAP_FRAME, ODOM_FRAME,
+                   ODOMETRY_GLOBAL, TWIST)
 
 
 @dataclass(frozen=True)
@@ -71,7 +71,7 @@ class TwistSample:
     yaw_rate_var: float = 0.0
 
 
-def imu_to_sample(msg: Imu, what: str = 'imu/data') -> ImuSample:
+def imu_to_sample(msg: Imu, what: str = IMU) -> ImuSample:
     """Imu -> :class:`ImuSample`.
 
     Raises:
@@ -89,20 +89,25 @@ def imu_to_sample(msg: Imu, what: str = 'imu/data') -> ImuSample:
     return ImuSample(stamp_to_ns(msg.header.stamp), accel, gyro)
 
 
-def sample_to_imu(sample: ImuSample, frame_id: str = 'imu') -> Imu:
-    """:class:`ImuSample` -> Imu (orientation marked unavailable)."""
-    msg = Imu(header=Header(stamp=ns_to_stamp(sample.stamp_ns), frame_id=frame_id))
-    msg.orientation_covariance[0] = -1.0
+def sample_to_imu(sample: ImuSample, frame_id: str = IMU_FRAME, kit: MessageKit = RCLPY):
+    """:class:`ImuSample` -> Imu (of ``kit``, :mod:`.kit`): orientation marked unavailable
+    (``orientation_covariance[0] = -1``, REP 145), the other covariances zero (unknown)."""
     a = np.asarray(sample.accel_mps2, dtype=float)
     g = np.asarray(sample.gyro_rps, dtype=float)
-    msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z = (
-        float(a[0]), float(a[1]), float(a[2]))
-    msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z = (
-        float(g[0]), float(g[1]), float(g[2]))
-    return msg
+    vector = kit['geometry_msgs/msg/Vector3']
+    orientation_cov = np.zeros(9)
+    orientation_cov[0] = -1.0
+    return kit['sensor_msgs/msg/Imu'](
+        header=make_header(sample.stamp_ns, frame_id, kit),
+        orientation=kit['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation_covariance=orientation_cov,
+        angular_velocity=vector(x=float(g[0]), y=float(g[1]), z=float(g[2])),
+        angular_velocity_covariance=np.zeros(9),
+        linear_acceleration=vector(x=float(a[0]), y=float(a[1]), z=float(a[2])),
+        linear_acceleration_covariance=np.zeros(9))
 
 
-def twist_to_sample(msg: TwistWithCovarianceStamped, what: str = 'odom/twist'
+def twist_to_sample(msg: TwistWithCovarianceStamped, what: str = TWIST
                     ) -> TwistSample:
     """TwistWithCovarianceStamped -> :class:`TwistSample`.
 
@@ -118,17 +123,18 @@ def twist_to_sample(msg: TwistWithCovarianceStamped, what: str = 'odom/twist'
                        float(cov[0]), float(cov[35]))
 
 
-def sample_to_twist(sample: TwistSample, frame_id: str = BASE_FRAME
-                    ) -> TwistWithCovarianceStamped:
-    """:class:`TwistSample` -> TwistWithCovarianceStamped."""
-    msg = TwistWithCovarianceStamped(
-        header=Header(stamp=ns_to_stamp(sample.stamp_ns), frame_id=frame_id))
-    msg.twist.twist.linear.x = float(sample.speed_mps)
-    msg.twist.twist.angular.z = float(sample.yaw_rate_rps)
+def sample_to_twist(sample: TwistSample, frame_id: str = BASE_FRAME,
+                    kit: MessageKit = RCLPY):
+    """:class:`TwistSample` -> TwistWithCovarianceStamped (of ``kit``, :mod:`.kit`)."""
+    vector = kit['geometry_msgs/msg/Vector3']
     cov = np.zeros(36)
     cov[0], cov[35] = sample.speed_var, sample.yaw_rate_var
-    msg.twist.covariance = cov.tolist()
-    return msg
+    twist = kit['geometry_msgs/msg/Twist'](
+        linear=vector(x=float(sample.speed_mps), y=0.0, z=0.0),
+        angular=vector(x=0.0, y=0.0, z=float(sample.yaw_rate_rps)))
+    return kit['geometry_msgs/msg/TwistWithCovarianceStamped'](
+        header=make_header(sample.stamp_ns, frame_id, kit),
+        twist=kit['geometry_msgs/msg/TwistWithCovariance'](twist=twist, covariance=cov))
 
 
 def dead_reckoning_to_odometry(state: DeadReckoningState, frame_id: str = ODOM_FRAME,
@@ -158,7 +164,7 @@ def dead_reckoning_to_odometry(state: DeadReckoningState, frame_id: str = ODOM_F
     return msg
 
 
-def odometry_to_dead_reckoning(msg: Odometry, what: str = 'odometry/dead_reckoning'
+def odometry_to_dead_reckoning(msg: Odometry, what: str = DEAD_RECKONING
                                ) -> DeadReckoningState:
     """The ``odometry/dead_reckoning`` message -> :class:`DeadReckoningState`.
 
@@ -206,7 +212,7 @@ class GlobalOdometry:
     yaw_rate_rps: float
     speed_var: float
     yaw_rate_var: float
-    frame_id: str = 'map'
+    frame_id: str = MAP_FRAME
     child_frame_id: str = BASE_FRAME
 
 
@@ -238,7 +244,7 @@ def global_odometry_to_msg(odom: GlobalOdometry) -> Odometry:
     return msg
 
 
-def odometry_to_global(msg: Odometry, what: str = 'odometry/global') -> GlobalOdometry:
+def odometry_to_global(msg: Odometry, what: str = ODOMETRY_GLOBAL) -> GlobalOdometry:
     """The ``odometry/global`` message -> :class:`GlobalOdometry`.
 
     Raises:

@@ -4,65 +4,34 @@
 ``np.frombuffer(msg.data, dtype)`` reads a cloud without a Python loop and
 ``array.tobytes()`` writes one.
 
-Layouts (design.md §3):
-
-* ``gnss/pseudoranges``, ``gnss/measurements`` (frame ``earth``): ``x y z`` FLOAT64 satellite
-  ECEF position [m], ``pseudorange`` FLOAT64 [m], ``variance`` FLOAT32 [m^2], ``cn0`` FLOAT32
-  [dB-Hz], ``elevation`` FLOAT32 [deg], ``sv_id`` UINT16, ``system`` UINT8.
-* ``camera/matches`` (frame ``map``): ``x y z`` FLOAT64 [m], ``score`` FLOAT32,
-  ``image_id`` UINT32, best match first.
+Layouts: :data:`.wire.GNSS_DTYPE` (``gnss/pseudoranges``, ``gnss/measurements``, frame
+``earth``) and :data:`.wire.MATCH_DTYPE` (``camera/matches``, frame ``map``), design.md §3.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
-from sensor_msgs.msg import PointCloud2, PointField
-from std_msgs.msg import Header
 
 from gnsscam_ros.core.types import GnssEpoch
 
 from .errors import MessageError
-from .stamps import ns_to_stamp, stamp_to_ns
-
-# PointField datatype constant <-> numpy scalar type.
-_DATATYPES = {
-    PointField.INT8: np.int8, PointField.UINT8: np.uint8,
-    PointField.INT16: np.int16, PointField.UINT16: np.uint16,
-    PointField.INT32: np.int32, PointField.UINT32: np.uint32,
-    PointField.FLOAT32: np.float32, PointField.FLOAT64: np.float64,
-}
-_TYPE_NAMES = {PointField.INT8: 'INT8', PointField.UINT8: 'UINT8', PointField.INT16: 'INT16',
-               PointField.UINT16: 'UINT16', PointField.INT32: 'INT32',
-               PointField.UINT32: 'UINT32', PointField.FLOAT32: 'FLOAT32',
-               PointField.FLOAT64: 'FLOAT64'}
-_DATATYPE_OF = {np.dtype(v): k for k, v in _DATATYPES.items()}
-
-GNSS_FRAME = 'earth'
-MAP_FRAME = 'map'
-
-GNSS_DTYPE = np.dtype({
-    'names': ['x', 'y', 'z', 'pseudorange', 'variance', 'cn0', 'elevation', 'sv_id', 'system'],
-    'formats': ['<f8', '<f8', '<f8', '<f8', '<f4', '<f4', '<f4', '<u2', 'u1'],
-    'offsets': [0, 8, 16, 24, 32, 36, 40, 44, 46], 'itemsize': 48})
-
-MATCH_DTYPE = np.dtype({
-    'names': ['x', 'y', 'z', 'score', 'image_id'],
-    'formats': ['<f8', '<f8', '<f8', '<f4', '<u4'],
-    'offsets': [0, 8, 16, 24, 28], 'itemsize': 32})
-
-# Satellite systems of the `system` field (1 GPS, 2 SBAS, 4 GLONASS, 8 Galileo, 16 QZSS,
-# 32 BeiDou).
-KNOWN_SYSTEMS = (1, 2, 4, 8, 16, 32)
+from .kit import RCLPY, MessageKit
+from .stamps import make_header, stamp_to_ns
+from .wire import (EARTH_FRAME, GNSS, GNSS_DTYPE, MAP_FRAME, MATCH_DTYPE, MATCHES,
+                   POINTFIELD_CODE, POINTFIELD_NAMES, POINTFIELD_TYPES)
 
 
-def structured_to_pointcloud2(points: np.ndarray, stamp_ns: int, frame_id: str) -> PointCloud2:
+def structured_to_pointcloud2(points: np.ndarray, stamp_ns: int, frame_id: str,
+                              is_dense: bool = True, kit: MessageKit = RCLPY):
     """Pack a 1-D structured array into an unordered (height 1) PointCloud2.
 
     Args:
         points: (n,) structured array of scalar numeric fields.
         stamp_ns: Header stamp [ns].
         frame_id: Header frame.
+        is_dense: The cloud has no invalid (non-finite) points.
+        kit: Message classes to build with (:mod:`.kit`).
 
     Raises:
         MessageError: A field is not a scalar of a PointField type.
@@ -70,25 +39,24 @@ def structured_to_pointcloud2(points: np.ndarray, stamp_ns: int, frame_id: str) 
     points = np.ascontiguousarray(points)
     if points.dtype.names is None or points.ndim != 1:
         raise MessageError('points must be a 1-D structured array', 'fields')
+    point_field = kit['sensor_msgs/msg/PointField']
     fields = []
     for name in points.dtype.names:
         dtype, offset = points.dtype.fields[name][:2]
-        if dtype.shape or np.dtype(dtype.type) not in _DATATYPE_OF:
+        if dtype.shape or np.dtype(dtype.type) not in POINTFIELD_CODE:
             raise MessageError(f'field {name!r} has unsupported type {dtype}', 'fields')
         if dtype.byteorder == '>':
             raise MessageError(f'field {name!r} is big-endian; use little-endian', 'fields')
-        fields.append(PointField(name=name, offset=offset,
-                                 datatype=_DATATYPE_OF[np.dtype(dtype.type)], count=1))
-    msg = PointCloud2(header=Header(stamp=ns_to_stamp(stamp_ns), frame_id=frame_id),
-                      height=1, width=int(points.shape[0]), fields=fields,
-                      is_bigendian=False, point_step=points.dtype.itemsize,
-                      row_step=points.dtype.itemsize * int(points.shape[0]), is_dense=True)
-    msg.data = points.tobytes()
-    return msg
+        fields.append(point_field(name=name, offset=offset,
+                                  datatype=POINTFIELD_CODE[np.dtype(dtype.type)], count=1))
+    n = int(points.shape[0])
+    return kit['sensor_msgs/msg/PointCloud2'](
+        header=make_header(stamp_ns, frame_id, kit), height=1, width=n, fields=fields,
+        is_bigendian=False, point_step=points.dtype.itemsize,
+        row_step=points.dtype.itemsize * n, data=kit.octets(points), is_dense=bool(is_dense))
 
 
-def pointcloud2_to_structured(msg: PointCloud2, wanted: np.dtype, what: str = 'cloud'
-                              ) -> np.ndarray:
+def pointcloud2_to_structured(msg, wanted: np.dtype, what: str = 'cloud') -> np.ndarray:
     """Read the fields of ``wanted`` from a PointCloud2 (other fields are ignored).
 
     Args:
@@ -112,11 +80,12 @@ def pointcloud2_to_structured(msg: PointCloud2, wanted: np.dtype, what: str = 'c
         if field is None:
             raise MessageError(f'{what}: field {name!r} missing (has '
                                f'{sorted(by_name) or "no fields"})', 'fields')
-        got = _DATATYPES.get(field.datatype)
+        got = POINTFIELD_TYPES.get(field.datatype)
         if got is None or np.dtype(got) != want_type or field.count != 1:
             raise MessageError(
-                f'{what}: field {name!r} is {_TYPE_NAMES.get(field.datatype, field.datatype)}'
-                f' x{field.count}, expected {_TYPE_NAMES[_DATATYPE_OF[want_type]]} x1',
+                f'{what}: field {name!r} is '
+                f'{POINTFIELD_NAMES.get(field.datatype, field.datatype)} x{field.count}, '
+                f'expected {POINTFIELD_NAMES[POINTFIELD_CODE[want_type]]} x1',
                 'fields')
         if field.offset + want_type.itemsize > msg.point_step:
             raise MessageError(f'{what}: field {name!r} at offset {field.offset} overruns '
@@ -145,31 +114,38 @@ def pointcloud2_to_structured(msg: PointCloud2, wanted: np.dtype, what: str = 'c
 
 
 # ---------------------------------------------------------------------------- GNSS
-def gnss_epoch_to_pointcloud2(epoch: GnssEpoch, frame_id: str = GNSS_FRAME) -> PointCloud2:
+def gnss_epoch_to_pointcloud2(epoch: GnssEpoch, frame_id: str = EARTH_FRAME,
+                              kit: MessageKit = RCLPY):
     """One receiver epoch -> the ``gnss/pseudoranges`` cloud (one point per satellite).
 
     ``variance``, ``cn0`` and ``elevation`` are FLOAT32 on the wire: values are rounded.
+    ``is_dense`` tells whether every satellite position is finite.
+
+    Raises:
+        MessageError: ``sv_id`` or ``system`` out of the range of its field.
     """
-    pts = np.zeros(epoch.n_sv, dtype=GNSS_DTYPE)
+    n = epoch.n_sv
     sv = np.asarray(epoch.sv_pos_ecef_m, dtype=float).reshape(-1, 3)
+    sv_id = np.asarray(epoch.sv_id)
+    system = np.asarray(epoch.system)
+    if n and (sv_id.min() < 0 or sv_id.max() > 65535):
+        raise MessageError('sv_id does not fit UINT16', 'value')
+    if n and (system.min() < 0 or system.max() > 255):
+        raise MessageError('system does not fit UINT8', 'value')
+    pts = np.zeros(n, dtype=GNSS_DTYPE)
     pts['x'], pts['y'], pts['z'] = sv[:, 0], sv[:, 1], sv[:, 2]
     pts['pseudorange'] = epoch.pr_m
     pts['variance'] = epoch.var_m2
     pts['cn0'] = epoch.cn0_dbhz
     pts['elevation'] = epoch.elevation_deg
-    sv_id = np.asarray(epoch.sv_id)
-    system = np.asarray(epoch.system)
-    if sv_id.size and (sv_id.min() < 0 or sv_id.max() > 65535):
-        raise MessageError('sv_id does not fit UINT16', 'value')
-    if system.size and (system.min() < 0 or system.max() > 255):
-        raise MessageError('system does not fit UINT8', 'value')
     pts['sv_id'] = sv_id
     pts['system'] = system
-    return structured_to_pointcloud2(pts, epoch.stamp_ns, frame_id)
+    return structured_to_pointcloud2(pts, epoch.stamp_ns, frame_id,
+                                     is_dense=bool(np.all(np.isfinite(sv))), kit=kit)
 
 
-def pointcloud2_to_gnss_epoch(msg: PointCloud2, frame_id: str | None = GNSS_FRAME,
-                              what: str = 'gnss/pseudoranges') -> GnssEpoch:
+def pointcloud2_to_gnss_epoch(msg, frame_id: str | None = EARTH_FRAME,
+                              what: str = GNSS) -> GnssEpoch:
     """The ``gnss/pseudoranges`` cloud -> :class:`GnssEpoch`.
 
     Non-finite values are passed through: judging satellites (NaN, duplicates, masks) is
@@ -218,7 +194,7 @@ class CameraMatches:
         return int(self.score.shape[0])
 
 
-def matches_to_pointcloud2(matches: CameraMatches) -> PointCloud2:
+def matches_to_pointcloud2(matches: CameraMatches, kit: MessageKit = RCLPY):
     """:class:`CameraMatches` -> the ``camera/matches`` cloud.
 
     Raises:
@@ -235,11 +211,11 @@ def matches_to_pointcloud2(matches: CameraMatches) -> PointCloud2:
     pts['x'], pts['y'], pts['z'] = pos[:, 0], pos[:, 1], pos[:, 2]
     pts['score'] = score
     pts['image_id'] = ids
-    return structured_to_pointcloud2(pts, matches.stamp_ns, matches.frame_id)
+    return structured_to_pointcloud2(pts, matches.stamp_ns, matches.frame_id, kit=kit)
 
 
-def pointcloud2_to_matches(msg: PointCloud2, frame_id: str | None = MAP_FRAME,
-                           what: str = 'camera/matches') -> CameraMatches:
+def pointcloud2_to_matches(msg, frame_id: str | None = MAP_FRAME,
+                           what: str = MATCHES) -> CameraMatches:
     """The ``camera/matches`` cloud -> :class:`CameraMatches`.
 
     Raises:

@@ -18,6 +18,7 @@ import pytest
 from conftest import SMARTLOC_EXCERPT
 from rosbags.rosbag2 import StoragePlugin, Writer
 
+from msg_adapters.wire import GNSS_DTYPE
 from gnsscam_ros.bags import schema
 from gnsscam_ros.bags.convert import convert_drive
 from gnsscam_ros.bags.convert_cli import main as convert_main
@@ -174,6 +175,37 @@ def test_round_trip_every_message(tmp_path, storage):
     assert src.camera.max_alive <= 3
 
 
+def test_bag_messages_are_the_bytes_the_nodes_publish():
+    """The converter builds with the nodes' writers: each rosbags message serialises to what
+    the same writer's rclpy message serialises to."""
+    from rclpy.serialization import serialize_message
+
+    import msg_adapters as ma
+    kit, store = schema.rosbags_kit(), schema.typestore()
+    src = synthetic_drive()
+    ep, imu, odo = src.gnss[2], src.imu, src.odometry
+    ep.sv_pos_ecef_m[0, 1] = np.nan                    # is_dense false, NaN carried
+    cases = [
+        lambda k: ma.gnss_epoch_to_pointcloud2(ep, kit=k),
+        lambda k: ma.array_to_image(src.camera.frame(1), T0, kit=k),
+        lambda k: ma.array_to_image(src.camera.frame(3), T0, kit=k),     # mono8
+        lambda k: ma.sample_to_imu(ma.ImuSample(T0, imu.accel_mps2[4], imu.gyro_rps[4]),
+                                   'base_link', k),
+        lambda k: ma.sample_to_twist(ma.TwistSample(T0, *(float(getattr(odo, f)[3]) for f in (
+            'speed_mps', 'yaw_rate_rps', 'speed_var', 'yaw_rate_var'))), kit=k),
+        lambda k: ma.fix_to_navsatfix(ma.GeodeticFix(T0, *ORIGIN, service=5,
+                                                     frame_id='map'), k),
+        lambda k: ma.fix_to_navsatfix(ma.GeodeticFix(T0, *ORIGIN, np.diag([1., 2., 3.])), k),
+        lambda k: ma.pose_stamped(T0, src.truth.ecef_m[0], (0.1, 0.2, 0.3, 0.9), 'earth', k),
+    ]
+    for make in cases:
+        ours = make(kit)
+        # Through rosbags once more: Fast CDR leaves alignment padding uninitialised.
+        theirs = store.deserialize_cdr(serialize_message(make(ma.RCLPY)), ours.__msgtype__)
+        assert (store.serialize_cdr(ours, ours.__msgtype__).tobytes()
+                == store.serialize_cdr(theirs, ours.__msgtype__).tobytes()), ours.__msgtype__
+
+
 def test_round_trip_without_origin_or_heading(tmp_path):
     src = synthetic_drive(camera=False, origin=False, yaw=False)
     convert_drive(src, tmp_path / 'bag')
@@ -239,7 +271,7 @@ def test_independent_decoder_mcap_ros2(tmp_path):
             ('x', 0, 8), ('y', 8, 8), ('z', 16, 8), ('pseudorange', 24, 8),
             ('variance', 32, 7), ('cn0', 36, 7), ('elevation', 40, 7), ('sv_id', 44, 4),
             ('system', 46, 2)]
-        pts = np.frombuffer(bytes(msg.data), dtype=schema.GNSS_DTYPE)
+        pts = np.frombuffer(bytes(msg.data), dtype=GNSS_DTYPE)
         np.testing.assert_array_equal(np.column_stack([pts['x'], pts['y'], pts['z']]),
                                       ep.sv_pos_ecef_m)
         np.testing.assert_array_equal(pts['pseudorange'], ep.pr_m)
@@ -266,11 +298,6 @@ def test_independent_decoder_mcap_ros2(tmp_path):
         assert [p.x, p.y, p.z] == list(src.truth.ecef_m[k])
         assert msg.header.frame_id == 'earth'
     assert len(by_topic['/ground_truth/pose']) == 60
-
-
-def test_gnss_layout_is_the_nodes_layout():
-    from msg_adapters import GNSS_DTYPE
-    assert schema.GNSS_DTYPE == GNSS_DTYPE
 
 
 def test_emulated_drive_with_rendered_camera(tmp_path):
@@ -392,7 +419,7 @@ def test_data_a_bag_cannot_hold_is_refused_before_writing(tmp_path):
         convert_drive(drive, tmp_path / 'bag')
     drive = synthetic_drive(camera=False)
     drive.gnss[0] = dataclasses.replace(drive.gnss[0], sv_id=np.full(4, 70000))
-    with pytest.raises(BagContentError, match='sv_id outside UINT16'):
+    with pytest.raises(BagContentError, match='epoch 0: sv_id does not fit UINT16'):
         convert_drive(drive, tmp_path / 'bag')
     with pytest.raises(ValueError, match='unknown storage'):
         convert_drive(drive, tmp_path / 'bag', storage='rosbag1')
@@ -575,13 +602,14 @@ def _result_bag(path: Path, epochs, with_particles=True, with_fix=True, with_tru
                     target_risk=0.1, epoch_stamp_ns=s)))
                 continue
             ok = ep.get('ok', ep['bound8'] <= 0.1)
-            extra = {'risk_bound_16m': ep['bound16'], 'inverse_bernoulli': 'exact'}
+            extra = {'inverse_bernoulli': 'exact'}
             if 'valid' in ep:
                 extra['integrity_valid'] = ep['valid']
             put('integrity_risk', s, integrity_risk_to_msg(IntegrityRisk(
                 stamp_ns=s, level=OK if ok else ERROR, message='', risk_bound=ep['bound8'],
                 empirical_risk=ep['bound8'] / 2, divergence_risk=ep['bound8'] / 2,
-                alert_limit_m=8.0, target_risk=0.1, epoch_stamp_ns=s, extra=extra)))
+                alert_limit_m=8.0, target_risk=0.1, epoch_stamp_ns=s, extra=extra,
+                epoch_status='updated', risk_bounds_by_limit={16.0: ep['bound16']})))
             put('pose', s, pose_to_msg(PoseEstimate(
                 stamp_ns=s, position_m=ep['enu'], yaw_rad=0.3,
                 covariance=pose_covariance(np.diag([4.0, 4.0, 9.0]), 0.01))))
@@ -617,7 +645,9 @@ def test_read_results_written_by_rclpy(tmp_path):
     first = res.integrity[0]
     assert (first.level, first.risk_bound, first.alert_limit_m, first.target_risk) == (
         2, 0.4, 8.0, 0.1)
-    assert first.epoch_stamp_ns == T0 and first.extra['risk_bound_16m'] == '0.01'
+    assert first.epoch_stamp_ns == T0 and first.risk_bounds_by_limit == {16.0: 0.01}
+    assert first.epoch_status == 'updated' and first.extra == {'inverse_bernoulli': 'exact'}
+    assert res.integrity[-1].epoch_status is None
     np.testing.assert_array_equal(res.pose_enu_m, [e['enu'] for e in epochs[:-1]])
     assert res.pose_frame_id == 'map' and res.pose_cov[0, 2, 2] == 9.0
     back = frame.geodetic_to_enu(res.fix_llh[:, 0], res.fix_llh[:, 1], res.fix_llh[:, 2])

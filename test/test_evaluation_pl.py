@@ -207,7 +207,7 @@ def _write_result_bag(path, record, frame, stale_stamps):
                     bounds[k, 0]), empirical_risk=0.0, divergence_risk=0.0,
                 alert_limit_m=8.0, target_risk=0.1, epoch_stamp_ns=s,
                 protection_level_m=float(record.protection_level_m[k]),
-                extra={'inverse_bernoulli': 'exact', 'status': 'updated'}))))
+                extra={'inverse_bernoulli': 'exact'}, epoch_status='updated'))))
             lat, lon, alt = frame.enu_to_geodetic(record.estimate_enu_m[k])
             w.write(cf, s, serialize_message(fix_to_navsatfix(GeodeticFix(
                 stamp_ns=s, lat_deg=float(lat), lon_deg=float(lon), alt_m=float(alt),

@@ -38,6 +38,28 @@ def test_stamps_round_trip_and_range():
     with pytest.raises(ma.MessageError) as err:
         ma.ns_to_stamp(-1)
     assert err.value.reason == 'stamp'
+    with pytest.raises(ValueError):                   # a MessageError is a ValueError
+        ma.wire.split_ns(2 ** 31 * 10 ** 9)
+    assert ma.wire.join_ns(*ma.wire.split_ns(STAMP + 7)) == STAMP + 7
+
+
+def test_header_stamp_of_serialised_messages():
+    from rclpy.serialization import serialize_message
+    raw = serialize_message(ma.sample_to_imu(ma.ImuSample(STAMP + 5, np.zeros(3), np.ones(3))))
+    assert ma.header_stamp_ns(raw) == STAMP + 5
+    with pytest.raises(ma.MessageError):
+        ma.header_stamp_ns(b'\x00\x01\x00')
+
+
+# --------------------------------------------------------------------------- wire
+def test_wire_tie_order_is_the_dead_reckonings_rule():
+    from gnsscam_ros.core import motion
+    sources = {ma.wire.TWIST: motion.ODOMETRY, ma.wire.IMU: motion.IMU}
+    dr = [sources[t] for t in ma.wire.TIE_ORDER if t in sources]
+    assert tuple(dr) == motion.DR_SOURCES
+    assert ma.wire.TIE_ORDER[-2:] == (ma.wire.IMAGE, ma.wire.GNSS)   # after the motion
+    assert ma.service_bits([1, 2, 4, 8, 16, 32, 1]) == 1 | 2 | 4 | 8
+    assert ma.service_bits([]) == 0
 
 
 # --------------------------------------------------------------------- PointCloud2
@@ -334,8 +356,8 @@ def _risk(level=ma.OK, bound=0.05, **kw):
 
 
 def test_integrity_risk_round_trip_is_exact():
-    risk = _risk(bound=0.1 / 3, protection_level_m=6.25,
-                 extra={'status': 'updated', 'n_satellites': '11'})
+    risk = _risk(bound=0.1 / 3, protection_level_m=6.25, epoch_status='updated',
+                 risk_bounds_by_limit={16.0: 0.01 / 3}, extra={'n_satellites': '11'})
     msg = ma.integrity_risk_to_msg(risk)
     assert isinstance(msg, DiagnosticArray) and len(msg.status) == 1
     assert msg.status[0].level == DiagnosticStatus.OK
@@ -347,6 +369,52 @@ def test_integrity_risk_round_trip_is_exact():
         ma.IntegrityRisk(STAMP, ma.STALE, 'no gnss', math.nan, math.nan, math.nan, 8.0, 0.1)))
     assert stale.stale and not stale.integrity_ok and math.isnan(stale.risk_bound)
     assert stale.epoch_stamp_ns is None and stale.protection_level_m is None
+    assert stale.epoch_status is None and stale.risk_bounds_by_limit == {}
+
+
+def test_integrity_typed_fields_keep_the_wire_keys():
+    """epoch_status and risk_bounds_by_limit travel as 'status' and 'risk_bound_<L>m' (the
+    keys of older bags), and come back typed, out of extra."""
+    risk = _risk(epoch_status='propagated', risk_bounds_by_limit={16.0: 0.25, 2.5: 0.5},
+                 extra={'inverse_bernoulli': 'exact'})
+    values = ma.status_values(ma.integrity_risk_to_msg(risk).status[0])
+    assert values['status'] == 'propagated'
+    assert values['risk_bound_16m'] == '0.25' and values['risk_bound_2.5m'] == '0.5'
+    back = ma.parse_integrity_risk(ma.integrity_risk_to_msg(risk))
+    assert back.epoch_status == 'propagated'
+    assert back.risk_bounds_by_limit == {16.0: 0.25, 2.5: 0.5}
+    assert back.extra == {'inverse_bernoulli': 'exact'}
+    # No GNSS epoch behind the verdict: None, 'no_gnss' on the wire.
+    none = ma.integrity_risk_to_msg(_risk(ma.ERROR, 0.4))
+    assert ma.status_values(none.status[0])['status'] == 'no_gnss'
+    assert ma.parse_integrity_risk(none).epoch_status is None
+    # A message without a status (another producer) has no epoch status either.
+    none.status[0].values = [kv for kv in none.status[0].values if kv.key != 'status']
+    assert ma.parse_integrity_risk(none).epoch_status is None
+    bad = ma.integrity_risk_to_msg(risk)
+    bad.status[0].values.append(KeyValue(key='risk_bound_32m', value='high'))
+    with pytest.raises(ma.MessageError) as err:
+        ma.parse_integrity_risk(bad)
+    assert err.value.reason == 'value'
+
+
+def test_integrity_producer_with_wire_keys_in_extra():
+    """A producer that still writes 'status' and 'risk_bound_<L>m' into extra gets the
+    typed fields; the message is the same as with the typed fields."""
+    legacy = _risk(extra={'status': 'updated', 'n_satellites': 9, 'risk_bound_16m': 0.02})
+    assert legacy.epoch_status == 'updated' and legacy.risk_bounds_by_limit == {16.0: 0.02}
+    assert legacy.extra == {'n_satellites': 9}
+    typed = _risk(epoch_status='updated', risk_bounds_by_limit={16.0: 0.02},
+                  extra={'n_satellites': 9})
+    assert legacy == typed
+    assert (ma.status_values(ma.integrity_risk_to_msg(legacy).status[0])
+            == ma.status_values(ma.integrity_risk_to_msg(typed).status[0]))
+    assert _risk(extra={'status': 'no_gnss'}).epoch_status is None
+    # Typed fields win over the same keys in extra.
+    both = _risk(epoch_status='rejected', risk_bounds_by_limit={16.0: 0.5},
+                 extra={'status': 'updated', 'risk_bound_16m': 0.02, 'risk_bound_32m': 0.01})
+    assert both.epoch_status == 'rejected'
+    assert both.risk_bounds_by_limit == {16.0: 0.5, 32.0: 0.01} and both.extra == {}
 
 
 def test_integrity_risk_refuses_an_unbacked_ok():

@@ -87,7 +87,7 @@ def test_pipeline_process_and_integrity_subscriber_process(tmp_path):
                                          == epoch.stamp_ns for m in risks),
                              30.0, f'integrity_risk of epoch {epoch.stamp_ns}')
         parsed = [ma.parse_integrity_risk(m) for m in risks]
-        verdicts = {r.epoch_stamp_ns: r for r in parsed if r.extra.get('status') == 'updated'}
+        verdicts = {r.epoch_stamp_ns: r for r in parsed if r.epoch_status == 'updated'}
         assert len(verdicts) >= len(drive.gnss) - 1
         assert all(r.level in (ma.OK, ma.ERROR) and 0.0 <= r.risk_bound <= 1.0
                    for r in verdicts.values())

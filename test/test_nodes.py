@@ -666,7 +666,7 @@ def test_integrity_is_stale_without_gnss_and_never_a_stale_ok(graph, drive):
     assert any(r.level in (ma.OK, ma.ERROR) for r in during)
     # No dead reckoning at all: the motion is unknown, so never OK, and the message says
     # why (even with a target that the bound alone would meet).
-    updated = [r for r in during if r.extra.get('status') == 'updated']
+    updated = [r for r in during if r.epoch_status == 'updated']
     assert len(updated) >= 2 and all(r.level == ma.ERROR for r in updated)
     assert all('motion unknown' in r.message and float(r.extra['motion_unknown_s']) > 0
                for r in updated[1:])             # the first fix has no interval

@@ -168,7 +168,7 @@ class DriveRun:
         risks = {}
         for m in self.risks:
             r = ma.parse_integrity_risk(m)
-            if r.epoch_stamp_ns is not None and 'no_gnss' != r.extra.get('status'):
+            if r.epoch_stamp_ns is not None and r.epoch_status is not None:
                 assert r.epoch_stamp_ns not in risks, 'one verdict per epoch'
                 risks[r.epoch_stamp_ns] = r
         frame = LocalFrame(*self.drive.origin_llh)

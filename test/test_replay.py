@@ -28,8 +28,10 @@ from rclpy.context import Context
 from gnsscam_ros.bags.convert import convert_drive
 from gnsscam_ros.bags.errors import BagExistsError, BagReadError
 from gnsscam_ros.bags.read import bag_topics, read_drive, read_results
+from gnsscam_ros.live.chain import replay_through_nodes
+from gnsscam_ros.live.player import BagReplayer
 from gnsscam_ros.live.record import BagRecorder
-from gnsscam_ros.live.replay import BagReplayer, main as replay_main, replay_through_nodes
+from gnsscam_ros.live.replay import main as replay_main
 from gnsscam_ros.core.filter import FilterConfig
 from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
 from gnsscam_ros.datasets.emulated.views import route_range_of

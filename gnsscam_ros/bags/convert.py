@@ -1,7 +1,8 @@
 """Dataset -> rosbag2 bag (MCAP by default), with the topics of :mod:`.schema`.
 
 :func:`convert_drive` is the library layer: no printing, no exit codes (``convert_cli`` adds
-them). Messages are rosbags dataclasses serialised with the ROS 2 Jazzy typestore, so no
+them). Messages are built by the ``msg_adapters`` writers the nodes publish with, as rosbags
+dataclasses (:func:`.schema.rosbags_kit`) serialised with the ROS 2 Jazzy typestore, so no
 ROS graph (and no rclpy) is needed.
 
 Guarantees:
@@ -14,7 +15,8 @@ Guarantees:
 * **Bounded memory**: camera frames are rendered while writing, a few ahead on worker
   threads (rendering costs ~60 ms per VGA frame, writing ~1 ms), never all at once.
 * **Time order**: the streams are merged by stamp, so the bag can be played or read
-  sequentially; the bag time of each message is its header stamp.
+  sequentially; the bag time of each message is its header stamp; messages with equal
+  stamps follow ``msg_adapters.wire.TIE_ORDER``.
 """
 from __future__ import annotations
 
@@ -36,6 +38,13 @@ from typing import Callable, Iterator
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
 
+from msg_adapters import (GeodeticFix, ImuSample, MessageError, TwistSample, array_to_image,
+                          fix_to_navsatfix, gnss_epoch_to_pointcloud2, pose_stamped,
+                          sample_to_imu, sample_to_twist)
+from msg_adapters.wire import (BASE_FRAME, CAMERA_FRAME, EARTH_FRAME, GNSS, IMAGE, IMU, INFO,
+                               MAP_FRAME, MAX_STAMP_SEC, NS_PER_S, ORIGIN, STATUS_FIX,
+                               TIE_ORDER, TRUTH, TWIST, service_bits)
+
 from ..core.frames import LocalFrame
 from ..core.types import Drive
 from . import schema
@@ -46,8 +55,6 @@ STORAGES = {'mcap': StoragePlugin.MCAP, 'sqlite3': StoragePlugin.SQLITE3}
 #: ``progress(done_messages, total_messages, payload_bytes)``; may raise to abort.
 ProgressFn = Callable[[int, int, int], None]
 
-# GNSS `system` codes -> NavSatStatus service bits (SBAS and QZSS have none).
-_SERVICE_BITS = {1: 1, 4: 2, 32: 4, 8: 8}
 _PROGRESS_EVERY = 500          # messages between progress calls (images: every frame)
 
 
@@ -172,7 +179,7 @@ def _check_stamps(stamps: np.ndarray, topic: str, strict: bool) -> None:
     """Refuse stamps that a bag cannot hold or that go backwards (before writing)."""
     if stamps.size == 0:
         return
-    if stamps.min() < 0 or stamps.max() >= 2 ** 31 * schema.NS_PER_S:
+    if stamps.min() < 0 or stamps.max() >= (MAX_STAMP_SEC + 1) * NS_PER_S:
         raise BagContentError(f'{topic}: stamps outside builtin_interfaces/Time '
                               f'(0 .. 2^31 s)', topic=topic)
     steps = np.diff(stamps)
@@ -235,21 +242,17 @@ def _frames_ahead(camera, workers: int, waited: list[float]
         pool.shutdown(wait=True, cancel_futures=True)
 
 
-class _Builder:
-    """Builds the rosbags messages of one drive (one method per topic)."""
+class _Messages:
+    """The messages of one drive, one method per topic, built by the ``msg_adapters``
+    writers the nodes publish with, as rosbags dataclasses (:func:`.schema.rosbags_kit`).
+
+    Data a message cannot hold raises :class:`.BagContentError` naming the topic and index.
+    """
 
     def __init__(self, drive: Drive, camera):
-        self.store = schema.typestore()
-        T = self.store.types
-        self.T = T
+        self.kit = schema.rosbags_kit()
         self.drive = drive
         self.camera = camera
-        self.Time = T['builtin_interfaces/msg/Time']
-        self.Header = T['std_msgs/msg/Header']
-        self.fields = [T['sensor_msgs/msg/PointField'](
-            name=name, offset=schema.GNSS_DTYPE.fields[name][1],
-            datatype=schema.POINTFIELD_CODE[np.dtype(schema.GNSS_DTYPE.fields[name][0].type)],
-            count=1) for name in schema.GNSS_DTYPE.names]
         truth = drive.truth
         self.q_truth = None
         if truth is not None and truth.yaw_rad is not None and len(truth):
@@ -258,107 +261,49 @@ class _Builder:
             self.q_truth = schema.yaw_to_ecef_quaternion(
                 truth.yaw_rad, schema.enu_quaternion(frame.rot_ecef_to_enu))
 
-    def header(self, stamp_ns: int, frame_id: str):
-        sec, nanosec = schema.split_ns(stamp_ns)
-        return self.Header(stamp=self.Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
-
-    def info(self, stamp_ns: int, text: str):
-        return self.T[schema.STRING](data=text)
+    def info(self, text: str):
+        return self.kit[schema.STRING](data=text)
 
     def origin(self, stamp_ns: int):
-        T = self.T
+        """``map/origin``: status FIX, the service bits of every system in the drive,
+        covariance unknown."""
         lat, lon, alt = (float(v) for v in self.drive.origin_llh)
         systems = {int(s) for ep in self.drive.gnss for s in np.unique(ep.system)}
-        service = 0
-        for s in systems:
-            service |= _SERVICE_BITS.get(s, 0)
-        status = T['sensor_msgs/msg/NavSatStatus'](status=0, service=service)
-        return T[schema.NAVSATFIX](
-            header=self.header(stamp_ns, schema.MAP_FRAME), status=status, latitude=lat,
-            longitude=lon, altitude=alt, position_covariance=np.zeros(9),
-            position_covariance_type=0)
+        return fix_to_navsatfix(GeodeticFix(
+            stamp_ns=stamp_ns, lat_deg=lat, lon_deg=lon, alt_m=alt, status=STATUS_FIX,
+            service=service_bits(systems), frame_id=MAP_FRAME), self.kit)
 
     def gnss(self, i: int):
-        ep = self.drive.gnss[i]
-        n = ep.n_sv
-        sv = np.asarray(ep.sv_pos_ecef_m, dtype=float).reshape(n, 3)
-        sv_id = np.asarray(ep.sv_id)
-        system = np.asarray(ep.system)
-        if n and (sv_id.min() < 0 or sv_id.max() > 65535):
-            raise BagContentError(f'{schema.GNSS}: epoch {i}: sv_id outside UINT16',
-                                  topic=schema.GNSS)
-        if n and (system.min() < 0 or system.max() > 255):
-            raise BagContentError(f'{schema.GNSS}: epoch {i}: system outside UINT8',
-                                  topic=schema.GNSS)
-        pts = np.zeros(n, dtype=schema.GNSS_DTYPE)
-        pts['x'], pts['y'], pts['z'] = sv[:, 0], sv[:, 1], sv[:, 2]
-        pts['pseudorange'] = ep.pr_m
-        pts['variance'] = ep.var_m2
-        pts['cn0'] = ep.cn0_dbhz
-        pts['elevation'] = ep.elevation_deg
-        pts['sv_id'] = sv_id
-        pts['system'] = system
-        step = schema.GNSS_DTYPE.itemsize
-        return self.T[schema.POINTCLOUD2](
-            header=self.header(ep.stamp_ns, schema.EARTH_FRAME), height=1, width=n,
-            fields=self.fields, is_bigendian=False, point_step=step, row_step=step * n,
-            data=np.frombuffer(pts.tobytes(), dtype=np.uint8),
-            # is_dense: no invalid (non-finite) satellite positions.
-            is_dense=bool(np.all(np.isfinite(sv))))
+        try:
+            return gnss_epoch_to_pointcloud2(self.drive.gnss[i], EARTH_FRAME, self.kit)
+        except MessageError as err:
+            raise BagContentError(f'{GNSS}: epoch {i}: {err}', topic=GNSS) from err
 
     def image(self, i: int, img: np.ndarray):
-        img = np.asarray(img)
-        if img.dtype != np.uint8 or img.ndim not in (2, 3) or (
-                img.ndim == 3 and img.shape[2] != 3) or img.size == 0:
-            raise BagContentError(f'{schema.IMAGE}: frame {i}: expected a uint8 (H, W) or '
-                                  f'(H, W, 3) BGR image, got {img.dtype} {img.shape}',
-                                  topic=schema.IMAGE)
-        h, w = img.shape[:2]
-        channels = 1 if img.ndim == 2 else 3
-        return self.T[schema.IMAGE_TYPE](
-            header=self.header(int(self.camera.stamp_ns[i]), schema.CAMERA_FRAME),
-            height=h, width=w, encoding='mono8' if channels == 1 else 'bgr8',
-            is_bigendian=0, step=w * channels,
-            data=np.ascontiguousarray(img).reshape(-1))
+        try:
+            return array_to_image(img, int(self.camera.stamp_ns[i]), frame_id=CAMERA_FRAME,
+                                  kit=self.kit)
+        except MessageError as err:
+            img = np.asarray(img)
+            raise BagContentError(f'{IMAGE}: frame {i}: expected a uint8 (H, W) or (H, W, 3) '
+                                  f'BGR image, got {img.dtype} {img.shape} ({err})',
+                                  topic=IMAGE) from err
 
     def imu(self, i: int):
-        T, imu = self.T, self.drive.imu
-        Vec = T['geometry_msgs/msg/Vector3']
-        a, g = imu.accel_mps2[i], imu.gyro_rps[i]
-        ocov = np.zeros(9)
-        ocov[0] = -1.0            # REP 145: no orientation estimate
-        return T[schema.IMU_TYPE](
-            header=self.header(int(imu.stamp_ns[i]), schema.BASE_FRAME),
-            orientation=T['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0),
-            orientation_covariance=ocov,
-            angular_velocity=Vec(x=float(g[0]), y=float(g[1]), z=float(g[2])),
-            angular_velocity_covariance=np.zeros(9),
-            linear_acceleration=Vec(x=float(a[0]), y=float(a[1]), z=float(a[2])),
-            linear_acceleration_covariance=np.zeros(9))
+        imu = self.drive.imu
+        return sample_to_imu(ImuSample(int(imu.stamp_ns[i]), imu.accel_mps2[i],
+                                       imu.gyro_rps[i]), BASE_FRAME, self.kit)
 
     def twist(self, i: int):
-        T, od = self.T, self.drive.odometry
-        Vec = T['geometry_msgs/msg/Vector3']
-        cov = np.zeros(36)
-        cov[0], cov[35] = od.speed_var[i], od.yaw_rate_var[i]
-        twist = T['geometry_msgs/msg/Twist'](
-            linear=Vec(x=float(od.speed_mps[i]), y=0.0, z=0.0),
-            angular=Vec(x=0.0, y=0.0, z=float(od.yaw_rate_rps[i])))
-        return T[schema.TWIST_TYPE](
-            header=self.header(int(od.stamp_ns[i]), schema.BASE_FRAME),
-            twist=T['geometry_msgs/msg/TwistWithCovariance'](twist=twist, covariance=cov))
+        od = self.drive.odometry
+        return sample_to_twist(TwistSample(int(od.stamp_ns[i]), od.speed_mps[i],
+                                           od.yaw_rate_rps[i], od.speed_var[i],
+                                           od.yaw_rate_var[i]), BASE_FRAME, self.kit)
 
     def truth(self, i: int):
-        T, tr = self.T, self.drive.truth
-        p = tr.ecef_m[i]
+        tr = self.drive.truth
         q = (0.0, 0.0, 0.0, 0.0) if self.q_truth is None else self.q_truth[i]
-        pose = T['geometry_msgs/msg/Pose'](
-            position=T['geometry_msgs/msg/Point'](x=float(p[0]), y=float(p[1]),
-                                                  z=float(p[2])),
-            orientation=T['geometry_msgs/msg/Quaternion'](x=float(q[0]), y=float(q[1]),
-                                                          z=float(q[2]), w=float(q[3])))
-        return T[schema.POSE_STAMPED](
-            header=self.header(int(tr.stamp_ns[i]), schema.EARTH_FRAME), pose=pose)
+        return pose_stamped(int(tr.stamp_ns[i]), tr.ecef_m[i], q, EARTH_FRAME, self.kit)
 
 
 def _keyed(stamps: np.ndarray, rank: int) -> Iterator[tuple[int, int, int]]:
@@ -371,23 +316,100 @@ def _sources(drive: Drive, camera) -> tuple[dict[str, np.ndarray], int]:
     """Per topic its stamps (checked), and the first stamp of all."""
     stamps: dict[str, np.ndarray] = {}
     if drive.gnss:
-        stamps[schema.GNSS] = np.array([ep.stamp_ns for ep in drive.gnss], dtype=np.int64)
+        stamps[GNSS] = np.array([ep.stamp_ns for ep in drive.gnss], dtype=np.int64)
     if camera is not None and len(camera.stamp_ns):
-        stamps[schema.IMAGE] = np.asarray(camera.stamp_ns, dtype=np.int64)
+        stamps[IMAGE] = np.asarray(camera.stamp_ns, dtype=np.int64)
     if drive.imu is not None and len(drive.imu):
-        stamps[schema.IMU] = np.asarray(drive.imu.stamp_ns, dtype=np.int64)
+        stamps[IMU] = np.asarray(drive.imu.stamp_ns, dtype=np.int64)
     if drive.odometry is not None and len(drive.odometry):
-        stamps[schema.TWIST] = np.asarray(drive.odometry.stamp_ns, dtype=np.int64)
+        stamps[TWIST] = np.asarray(drive.odometry.stamp_ns, dtype=np.int64)
     if drive.truth is not None and len(drive.truth):
-        stamps[schema.TRUTH] = np.asarray(drive.truth.stamp_ns, dtype=np.int64)
+        stamps[TRUTH] = np.asarray(drive.truth.stamp_ns, dtype=np.int64)
     if not stamps:
         raise BagContentError(f'{drive.name}: nothing to convert (no GNSS, camera, IMU, '
                               'odometry or truth)')
     for topic, st in stamps.items():
         # GNSS epochs and camera frames are events (strictly increasing); sampled series
         # may repeat a stamp.
-        _check_stamps(st, topic, strict=topic in (schema.GNSS, schema.IMAGE))
+        _check_stamps(st, topic, strict=topic in (GNSS, IMAGE))
     return stamps, int(min(int(st[0]) for st in stamps.values()))
+
+
+def _tie_rank(topic: str) -> int:
+    """Rank among messages with equal stamps: :data:`~msg_adapters.wire.TIE_ORDER`, then
+    the other topics in the order of the layout."""
+    if topic in TIE_ORDER:
+        return TIE_ORDER.index(topic)
+    return len(TIE_ORDER) + list(schema.DATASET_TOPICS).index(topic)
+
+
+class _Sink:
+    """The connections of one bag writer: serialises, writes and counts messages, and
+    reports progress."""
+
+    def __init__(self, writer: Writer, summary: ConvertSummary, namespace: str,
+                 progress: ProgressFn | None):
+        self.writer = writer
+        self.summary = summary
+        self.namespace = namespace
+        self.progress = progress
+        self.store = schema.typestore()
+        self.conns: dict = {}
+        self.done = self.nbytes = self.total = 0
+
+    def add(self, spec: schema.TopicSpec) -> None:
+        name = schema.qualified(spec.name, self.namespace)
+        self.conns[spec.name] = self.writer.add_connection(
+            name, spec.msgtype, typestore=self.store,
+            offered_qos_profiles=[schema.qos(spec.latched)])
+        self.summary.topics[name] = TopicCount(spec.msgtype)
+
+    def put(self, topic: str, stamp_ns: int, msg) -> None:
+        data = self.store.serialize_cdr(msg, msg.__msgtype__)
+        self.writer.write(self.conns[topic], stamp_ns, data)
+        rec = self.summary.topics[schema.qualified(topic, self.namespace)]
+        rec.count += 1
+        rec.payload_bytes += len(data)
+        self.done += 1
+        self.nbytes += len(data)
+        if self.progress is not None and (topic == IMAGE
+                                          or self.done % _PROGRESS_EVERY == 0):
+            self.progress(self.done, self.total, self.nbytes)
+
+
+def _write_all(sink: _Sink, messages: _Messages, stamps: dict[str, np.ndarray],
+               first_ns: int, workers: int, waited: list[float]) -> None:
+    """Register the topics and write every message of the drive in time order."""
+    drive, camera = messages.drive, messages.camera
+    present = {INFO} | set(stamps) | ({ORIGIN} if drive.origin_llh is not None else set())
+    for spec in schema.DATASET_TOPICS.values():
+        if spec.name in present:
+            sink.add(spec)
+    sink.total = sum(len(s) for s in stamps.values()) + (len(present) - len(stamps))
+    info_text = json.dumps(dataset_info(drive, sink.namespace), allow_nan=False)
+    sink.put(INFO, first_ns, messages.info(info_text))
+    if ORIGIN in present:
+        sink.put(ORIGIN, first_ns, messages.origin(first_ns))
+    # Merge the per-topic stamp sequences: each yields (stamp, rank, index); the rank puts
+    # equal stamps in the one tie order.
+    order = sorted(stamps, key=_tie_rank)
+    merged = heapq.merge(*[_keyed(stamps[t], rank) for rank, t in enumerate(order)])
+    makers = {GNSS: messages.gnss, IMU: messages.imu, TWIST: messages.twist,
+              TRUTH: messages.truth}
+    frames = _frames_ahead(camera, workers, waited) if camera is not None else None
+    try:
+        for stamp_ns, rank, i in merged:
+            topic = order[rank]
+            if topic == IMAGE:
+                k, img = next(frames)
+                assert k == i, 'frames are consumed in index order'
+                sink.put(topic, stamp_ns, messages.image(i, img))
+            else:
+                sink.put(topic, stamp_ns, makers[topic](i))
+    finally:
+        # On Ctrl-C or an error: stop the render threads before the bag is removed.
+        if frames is not None:
+            frames.close()
 
 
 # --------------------------------------------------------------------------- convert
@@ -428,7 +450,7 @@ def convert_drive(drive: Drive, out_path: str | os.PathLike, storage: str = 'mca
     if camera is not None and not hasattr(camera, 'image'):
         camera = None           # e.g. a smartLoc drive: no image stream
     stamps, first_ns = _sources(drive, camera)
-    builder = _Builder(drive, camera)
+    messages = _Messages(drive, camera)
     workers = min(4, os.cpu_count() or 1) if workers is None else int(workers)
 
     started = time.perf_counter()
@@ -436,64 +458,13 @@ def convert_drive(drive: Drive, out_path: str | os.PathLike, storage: str = 'mca
     tmp_root = Path(tempfile.mkdtemp(prefix=f'.{out.name}.partial-', dir=out.parent))
     summary = ConvertSummary(path=out, storage=storage)
     waited = [0.0]
-    frames = None
     try:
         tmp_bag = tmp_root / out.name
         with Writer(tmp_bag, version=9, storage_plugin=STORAGES[storage]) as writer:
-            store = builder.store
-            conns = {}
-            present = {schema.INFO} | set(stamps)
-            if drive.origin_llh is not None:
-                present.add(schema.ORIGIN)
-            for spec in schema.DATASET_TOPICS.values():
-                if spec.name not in present:
-                    continue
-                name = schema.qualified(spec.name, namespace)
-                conns[spec.name] = writer.add_connection(
-                    name, spec.msgtype, typestore=store,
-                    offered_qos_profiles=[schema.qos(spec.latched)])
-                summary.topics[name] = TopicCount(spec.msgtype)
-            total = sum(len(s) for s in stamps.values()) + (len(present) - len(stamps))
-            done = nbytes = 0
-
-            def put(topic: str, stamp_ns: int, msg) -> None:
-                nonlocal done, nbytes
-                data = store.serialize_cdr(msg, msg.__msgtype__)
-                writer.write(conns[topic], stamp_ns, data)
-                rec = summary.topics[schema.qualified(topic, namespace)]
-                rec.count += 1
-                rec.payload_bytes += len(data)
-                done += 1
-                nbytes += len(data)
-
-            info_text = json.dumps(dataset_info(drive, namespace), allow_nan=False)
-            put(schema.INFO, first_ns, builder.info(first_ns, info_text))
-            if schema.ORIGIN in conns:
-                put(schema.ORIGIN, first_ns, builder.origin(first_ns))
-
-            # Merge the per-topic stamp sequences: each yields (stamp, rank, index); the
-            # rank keeps a fixed topic order among equal stamps.
-            order = [t for t in schema.DATASET_TOPICS if t in stamps]
-            merged = heapq.merge(*[_keyed(stamps[t], rank) for rank, t in enumerate(order)])
-            if camera is not None:
-                frames = _frames_ahead(camera, workers, waited)
-            makers = {schema.GNSS: builder.gnss, schema.IMU: builder.imu,
-                      schema.TWIST: builder.twist, schema.TRUTH: builder.truth}
-            for stamp_ns, rank, i in merged:
-                topic = order[rank]
-                if topic == schema.IMAGE:
-                    k, img = next(frames)
-                    assert k == i, 'frames are consumed in index order'
-                    put(topic, stamp_ns, builder.image(i, img))
-                else:
-                    put(topic, stamp_ns, makers[topic](i))
-                if progress is not None and (topic == schema.IMAGE
-                                             or done % _PROGRESS_EVERY == 0):
-                    progress(done, total, nbytes)
-            if frames is not None:
-                frames.close()
+            sink = _Sink(writer, summary, namespace, progress)
+            _write_all(sink, messages, stamps, first_ns, workers, waited)
         if progress is not None:
-            progress(done, total, nbytes)
+            progress(sink.done, sink.total, sink.nbytes)
         if out.exists() or out.is_symlink():
             raise BagExistsError(f'{out} appeared while converting; not overwriting',
                                  path=out)
@@ -509,8 +480,6 @@ def convert_drive(drive: Drive, out_path: str | os.PathLike, storage: str = 'mca
     except Exception as err:  # rosbags WriterError and friends
         raise BagError(f'{out}: write failed: {type(err).__name__}: {err}', path=out) from err
     finally:
-        if frames is not None:
-            frames.close()
         shutil.rmtree(tmp_root, ignore_errors=True)
     summary.start_ns = first_ns
     summary.end_ns = max(int(s[-1]) for s in stamps.values())

@@ -19,7 +19,11 @@ import sys
 import time
 from pathlib import Path
 
+from ..datasets.emulated.camera import with_camera
+from ..datasets.emulated.drive import make_emulated_drive
 from ..datasets.errors import DatasetError
+from ..datasets.smartloc import load_smartloc_args
+from ..io.atomic import write_json_atomic
 from ..io.tables import format_table
 from .convert import STORAGES, ConvertSummary, convert_drive
 from .errors import BagContentError, BagError, BagExistsError
@@ -106,14 +110,11 @@ def build_parser() -> argparse.ArgumentParser:
 def load(args: argparse.Namespace):
     """The drive named on the command line (emulated: with its camera stream)."""
     if args.dataset == 'smartloc':
-        from ..datasets.smartloc import load_smartloc_args
         return load_smartloc_args(args.folder, args.input, args.truth)
-    from ..datasets.emulated.drive import make_emulated_drive
     try:
         drive = make_emulated_drive(args.seed, faults=args.faults, bias_m=args.bias_m,
                                     nlos=not args.no_nlos, duration_s=args.duration_s)
         if not args.no_camera:
-            from ..datasets.emulated.camera import with_camera
             drive = with_camera(drive, fault_fraction=args.camera_fault_fraction)
     except ValueError as err:
         raise DatasetError(f'emulated drive: {err}') from err
@@ -171,7 +172,6 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGTERM, previous)
     print(format_summary(summary))
     if args.json is not None:
-        from ..io.atomic import write_json_atomic
         write_json_atomic(args.json, summary.as_dict())
     return EXIT_OK
 

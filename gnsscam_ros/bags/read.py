@@ -21,7 +21,6 @@ recorded with ``ros2 bag record -a`` can be read.
 from __future__ import annotations
 
 import json
-import struct
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -34,6 +33,7 @@ from msg_adapters import (IntegrityRisk, MessageError, image_to_array, imu_to_sa
                           msg_to_pose, navsatfix_to_fix, parse_integrity_risk,
                           pointcloud2_to_gnss_epoch, posearray_to_particles, stamp_to_ns,
                           twist_to_sample)
+from msg_adapters.wire import EARTH_FRAME, header_stamp_ns
 
 from ..core.frames import LocalFrame
 from ..core.types import Drive, GnssEpoch, ImuSeries, OdometrySeries, Trajectory
@@ -106,20 +106,6 @@ def _select(reader: Reader, path: Path, wanted: dict[str, str], namespace: str
                                f'expected {wanted[rel]}', path=path, topic=conn.topic)
         found[rel].append(conn)
     return found
-
-
-def header_stamp_ns(raw: bytes | memoryview) -> int:
-    """Header stamp [ns] of a CDR-serialised message that starts with ``std_msgs/Header``,
-    read without decoding the rest (an image is ~1 MB; its stamp is 8 bytes).
-
-    Raises:
-        MessageError: Too short, or an encapsulation other than plain CDR.
-    """
-    if len(raw) < 12 or raw[0] != 0 or raw[1] not in (0, 1):
-        raise MessageError('not a plain CDR message with a header', 'size')
-    # Encapsulation kind 0x0001 is little endian, 0x0000 big endian; the Time follows.
-    sec, nanosec = struct.unpack_from('<iI' if raw[1] == 1 else '>iI', raw, 4)
-    return sec * 1_000_000_000 + nanosec
 
 
 def _scan(path: Path, wanted: dict[str, str], handlers: dict[str, Callable],
@@ -312,7 +298,7 @@ def read_drive(path: str | Path, namespace: str = '/', require_gnss: bool = True
         origin[:] = [fix.lat_deg, fix.lon_deg, fix.alt_m]
 
     def on_gnss(log_ns, msg):
-        epochs.append(pointcloud2_to_gnss_epoch(msg, schema.EARTH_FRAME, schema.GNSS))
+        epochs.append(pointcloud2_to_gnss_epoch(msg, EARTH_FRAME, schema.GNSS))
 
     def on_imu(log_ns, msg):
         s = imu_to_sample(msg, schema.IMU)
@@ -324,7 +310,7 @@ def read_drive(path: str | Path, namespace: str = '/', require_gnss: bool = True
         odo.append((s.stamp_ns, s.speed_mps, s.yaw_rate_rps, s.speed_var, s.yaw_rate_var))
 
     def on_truth(log_ns, msg):
-        _frame_check(path, schema.TRUTH, msg, schema.EARTH_FRAME)
+        _frame_check(path, schema.TRUTH, msg, EARTH_FRAME)
         p, q = msg.pose.position, msg.pose.orientation
         truth_ns.append(stamp_to_ns(msg.header.stamp))
         truth_rows.append((p.x, p.y, p.z, q.x, q.y, q.z, q.w))
@@ -408,10 +394,11 @@ def read_results(path: str | Path, namespace: str = '/', particles: bool = True
     """Read ``pose``, ``fix``, ``particles``, ``integrity_risk`` (and ``ground_truth/pose``,
     ``map/origin`` if present) from a bag recorded from the nodes.
 
-    ``integrity_risk`` is parsed by ``msg_adapters.parse_integrity_risk``: the status with
-    a ``risk_bound`` value, level OK/ERROR/STALE, values ``risk_bound``, ``empirical_risk``,
-    ``divergence_risk``, ``alert_limit_m``, ``target_risk``, ``epoch_stamp`` and extras
-    (``risk_bound_16m`` for further alert limits, ``inverse_bernoulli``, ...).
+    ``integrity_risk`` is parsed by ``msg_adapters.parse_integrity_risk`` into
+    :class:`~msg_adapters.IntegrityRisk`: level OK/ERROR/STALE, ``risk_bound``,
+    ``empirical_risk``, ``divergence_risk``, ``alert_limit_m``, ``target_risk``,
+    ``epoch_stamp_ns``, ``protection_level_m``, ``epoch_status``, ``risk_bounds_by_limit``
+    (further alert limits) and the other values in ``extra`` (``inverse_bernoulli``, ...).
 
     Args:
         path: The result bag.
@@ -450,7 +437,7 @@ def read_results(path: str | Path, namespace: str = '/', particles: bool = True
         integrity.append(parse_integrity_risk(msg, schema.INTEGRITY))
 
     def on_truth(log_ns, msg):
-        _frame_check(path, schema.TRUTH, msg, schema.EARTH_FRAME)
+        _frame_check(path, schema.TRUTH, msg, EARTH_FRAME)
         p, q = msg.pose.position, msg.pose.orientation
         truth_ns.append(stamp_to_ns(msg.header.stamp))
         truth_rows.append((p.x, p.y, p.z, q.x, q.y, q.z, q.w))

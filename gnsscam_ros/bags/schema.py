@@ -1,4 +1,6 @@
-"""The bag layout in one place: topics, message types, frames, field layouts, QoS.
+"""What is specific to bags: which topics a bag holds, with which types and QoS, the bag format
+tag and the typestore. Topic and frame names and the point layouts are the wire contract's
+(:mod:`msg_adapters.wire`).
 
 A converted dataset bag holds (design.md §3 for the input topics), by topic, type, frame:
 
@@ -31,8 +33,10 @@ Conventions:
   rate and acceleration covariances all zero, i.e. unknown (sensor_msgs/Imu convention).
 * ``odom/twist``: forward speed on ``linear.x`` [m/s], yaw rate on ``angular.z`` [rad/s],
   their variances at covariance indices 0 and 35, everything else 0 (as ``msg_adapters``).
-* ``gnss/pseudoranges``: one point per satellite, :data:`GNSS_DTYPE` (the layout of
-  ``msg_adapters.pointcloud.GNSS_DTYPE``: naturally aligned, 48-byte points).
+* ``gnss/pseudoranges``: one point per satellite, ``msg_adapters.wire.GNSS_DTYPE``
+  (naturally aligned, 48-byte points).
+* Every message is built by the ``msg_adapters`` writer the nodes publish with (through
+  :func:`rosbags_kit`), so a bag holds what a node would send.
 
 A result bag (recorded from the nodes) holds ``pose``, ``integrity_risk`` and optionally
 ``fix``, ``particles``; :data:`RESULT_TOPICS` names them.
@@ -48,28 +52,14 @@ from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                 QosReliability, QosTime)
 from rosbags.typesys import Stores, get_typestore
 
+from msg_adapters.kit import MessageKit, numpy_kit
+from msg_adapters.wire import (BASE_FRAME, CAMERA_FRAME, EARTH_FRAME, FIX, GNSS, IMAGE, IMU,
+                               INFO, INTEGRITY, MAP_FRAME, ORIGIN, PARTICLES, POSE, TRUTH, TWIST)
+
 #: The typestore every bag of this package is written and read with.
 STORE = Stores.ROS2_JAZZY
 #: ``dataset/info`` format tag; bump when the layout changes incompatibly.
 FORMAT = 'gnsscam_ros.dataset_bag/1'
-
-EARTH_FRAME = 'earth'
-MAP_FRAME = 'map'
-BASE_FRAME = 'base_link'
-CAMERA_FRAME = 'camera'
-
-INFO = 'dataset/info'
-ORIGIN = 'map/origin'
-GNSS = 'gnss/pseudoranges'
-IMAGE = 'camera/image_raw'
-IMU = 'imu/data'
-TWIST = 'odom/twist'
-TRUTH = 'ground_truth/pose'
-POSE = 'pose'
-FIX = 'fix'
-PARTICLES = 'particles'
-INTEGRITY = 'integrity_risk'
-ODOMETRY_GLOBAL = 'odometry/global'
 
 STRING = 'std_msgs/msg/String'
 NAVSATFIX = 'sensor_msgs/msg/NavSatFix'
@@ -122,25 +112,18 @@ RESULT_TOPICS: dict[str, TopicSpec] = {t.name: t for t in (
     TopicSpec(INTEGRITY, DIAGNOSTIC_ARRAY, None, False, 'integrity verdict and risk bound'),
 )}
 
-# GNSS cloud layout: the same offsets and itemsize as msg_adapters.pointcloud.GNSS_DTYPE
-# (test_bags checks they agree), little endian, naturally aligned (1 pad byte at 47).
-GNSS_DTYPE = np.dtype({
-    'names': ['x', 'y', 'z', 'pseudorange', 'variance', 'cn0', 'elevation', 'sv_id', 'system'],
-    'formats': ['<f8', '<f8', '<f8', '<f8', '<f4', '<f4', '<f4', '<u2', 'u1'],
-    'offsets': [0, 8, 16, 24, 32, 36, 40, 44, 46], 'itemsize': 48})
-
-# sensor_msgs/PointField datatype codes <-> numpy scalar types.
-POINTFIELD_TYPES = {1: np.int8, 2: np.uint8, 3: np.int16, 4: np.uint16, 5: np.int32,
-                    6: np.uint32, 7: np.float32, 8: np.float64}
-POINTFIELD_CODE = {np.dtype(v): k for k, v in POINTFIELD_TYPES.items()}
-
-NS_PER_S = 1_000_000_000
-
 
 @lru_cache(maxsize=1)
 def typestore():
     """The shared ROS 2 Jazzy typestore (built once; building costs ~50 ms)."""
     return get_typestore(STORE)
+
+
+@lru_cache(maxsize=1)
+def rosbags_kit() -> MessageKit:
+    """The ``msg_adapters`` writers' kit for the typestore's message dataclasses (what the
+    converter serialises; no rclpy involved)."""
+    return numpy_kit(typestore().types, f'rosbags {STORE.name}')
 
 
 def qos(latched: bool) -> Qos:
@@ -170,18 +153,6 @@ def relative(topic: str, namespace: str = '/') -> str | None:
         return topic
     prefix = qualified('', namespace)
     return topic[len(prefix):] if topic.startswith(prefix) else None
-
-
-def split_ns(stamp_ns: int) -> tuple[int, int]:
-    """Integer ns -> ``(sec, nanosec)`` of ``builtin_interfaces/Time``.
-
-    Raises:
-        ValueError: Negative or beyond the int32 seconds of the message.
-    """
-    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
-    if not 0 <= sec < 2 ** 31:
-        raise ValueError(f'stamp {stamp_ns} ns does not fit builtin_interfaces/Time')
-    return sec, nanosec
 
 
 # ---------------------------------------------------------------- ground-truth attitude

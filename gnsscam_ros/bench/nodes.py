@@ -115,9 +115,9 @@ def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: f
     def on_risk(msg):
         now = time.perf_counter()
         risk = ma.parse_integrity_risk(msg)
-        if risk.epoch_stamp_ns is not None and risk.extra.get('status') != 'no_gnss':
+        if risk.epoch_stamp_ns is not None and risk.epoch_status is not None:
             received.setdefault(risk.epoch_stamp_ns, now)
-            statuses[risk.epoch_stamp_ns] = risk.extra.get('status', '')
+            statuses[risk.epoch_stamp_ns] = risk.epoch_status
 
     try:
         node = probe.node

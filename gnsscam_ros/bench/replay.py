@@ -2,7 +2,7 @@
 
 Converts a seeded emulated drive (GNSS 1 Hz, IMU 100 Hz, odometry 10 Hz, ground truth;
 optionally the camera at 10 Hz with its map database) into a bag, replays it at
-``R = 0`` (as fast as the nodes keep up, lossless: :mod:`.replay`) through gnss_node,
+``R = 0`` (as fast as the nodes keep up, lossless: :mod:`gnsscam_ros.live.flow`) through gnss_node,
 imu_node, camera_node and fusion_node at ``--particles`` particles, records the outputs,
 and reports:
 
@@ -26,9 +26,16 @@ import tempfile
 import time
 from pathlib import Path
 
+from ..bags.convert import convert_drive
+from ..datasets.emulated.camera import with_camera
+from ..datasets.emulated.drive import make_emulated_drive
+from ..datasets.emulated.map_database import build_emulated_map_database
+from ..datasets.emulated.scenario import scenario_of
+from ..datasets.emulated.views import route_range_of
 from ..io.atomic import write_json_atomic
 from ..io.tables import format_table
-from ..live.replay import LAYOUTS, replay_through_nodes
+from ..live.chain import replay_through_nodes
+from ..live.launch import LAYOUTS
 
 
 def bench_once(particles: int = 10_000, duration_s: float = 120.0, seed: int = 3,
@@ -41,7 +48,7 @@ def bench_once(particles: int = 10_000, duration_s: float = 120.0, seed: int = 3
         particles: Filter particles per posterior N (x M = 10 posteriors).
         duration_s: Length of the drive [s].
         seed: Drive (and filter) seed.
-        layout: Where the nodes run (:data:`.replay.LAYOUTS`).
+        layout: Where the nodes run (:data:`gnsscam_ros.live.launch.LAYOUTS`).
         acquisition_particles: ``acquisition_particles`` (None: the filter default, 10,000
             particles for the first 100 m when N is smaller).
         camera: Include the camera (renders the frames and builds the map database of the
@@ -53,8 +60,6 @@ def bench_once(particles: int = 10_000, duration_s: float = 120.0, seed: int = 3
     Returns:
         The figures (see the module docstring) and the replay summary.
     """
-    from ..datasets.emulated.drive import make_emulated_drive
-    from ..bags.convert import convert_drive
     drive = make_emulated_drive(seed, faults=6, bias_m=100.0, duration_s=duration_s)
     params: dict = {'fusion_node': {'n_particles': int(particles), 'seed': int(seed),
                                     'use_map_origin': True,
@@ -65,10 +70,6 @@ def bench_once(particles: int = 10_000, duration_s: float = 120.0, seed: int = 3
         tempfile.mkdtemp(prefix='gnsscam_replay_bench_'))
     try:
         if camera:
-            from ..datasets.emulated.camera import with_camera
-            from ..datasets.emulated.map_database import build_emulated_map_database
-            from ..datasets.emulated.scenario import scenario_of
-            from ..datasets.emulated.views import route_range_of
             drive = with_camera(drive)
             scenario = scenario_of(drive)
             log('bench: map database of the route (cached after the first build) ...')

@@ -22,7 +22,7 @@ How the bag maps onto the offline quantities:
   which then must be in the ENU frame at ``map/origin`` (or ``origin_llh``).
   Errors are measured in the ENU frame at ``map/origin`` (else at the first truth point).
 * **Alert limits and bounds**: ``alert_limit_m`` / ``risk_bound`` of each verdict, plus the
-  extras ``risk_bound_<L>m`` for further limits; the target is ``target_risk``. Only the
+  typed ``risk_bounds_by_limit`` for further limits; the target is ``target_risk``. Only the
   inverse-Bernoulli method the node ran (extra ``inverse_bernoulli``) is available.
 * **Reference risk** (mass of the posterior beyond the alert limit from the true
   position): from the recorded ``particles`` of the epoch, taken as equally weighted
@@ -43,7 +43,6 @@ How the bag maps onto the offline quantities:
 from __future__ import annotations
 
 import math
-import re
 from pathlib import Path
 
 import numpy as np
@@ -59,7 +58,6 @@ from ..core.types import Drive, Trajectory
 from .metrics import integrity_metrics, protection_level_metrics
 from .runner import EpochTable, accuracy, empty_epoch_table, run_snapshot_baseline, truth_at
 
-_EXTRA_BOUND = re.compile(r'^risk_bound_(.+)m$')
 _LEVELS = {0: 'OK', 1: 'WARN', 2: 'ERROR', 3: 'STALE'}
 REFERENCE_SAMPLES = 4096
 
@@ -108,16 +106,8 @@ def _verdicts(res: ResultBag) -> dict[int, object]:
 
 def _bounds(risk) -> dict[float, float]:
     """``{alert limit [m]: risk bound}`` of one verdict (main limit and extras)."""
-    out = {float(risk.alert_limit_m): float(risk.risk_bound)}
-    for key, value in risk.extra.items():
-        m = _EXTRA_BOUND.match(key)
-        if m:
-            try:
-                out[float(m.group(1))] = float(value)
-            except ValueError as err:
-                raise BagContentError(f'{schema.INTEGRITY}: value {key}={value!r} is not a '
-                                      'number', topic=schema.INTEGRITY) from err
-    return out
+    return {float(risk.alert_limit_m): float(risk.risk_bound),
+            **{float(k): float(v) for k, v in risk.risk_bounds_by_limit.items()}}
 
 
 def _pl(risk) -> float:
@@ -160,7 +150,7 @@ def _epoch_table(res: ResultBag, verdicts: dict, frame: LocalFrame, est_stamps: 
         else:
             levels[k] = 'STALE'
             v = stale.get(s)
-        status[k] = '' if v is None else str(v.extra.get('status', ''))
+        status[k] = '' if v is None else (v.epoch_status or 'no_gnss')
         reason[k] = '' if v is None else v.message
         try:
             sats[k] = int(float(v.extra.get('n_satellites', 0))) if v is not None else 0

@@ -45,18 +45,18 @@ from pathlib import Path
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.rosbag2 import Writer
 
+from msg_adapters.wire import ODOMETRY_GLOBAL
+
 from ..bags import schema
 from ..bags.convert import STORAGES
 from ..bags.errors import BagError, BagExistsError, BagTypeError
-from .replay import message_class
+from .endpoints import NO_SUB_EVENTS, ros_message_class
 
 EXIT_OK, EXIT_USAGE, EXIT_OUTPUT = 0, 2, 4
-_NO_SUB_EVENTS = SubscriptionEventCallbacks(use_default_callbacks=False)
 
 #: Topics recorded by default, with their types and whether they are once-only (latched).
 DEFAULT_TOPICS: dict[str, tuple[str, bool]] = {
@@ -64,7 +64,7 @@ DEFAULT_TOPICS: dict[str, tuple[str, bool]] = {
     schema.FIX: (schema.NAVSATFIX, False),
     schema.PARTICLES: (schema.POSE_ARRAY, False),
     schema.INTEGRITY: (schema.DIAGNOSTIC_ARRAY, False),
-    schema.ODOMETRY_GLOBAL: (schema.ODOMETRY, False),
+    ODOMETRY_GLOBAL: (schema.ODOMETRY, False),
     schema.TRUTH: (schema.POSE_STAMPED, False),
     schema.ORIGIN: (schema.NAVSATFIX, True),
     schema.INFO: (schema.STRING, True),
@@ -140,7 +140,7 @@ class BagRecorder(Node):
                 if msgtype not in store.types:
                     raise BagTypeError(f'{name}: message type {msgtype} unknown to the '
                                        'typestore', topic=name)
-                message_class(msgtype)
+                ros_message_class(msgtype)
         # Woken for every message: no parameter services or QoS event handlers, whose
         # entities rclpy walks at each wake (the recorder has no ROS parameters).
         kwargs.setdefault('start_parameter_services', False)
@@ -195,8 +195,8 @@ class BagRecorder(Node):
                 name, msgtype, typestore=schema.typestore(),
                 offered_qos_profiles=[schema.qos(latched)])
             self.summary.counts[name] = 0
-        self.create_subscription(message_class(msgtype), topic, self._writer_of(topic), qos,
-                                 raw=True, event_callbacks=_NO_SUB_EVENTS)
+        self.create_subscription(ros_message_class(msgtype), topic, self._writer_of(topic),
+                                 qos, raw=True, event_callbacks=NO_SUB_EVENTS)
 
     def _resolve_types(self) -> None:
         """Subscribe to topics given without a type once the graph knows their type."""

@@ -376,15 +376,14 @@ class FusionNode(GnssCamNode):
     @staticmethod
     def integrity_risk(verdict: IntegrityVerdict) -> IntegrityRisk:
         """The ``integrity_risk`` content of an engine verdict."""
-        extra = {'status': verdict.epoch_status or 'no_gnss', **verdict.details}
-        for limit, bound in verdict.risk_bounds_by_limit.items():
-            extra[f'risk_bound_{limit:g}m'] = bound
         return IntegrityRisk(
             stamp_ns=verdict.stamp_ns, level=_LEVELS[verdict.level], message=verdict.message,
             risk_bound=verdict.risk_bound, empirical_risk=verdict.empirical_risk,
             divergence_risk=verdict.divergence_risk, alert_limit_m=verdict.alert_limit_m,
             target_risk=verdict.target_risk, epoch_stamp_ns=verdict.epoch_stamp_ns,
-            protection_level_m=verdict.protection_level_m, extra=extra)
+            protection_level_m=verdict.protection_level_m, extra=dict(verdict.details),
+            epoch_status=verdict.epoch_status,
+            risk_bounds_by_limit=dict(verdict.risk_bounds_by_limit))
 
     def publish_integrity(self, risk: IntegrityRisk) -> None:
         self.pub_integrity.publish(integrity_risk_to_msg(risk))

@@ -28,7 +28,7 @@ from gnsscam_ros.core.snapshot import solve_snapshot
 from gnsscam_ros.core.types import GnssEpoch
 from msg_adapters import (OK, WARN, GeodeticFix, MessageError, fix_to_navsatfix,
                           gnss_epoch_to_pointcloud2, pointcloud2_to_gnss_epoch, service_bits)
-from msg_adapters.pointcloud import KNOWN_SYSTEMS
+from msg_adapters.wire import KNOWN_SYSTEMS
 
 from .common import BIG, GnssCamNode, reliable_qos, run_node, sensor_qos
 

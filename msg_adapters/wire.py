@@ -1,0 +1,147 @@
+"""The wire contract of gnsscam_ros, in one place (design.md §3).
+
+Topic and frame names, the point layouts of the GNSS and camera-match clouds, the GNSS
+``system`` codes and their ``NavSatStatus`` service bits, time stamps (integer ns <->
+``builtin_interfaces/Time``), and the order of messages that share a stamp. The message
+adapters, the bag converter and reader, the nodes and the replay take them from here.
+
+Plain Python and numpy, no ROS import: the storage layer (rosbags) and the rclpy layer
+read the same definitions.
+"""
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+
+from gnsscam_ros.core import motion
+
+from .errors import MessageError
+
+# ---------------------------------------------------------------------------- topics
+# Names relative to the namespace of the nodes (``ros2 bag record`` stores them qualified,
+# ``/imu/data``).
+INFO = 'dataset/info'                         # dataset description (bags only)
+ORIGIN = 'map/origin'                         # origin of the local ENU map frame
+GNSS = 'gnss/pseudoranges'                    # receiver epochs (PointCloud2, GNSS_DTYPE)
+GNSS_MEASUREMENTS = 'gnss/measurements'       # gnss_node's checked epochs (same layout)
+GNSS_FIX = 'gnss/fix'                         # gnss_node's snapshot fix (NavSatFix)
+IMAGE = 'camera/image_raw'
+MATCHES = 'camera/matches'                    # camera_node's top-k matches (MATCH_DTYPE)
+IMU = 'imu/data'
+TWIST = 'odom/twist'
+DEAD_RECKONING = 'odometry/dead_reckoning'    # imu_node's dead-reckoned pose (Odometry)
+ODOMETRY_GLOBAL = 'odometry/global'           # fusion_node's estimate for ROS consumers
+TRUTH = 'ground_truth/pose'                   # evaluation only (no node subscribes)
+POSE = 'pose'
+FIX = 'fix'
+PARTICLES = 'particles'
+INTEGRITY = 'integrity_risk'
+DIAGNOSTICS = 'diagnostics'
+
+# ---------------------------------------------------------------------------- frames
+EARTH_FRAME = 'earth'          # ECEF: GNSS clouds, ground truth
+MAP_FRAME = 'map'              # local ENU at the map origin: pose, particles, matches
+ODOM_FRAME = 'odom'            # the dead reckoning's own frame
+BASE_FRAME = 'base_link'       # the vehicle: IMU, wheel odometry, child of odometry/*
+CAMERA_FRAME = 'camera'
+ANTENNA_FRAME = 'gnss'         # the GNSS antenna: gnss/fix and fix
+IMU_FRAME = 'imu'              # default frame of an IMU sample written alone
+
+# ---------------------------------------------------------------------- point layouts
+#: ``gnss/pseudoranges``, ``gnss/measurements`` (frame ``earth``), one point per
+#: satellite: ``x y z`` FLOAT64 satellite ECEF position [m], ``pseudorange`` FLOAT64 [m],
+#: ``variance`` FLOAT32 [m^2], ``cn0`` FLOAT32 [dB-Hz], ``elevation`` FLOAT32 [deg],
+#: ``sv_id`` UINT16, ``system`` UINT8; little endian, naturally aligned (1 pad byte at 47).
+GNSS_DTYPE = np.dtype({
+    'names': ['x', 'y', 'z', 'pseudorange', 'variance', 'cn0', 'elevation', 'sv_id', 'system'],
+    'formats': ['<f8', '<f8', '<f8', '<f8', '<f4', '<f4', '<f4', '<u2', 'u1'],
+    'offsets': [0, 8, 16, 24, 32, 36, 40, 44, 46], 'itemsize': 48})
+
+#: ``camera/matches`` (frame ``map``), best match first: ``x y z`` FLOAT64 [m],
+#: ``score`` FLOAT32, ``image_id`` UINT32.
+MATCH_DTYPE = np.dtype({
+    'names': ['x', 'y', 'z', 'score', 'image_id'],
+    'formats': ['<f8', '<f8', '<f8', '<f4', '<u4'],
+    'offsets': [0, 8, 16, 24, 28], 'itemsize': 32})
+
+#: ``sensor_msgs/PointField`` datatype codes <-> numpy scalar types.
+POINTFIELD_TYPES = {1: np.int8, 2: np.uint8, 3: np.int16, 4: np.uint16, 5: np.int32,
+                    6: np.uint32, 7: np.float32, 8: np.float64}
+POINTFIELD_CODE = {np.dtype(v): k for k, v in POINTFIELD_TYPES.items()}
+POINTFIELD_NAMES = {1: 'INT8', 2: 'UINT8', 3: 'INT16', 4: 'UINT16', 5: 'INT32', 6: 'UINT32',
+                    7: 'FLOAT32', 8: 'FLOAT64'}
+
+# ------------------------------------------------------------ systems, service bits
+#: Satellite systems of the ``system`` field (1 GPS, 2 SBAS, 4 GLONASS, 8 Galileo,
+#: 16 QZSS, 32 BeiDou).
+KNOWN_SYSTEMS = (1, 2, 4, 8, 16, 32)
+
+# sensor_msgs/NavSatStatus and NavSatFix constants.
+STATUS_NO_FIX, STATUS_FIX = -1, 0
+SERVICE_GPS, SERVICE_GLONASS, SERVICE_COMPASS, SERVICE_GALILEO = 1, 2, 4, 8
+COVARIANCE_TYPE_UNKNOWN, COVARIANCE_TYPE_KNOWN = 0, 3
+
+#: ``system`` code -> NavSatStatus service bit (SBAS and QZSS have none).
+SERVICE_OF_SYSTEM = {1: SERVICE_GPS, 4: SERVICE_GLONASS, 8: SERVICE_GALILEO,
+                     32: SERVICE_COMPASS}
+
+
+def service_bits(systems) -> int:
+    """NavSatStatus service bits of a set of ``system`` codes (SBAS/QZSS: no bit)."""
+    bits = 0
+    for s in set(int(v) for v in systems):
+        bits |= SERVICE_OF_SYSTEM.get(s, 0)
+    return bits
+
+
+# ---------------------------------------------------------------------------- stamps
+NS_PER_S = 1_000_000_000
+MAX_STAMP_SEC = 2 ** 31 - 1    # builtin_interfaces/Time.sec is an int32
+
+
+def split_ns(stamp_ns: int) -> tuple[int, int]:
+    """Integer ns -> ``(sec, nanosec)`` of ``builtin_interfaces/Time``.
+
+    Raises:
+        MessageError: Negative or beyond the int32 seconds of the message (reason
+            ``'stamp'``; a ValueError).
+    """
+    stamp_ns = int(stamp_ns)
+    sec, nanosec = divmod(stamp_ns, NS_PER_S)
+    if not 0 <= sec <= MAX_STAMP_SEC:
+        raise MessageError(f'stamp {stamp_ns} ns does not fit builtin_interfaces/Time',
+                           'stamp')
+    return sec, nanosec
+
+
+def join_ns(sec: int, nanosec: int) -> int:
+    """``builtin_interfaces/Time`` fields -> integer ns."""
+    return int(sec) * NS_PER_S + int(nanosec)
+
+
+def header_stamp_ns(raw: bytes | memoryview) -> int:
+    """Header stamp [ns] of a CDR-serialised message that starts with ``std_msgs/Header``,
+    read without decoding the rest (an image is ~1 MB; its stamp is 8 bytes).
+
+    Raises:
+        MessageError: Too short, or an encapsulation other than plain CDR.
+    """
+    if len(raw) < 12 or raw[0] != 0 or raw[1] not in (0, 1):
+        raise MessageError('not a plain CDR message with a header', 'size')
+    # Encapsulation kind 0x0001 is little endian, 0x0000 big endian; the Time follows.
+    sec, nanosec = struct.unpack_from('<iI' if raw[1] == 1 else '>iI', raw, 4)
+    return sec * NS_PER_S + nanosec
+
+
+# ------------------------------------------------------------------ equal-stamp order
+# The input topic of each dead-reckoning source of core.motion.
+_DR_SOURCE_TOPIC = {motion.ODOMETRY: TWIST, motion.IMU: IMU}
+
+#: Order of input messages that share a stamp (other topics after them). Such messages
+#: have no order of their own (a live system receives them in any order); the bag
+#: converter writes and the replay publishes them in this one: the dead reckoning's
+#: sources in its own rule (``core.motion.DR_SOURCES``: odometry before IMU), then camera
+#: and GNSS after the motion of their instant, as a receiver delivers an epoch after its
+#: time of validity.
+TIE_ORDER = tuple(_DR_SOURCE_TOPIC[s] for s in motion.DR_SOURCES) + (IMAGE, GNSS)
