@@ -37,6 +37,9 @@ from sensor_msgs.msg import Image, Imu, PointCloud2
 import msg_adapters as ma
 from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
 from gnsscam_ros.nodes.common import stop_process
+from gnsscam_ros.vision.database import MapDatabase, PositionTable
+from gnsscam_ros.vision.features import OrbExtractor, OrbParams
+from gnsscam_ros.vision.synthetic import perturb_view, synthetic_scene
 
 RELIABLE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=2000,
                       reliability=ReliabilityPolicy.RELIABLE)
@@ -208,10 +211,6 @@ def bench_camera(fps: float = 30.0, seconds: float = 5.0, n_database: int = 60,
     Returns:
         Offered and matched frame rates and drops for the paced and the flood phase.
     """
-    from gnsscam_ros.vision.database import MapDatabase, PositionTable
-    from gnsscam_ros.vision.features import OrbExtractor, OrbParams
-    from gnsscam_ros.vision.synthetic import perturb_view, synthetic_scene
-
     work = tempfile.mkdtemp(prefix='gnsscam_bench_cam_')
     images = [synthetic_scene(i, seed=11) for i in range(n_database)]
     ext = OrbExtractor(OrbParams())

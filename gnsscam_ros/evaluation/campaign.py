@@ -265,6 +265,7 @@ def run_campaign(seeds=(1, 2, 3), base: FilterConfig | None = None,
 def make_plots(results: list[dict], plots_dir: Path, base: FilterConfig) -> list[Path]:
     """Trajectory, risk and error/PL figures for the first seed of every case, and a
     Stanford diagram per method pooled over every seed and case (alert limit 8 m)."""
+    # matplotlib takes ~0.7 s to import: only when figures are asked for.
     from .plots import error_pl_timeline, risk_plot, stanford_diagram, trajectory_plot
     paths = []
     limit = float(base.alert_limit_m)

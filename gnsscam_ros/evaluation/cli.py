@@ -179,6 +179,7 @@ def write_result(args: argparse.Namespace, result: dict, epochs=None, label: str
         result['epochs_csv'] = {'path': str(args.epochs_csv), 'rows': len(epochs)}
         print(f'\nwrote {args.epochs_csv} ({len(epochs)} GNSS epochs)')
     if getattr(args, 'plots', None) is not None and epochs is not None:
+        # matplotlib takes ~0.7 s to import: only when figures are asked for.
         from .plots import integrity_plots
         name = ''.join(c if c.isalnum() or c in '-_.' else '_' for c in label)
         try:

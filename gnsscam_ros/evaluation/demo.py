@@ -57,6 +57,7 @@ from ..io.tables import format_table
 from ..live.replay import replay_through_nodes, use_dds_profile
 from ..nodes.camera_node import DEFAULTS as CAMERA_DEFAULTS
 from .bag_eval import evaluate_result_bag_epochs
+from .plots import integrity_plots, risk_plot, trajectory_plot
 from .report import stanford_line
 from .runner import (RunRecord, accuracy, offline_camera_matches, run_epochs,
                      run_snapshot_baseline, summarize, truth_at)
@@ -173,7 +174,6 @@ def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed
         The dataset's results (metrics of the nodes, the offline run and WLS; replay and
         record summaries; paths).
     """
-    from .plots import integrity_plots, risk_plot, trajectory_plot
     folder.mkdir(parents=True, exist_ok=True)
     bag, result_bag = folder / 'dataset_bag', folder / 'result_bag'
     conversion = stages.run(f'{key}: convert to {bag}', convert_drive, drive, bag)
