@@ -20,6 +20,14 @@ DATA = Path(__file__).parent / 'data'
 SMARTLOC_EXCERPT = DATA / 'smartloc_excerpt'
 
 
+def pytest_configure(config):
+    # The tiers: `pytest -m "not slow"` is the quick one (core maths, adapters, the fast
+    # node tests; seconds); the default run is everything (the README's test command).
+    config.addinivalue_line('markers', 'slow: takes a second or more (long drives, bags, '
+                                       'node processes); left out by -m "not slow"')
+    config.addinivalue_line('markers', 'ros: runs ROS nodes in a graph of its own')
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)

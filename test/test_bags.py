@@ -144,6 +144,7 @@ def assert_same_drive(src: Drive, back: Drive):
 
 
 # ---------------------------------------------------------------------- round trips
+@pytest.mark.slow
 @pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
 def test_round_trip_every_message(tmp_path, storage):
     src = synthetic_drive()
@@ -300,6 +301,7 @@ def test_independent_decoder_mcap_ros2(tmp_path):
     assert len(by_topic['/ground_truth/pose']) == 60
 
 
+@pytest.mark.slow
 def test_emulated_drive_with_rendered_camera(tmp_path):
     from gnsscam_ros.datasets.emulated.camera import with_camera
     from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
@@ -371,6 +373,7 @@ def test_ctrl_c_leaves_no_partial_bag(tmp_path, threaded):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
 def test_cli_interrupted_process_leaves_no_partial_bag(tmp_path, sig):
     """A real Ctrl-C (or kill) of gnsscam_convert mid-way: exit 130, nothing left."""
@@ -506,6 +509,7 @@ def _bag_with(path: Path, topic: str, msgtype: str, msgdef=None, payload=b''):
     shutil.rmtree(good)
 
 
+@pytest.mark.slow
 def test_unknown_message_type(tmp_path):
     payload = b'\x00\x01\x00\x00' + np.float64(1.0).tobytes()
     _bag_with(tmp_path / 'bag', '/gnss/pseudoranges', 'my_msgs/msg/Mystery',
@@ -710,6 +714,7 @@ def test_evaluate_result_bag_matches_the_metric_functions(tmp_path):
         evaluate_result_bag(tmp_path / 'res3')
 
 
+@pytest.mark.slow
 def test_evaluate_result_bag_agrees_with_offline_run(tmp_path):
     """A run written as the fusion node would publish it scores like the offline runner."""
     from msg_adapters import ERROR, OK

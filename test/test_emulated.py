@@ -73,6 +73,7 @@ def test_los_blocked_single_building():
     assert los_blocked(city, np.array([15.0, -20.0, 0.0]), -d * [1, 1, -1]).tolist() == [False]
 
 
+@pytest.mark.slow
 def test_los_blocked_matches_ray_marching():
     city = make_city(np.random.default_rng(7))
     rng = np.random.default_rng(1)
@@ -384,6 +385,7 @@ def test_fault_record_matches_injected_errors(faulty, drive):
     assert 0.25 < np.mean(signs > 0) < 0.75
 
 
+@pytest.mark.slow
 def test_fault_sets_are_nested_and_law_respects_clip():
     d2 = make_emulated_drive(11, faults=2, bias_m=100.0, duration_s=150.0)
     d7 = make_emulated_drive(11, faults=7, bias_m=100.0, duration_s=150.0)
@@ -403,6 +405,7 @@ def test_fault_sets_are_nested_and_law_respects_clip():
 
 # ---------------------------------------------------------------------------- seeds, options
 
+@pytest.mark.slow
 def test_deterministic_per_seed_and_different_across_seeds(drive):
     again = make_emulated_drive(3, faults=0, nlos=True)
     assert np.array_equal(again.truth.ecef_m, drive.truth.ecef_m)
@@ -436,6 +439,7 @@ def test_duration_cut_is_a_prefix(drive):
     assert short.info['gnss_nlos_m'].shape == (61, 12)
 
 
+@pytest.mark.slow
 def test_higher_gnss_rate():
     d = make_emulated_drive(5, gnss_rate_hz=5.0, nlos=False, duration_s=40.0)
     stamps = np.array([e.stamp_ns for e in d.gnss])

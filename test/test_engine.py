@@ -34,6 +34,7 @@ def initialised_engine(drive, timing=None):
     return engine
 
 
+@pytest.mark.slow
 def test_dead_reckoning_wait_is_bounded_and_ends_when_it_stops(drive, states):
     engine = initialised_engine(drive)
     epoch = drive.gnss[1]
@@ -98,6 +99,7 @@ def test_gnss_queue_drops_the_oldest_and_refuses_out_of_order(drive):
     assert engine.counts['dropped_epochs'] == 1
 
 
+@pytest.mark.slow
 def test_reports_do_not_depend_on_when_later_inputs_arrive(drive, states):
     """Inputs interleaved in stamp order, or every input before any epoch runs: the same
     estimates bit for bit (an epoch only uses inputs stamped at or before it)."""

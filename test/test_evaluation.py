@@ -21,6 +21,7 @@ def test_metrics_known_answer():
     assert rmse(np.array([3.0, 4.0])) == pytest.approx(np.sqrt(12.5))
 
 
+@pytest.mark.slow
 def test_eval_smartloc_excerpt_end_to_end(tmp_path, capsys):
     out = tmp_path / 'out.json'
     code = cli.main(['smartloc', str(SMARTLOC_EXCERPT), '--json', str(out), '--quiet',
@@ -51,6 +52,7 @@ def test_eval_reports_bad_input(tmp_path, capsys):
     assert f'{bad}:1' in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_eval_emulated_short(tmp_path):
     out = tmp_path / 'emu.json'
     assert cli.main(['emulated', '--faults', '4', '--bias-m', '100', '--seed', '2',

@@ -71,6 +71,7 @@ def test_json_writes_inf_as_a_string(tmp_path):
 
 
 # ---------------------------------------------------------------------------- epochs
+@pytest.mark.slow
 def test_epoch_table_has_every_gnss_epoch_stale_ones_without_pl():
     drive = make_emulated_drive(2, faults=2, duration_s=20)
     # Two satellites only: the epoch cannot be an update.
@@ -110,6 +111,7 @@ def _read_csv(path):
         return list(csv.DictReader(handle))
 
 
+@pytest.mark.slow
 def test_cli_emulated_epochs_csv_and_plots(tmp_path, capsys):
     csv_path, plots, out = tmp_path / 'e.csv', tmp_path / 'plots', tmp_path / 'e.json'
     args = ['emulated', '--seed', '2', '--faults', '2', '--duration-s', '25', '--particles',
@@ -141,6 +143,7 @@ def test_cli_emulated_epochs_csv_and_plots(tmp_path, capsys):
     assert csv_path.read_text() == before
 
 
+@pytest.mark.slow
 def test_cli_smartloc_excerpt_csv_stamps_are_the_files_seconds(tmp_path, smartloc_excerpt):
     csv_path = tmp_path / 's.csv'
     assert cli.main(['smartloc', str(SMARTLOC_EXCERPT), '--quiet', '--particles', '200',
@@ -157,6 +160,7 @@ def test_cli_smartloc_excerpt_csv_stamps_are_the_files_seconds(tmp_path, smartlo
 
 
 # ---------------------------------------------------------------------------- campaign
+@pytest.mark.slow
 def test_campaign_records_config_pl_and_writes_plots_and_csvs(tmp_path):
     from gnsscam_ros.evaluation.campaign import campaign_config, campaign_tables, run_campaign
     result = run_campaign(seeds=(1,), base=campaign_config(n_particles=200),
@@ -214,6 +218,7 @@ def _write_result_bag(path, record, frame, stale_stamps):
                 covariance_enu_m2=np.diag([4.0, 4.0, 9.0])))))
 
 
+@pytest.mark.slow
 def test_bag_eval_takes_the_pl_from_integrity_risk(tmp_path):
     from gnsscam_ros.bags.convert import convert_drive
     from gnsscam_ros.core.frames import LocalFrame

@@ -30,6 +30,7 @@ def drive_east(filt, n_epochs, speed=8.0, start=0, sv=None, clock=5000.0):
     return results
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('likelihood', ['robust', 'particle_raim'])
 def test_converges_on_exact_geometry(likelihood):
     filt = ParticleFilter(config(likelihood=likelihood, error_correlation_time_s=0.0),

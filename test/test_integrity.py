@@ -23,6 +23,7 @@ def test_inverse_bernoulli_at_zero_risk_is_closed_form():
     assert integrity.inverse_bernoulli_approx(0.0, eps) == 0.0
 
 
+@pytest.mark.slow
 @settings(max_examples=200, deadline=None)
 @given(st.floats(0.0, 0.999), st.floats(1e-4, 5.0))
 def test_bound_is_at_least_the_empirical_risk(q, eps):

@@ -58,6 +58,7 @@ def test_stanford_counts_rejects_bad_input():
     assert stanford_counts([], [], AL)['epochs'] == 0
 
 
+@pytest.mark.slow
 def test_plots_written(tmp_path):
     from gnsscam_ros.evaluation.plots import error_pl_timeline, stanford_diagram
     err, pl = _cases()

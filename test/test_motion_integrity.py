@@ -48,6 +48,7 @@ def check_never_ok_beyond_the_level(record):
     return error
 
 
+@pytest.mark.slow
 def test_dead_reckoning_lost_for_20_s(drive):
     start = drive.gnss[0].stamp_ns
     states = [s for s in dead_reckon(drive.imu, drive.odometry)
@@ -65,6 +66,7 @@ def test_dead_reckoning_lost_for_20_s(drive):
     assert pl[during][-1] > 3.0 * before
 
 
+@pytest.mark.slow
 def test_restarted_dead_reckoning_is_detected_not_integrated(drive):
     start = drive.gnss[0].stamp_ns
     restart = start + LOST[0]

@@ -22,6 +22,9 @@ from sensor_msgs.msg import Imu, PointCloud2
 import msg_adapters as ma
 from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
 
+# Every test here runs ROS nodes in a graph of its own.
+pytestmark = pytest.mark.ros
+
 ROOT = Path(__file__).resolve().parents[1]
 EXECUTABLES = ('gnss_node', 'camera_node', 'imu_node', 'fusion_node', 'pipeline_node')
 NODE_NAMES = {'gnss_node': ['gnss_node'], 'camera_node': ['camera_node'],
@@ -30,6 +33,7 @@ NODE_NAMES = {'gnss_node': ['gnss_node'], 'camera_node': ['camera_node'],
 
 
 # ======================================================================= two processes
+@pytest.mark.slow
 def test_pipeline_process_and_integrity_subscriber_process(tmp_path):
     override = tmp_path / 'override.yaml'
     override.write_text(
@@ -146,6 +150,7 @@ def ros2_run_path(package: str, executable: str, env: dict) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_colcon_install_layout_and_ament_index(colcon_install):
     install, env = colcon_install
     prefix = install / 'gnsscam_ros'
@@ -163,6 +168,7 @@ def test_colcon_install_layout_and_ament_index(colcon_install):
     assert all(p.startswith(str(prefix)) for p in where.stdout.split()), where.stdout
 
 
+@pytest.mark.slow
 def test_each_executable_starts_and_exits_cleanly_on_sigint(colcon_install, tmp_path):
     _, env = colcon_install
     domain = ros_domain_id()
@@ -202,6 +208,7 @@ def node_command(module: str, *ros_args: str) -> list:
     return [sys.executable, '-m', f'gnsscam_ros.nodes.{module}', '--ros-args', *ros_args]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('module, args, code, line', [
     ('fusion_node', ['-p', 'likelihood:=gauss'], 2,
      "fusion_node: invalid filter configuration: likelihood must be one of "
@@ -231,6 +238,7 @@ def _wait_for_line(path: Path, text: str, proc, timeout_s: float) -> bool:
     return False
 
 
+@pytest.mark.slow
 def test_ctrl_c_stops_a_node_with_status_0_and_no_traceback(tmp_path):
     """Stops at different moments after the ready line, while timers fire every 50 ms
     (the RCLError 'context is not valid' came from Ctrl-C landing between the executor's

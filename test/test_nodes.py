@@ -48,6 +48,9 @@ from gnsscam_ros.vision.features import OrbExtractor, OrbParams
 from gnsscam_ros.vision.synthetic import synthetic_scene
 from oracles import integrate_odometry
 
+# Every test here runs ROS nodes in a graph of its own.
+pytestmark = pytest.mark.ros
+
 CONFIG = Path(__file__).resolve().parents[1] / 'config'
 NODE_MODULES = {'gnss_node': gnss_node, 'imu_node': imu_node, 'camera_node': camera_node,
                 'fusion_node': fusion_node}
@@ -288,6 +291,7 @@ def test_node_spinner_serves_each_node_and_stops_the_group_when_one_fails():
         rclpy.try_shutdown(context=ctx)
 
 
+@pytest.mark.slow
 def test_diagnostics_report_matched_links_for_the_replay(graph):
     g = graph
     imu = g.add(ImuNode(context=g.ctx))
@@ -343,6 +347,7 @@ def drive():
     return d
 
 
+@pytest.mark.slow
 def test_nodes_equal_offline_core_run(graph, drive, tmp_path):
     origin = list(drive.origin_llh)
     frame = LocalFrame(*origin)
@@ -595,6 +600,7 @@ def test_malformed_messages_are_refused_and_counted(graph, drive):
 
 
 # ====================================================================== parameters
+@pytest.mark.slow
 def test_parameters_update_at_run_time_or_are_refused_with_a_reason(graph, drive):
     g = graph
     fusion = g.add(FusionNode(context=g.ctx, parameter_overrides=overrides(n_particles=100)))
@@ -645,6 +651,7 @@ def test_parameters_update_at_run_time_or_are_refused_with_a_reason(graph, drive
 
 
 # =================================================================== stale reports
+@pytest.mark.slow
 def test_integrity_is_stale_without_gnss_and_never_a_stale_ok(graph, drive):
     g = graph
     g.add(FusionNode(context=g.ctx, parameter_overrides=overrides(
@@ -742,6 +749,7 @@ def _integrity_status(reports):
     return found[-1] if found else None
 
 
+@pytest.mark.slow
 def test_odometry_global_map_origin_and_integrity_on_diagnostics(graph, drive):
     g = graph
     fusion = g.add(FusionNode(context=g.ctx, parameter_overrides=overrides(

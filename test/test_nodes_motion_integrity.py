@@ -38,6 +38,9 @@ from gnsscam_ros.nodes.fusion_node import FusionNode
 from gnsscam_ros.nodes.gnss_node import GnssNode
 from gnsscam_ros.nodes.imu_node import ImuNode
 
+# Every test here runs ROS nodes in a graph of its own.
+pytestmark = pytest.mark.ros
+
 S = 1_000_000_000
 DURATION_S = 90.0
 # Seed 3 starts slowly and waits at a light: the heading is acquired (100 m) at ~38 s and
@@ -195,6 +198,7 @@ def check_never_ok_beyond_the_level(risks, error):
     return sorted(ok)
 
 
+@pytest.mark.slow
 def test_dead_reckoning_lost_mid_drive(graph, drive):
     run = DriveRun(graph, drive)
     lost = lambda dt_ns: GAP_S[0] * S < dt_ns < GAP_S[1] * S      # noqa: E731
@@ -235,6 +239,7 @@ def test_dead_reckoning_lost_mid_drive(graph, drive):
     assert float(risks[drive.gnss[-1].stamp_ns].extra['motion_unknown_s']) == 0.0
 
 
+@pytest.mark.slow
 def test_imu_node_restarted_mid_drive(graph, drive):
     run = DriveRun(graph, drive)
     g = graph

@@ -246,6 +246,7 @@ def test_unknown_motion_grows_the_level_and_is_never_ok():
 
 
 # ============================================================ real data end to end
+@pytest.mark.slow
 def test_protection_level_bounds_the_error_on_the_real_excerpt():
     """The committed smartLoc excerpt (real Berlin data): every updated epoch has a finite
     level, and once converged it bounds the error in at least 90 % of the epochs."""

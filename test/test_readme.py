@@ -78,6 +78,7 @@ def test_every_command_named_in_bash_blocks_exists():
     assert not unknown, f'README names commands that do not exist: {unknown}'
 
 
+@pytest.mark.slow
 def test_help_of_every_console_script_named_in_bash_blocks():
     run_cmds, ros2_run = named_executables()
     scripts = console_scripts()
@@ -101,6 +102,7 @@ def test_help_of_every_console_script_named_in_bash_blocks():
     assert not failed, failed
 
 
+@pytest.mark.slow
 def test_run_jobs_named_in_bash_blocks_have_help():
     """``./run demo`` is a job of the run script, not a console script: its module's
     ``--help`` must work too."""
@@ -176,6 +178,7 @@ def _run_consumer(path: Path, tmp_path: Path) -> tuple[int, str]:
     return rc, out.get()
 
 
+@pytest.mark.slow
 def test_every_python_block_runs_as_printed(tmp_path):
     found = blocks('python')
     assert found, 'no python block in the README'
@@ -197,6 +200,7 @@ def test_every_python_block_runs_as_printed(tmp_path):
     assert consumers == 1, 'the /integrity_risk consumer example is missing'
 
 
+@pytest.mark.slow
 def test_the_old_block_without_a_main_call_fails_this_test(tmp_path):
     """The README block once defined main() and never called it: started, it exited 0 at
     once having done nothing. The consumer check catches that."""

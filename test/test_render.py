@@ -56,6 +56,7 @@ def test_texture_deterministic_and_repeated():
 
 
 # ============================================================================ rendering
+@pytest.mark.slow
 def test_render_deterministic(scenario):
     pose = scenario.pose_at([30.0])
     p = (*pose.enu_m[0], pose.yaw_rad[0])
@@ -71,6 +72,7 @@ def test_render_deterministic(scenario):
     assert np.mean(np.abs(d.astype(int) - c.astype(int))) > 5
 
 
+@pytest.mark.slow
 def test_stream_images_deterministic_in_any_order(scenario, stream):
     idx = [5, 300, 17, 5]
     first = [stream.image(i) for i in idx]
@@ -80,6 +82,7 @@ def test_stream_images_deterministic_in_any_order(scenario, stream):
     assert np.array_equal(first[0], first[3])
 
 
+@pytest.mark.slow
 def test_frames_have_texture(stream):
     counts = [_n_keypoints(stream.clean_image(i)) for i in range(0, len(stream), 60)]
     assert min(counts) >= 200, counts
@@ -98,6 +101,7 @@ def test_texture_cache_is_only_a_speed_up(scenario, stream):
     assert 2 < len(stream.renderer._cache) <= stream.renderer._cache_size
 
 
+@pytest.mark.slow
 def test_near_plane_clipping_next_to_a_wall(scenario):
     city = scenario.city
     f = city.facades
@@ -210,6 +214,7 @@ def test_with_camera_attaches_stream():
 
 
 # ============================================================================ database
+@pytest.mark.slow
 def test_database_pass(scenario):
     dbp = database_poses(scenario, margin_m=30.0)
     assert len(dbp) > 100 and dbp.kind.any()
@@ -238,6 +243,7 @@ def test_database_pass(scenario):
     assert (e, n, u) == tuple(dbp.pose[0, :3])
 
 
+@pytest.mark.slow
 def test_retrieval_on_short_sequence(scenario, tmp_path):
     """A database over the first ~300 m of the route; clean frames match within 10 m."""
     t_end = 45.0

@@ -40,6 +40,9 @@ from gnsscam_ros.evaluation.demo import node_series, offline_camera_matches, off
 from gnsscam_ros.evaluation.evaluate import evaluate_drive
 from gnsscam_ros.evaluation.runner import summarize
 
+# Every test here runs ROS nodes in a graph of its own.
+pytestmark = pytest.mark.ros
+
 ROOT = Path(__file__).resolve().parents[1]
 SEED, N_PARTICLES = 7, 400
 _domains = itertools.count()
@@ -92,6 +95,7 @@ def ctx():
 
 
 # ================================================================= end to end (GNSS)
+@pytest.mark.slow
 def test_replay_through_nodes_equals_offline_evaluation(emulated_bag, tmp_path):
     drive = read_drive(emulated_bag)
     result_bag = tmp_path / 'result'
@@ -161,6 +165,7 @@ class SceneCamera:
         return self._scene(int(i), seed=11)
 
 
+@pytest.mark.slow
 def test_camera_matches_flow_and_equal_offline(tmp_path):
     from gnsscam_ros.core.frames import LocalFrame
     from gnsscam_ros.vision.database import MapDatabase, PositionTable
@@ -205,6 +210,7 @@ def test_camera_matches_flow_and_equal_offline(tmp_path):
                                atol=1e-6)
 
 
+@pytest.mark.slow
 def test_route_range_limits_the_database_to_the_drive():
     from gnsscam_ros.datasets.emulated.scenario import scenario_of
     from gnsscam_ros.datasets.emulated.views import database_poses
@@ -217,6 +223,7 @@ def test_route_range_limits_the_database_to_the_drive():
 
 
 # ============================================================ timing, start, topics
+@pytest.mark.slow
 def test_rate_scales_the_original_timing(short_bag, ctx):
     replayer = BagReplayer(short_bag, rate=2.0, wait_s=0.0, context=ctx)
     try:
@@ -239,6 +246,7 @@ def test_rate_scales_the_original_timing(short_bag, ctx):
         fast.destroy_node()
 
 
+@pytest.mark.slow
 def test_start_skips_bag_time_but_keeps_the_once_only_topics(short_bag, ctx):
     replayer = BagReplayer(short_bag, rate=0.0, start_s=2.0, wait_s=0.0, context=ctx)
     try:
@@ -252,6 +260,7 @@ def test_start_skips_bag_time_but_keeps_the_once_only_topics(short_bag, ctx):
     assert summary.gnss_epochs == sum(e.stamp_ns >= t0 + 2_000_000_000 for e in drive.gnss)
 
 
+@pytest.mark.slow
 def test_topics_filter_plays_only_the_named_topics(short_bag, tmp_path, ctx):
     topics = ['imu/data:sensor_msgs/msg/Imu', 'odom/twist',
               'gnss/pseudoranges:sensor_msgs/msg/PointCloud2']
@@ -331,6 +340,7 @@ def _env(tmp_path, dom):
     return env
 
 
+@pytest.mark.slow
 def test_clis_stop_cleanly_on_sigint(emulated_bag, tmp_path):
     dom = domain()
     env = _env(tmp_path, dom)
@@ -362,6 +372,7 @@ def test_clis_stop_cleanly_on_sigint(emulated_bag, tmp_path):
 
 
 # ============================================== default nodes without a map database
+@pytest.mark.slow
 def test_default_camera_bag_flows_through_a_default_pipeline_node(tmp_path):
     """Issue 14: a converted emulated bag (camera included, as gnsscam_convert does by
     default) replayed into pipeline_node with its defaults (camera_node without a map

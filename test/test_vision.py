@@ -217,6 +217,7 @@ def test_tfidf_unknown_and_empty_queries():
 
 
 # ========================================================================== database
+@pytest.mark.slow
 def test_build_query_finds_the_source_image(small_db):
     rng = np.random.default_rng(5)
     for i in (0, 4, 9):
@@ -237,6 +238,7 @@ def test_query_mono_rgb_and_featureless(small_db):
     assert small_db.query(np.full((480, 640), 90, np.uint8)) == []
 
 
+@pytest.mark.slow
 def test_database_round_trip(small_db, tmp_path):
     path = tmp_path / 'map.npz'
     size = small_db.save(path)
@@ -270,6 +272,7 @@ def test_load_errors_name_the_file(tmp_path):
         MapDatabase.load(other)
 
 
+@pytest.mark.slow
 def test_build_is_deterministic(image_set):
     d, csv_path = image_set
     a, _ = MapDatabase.build_from_files(d, csv_path, orb_params=ORB, jobs=1, **SMALL_TREE)
@@ -280,6 +283,7 @@ def test_build_is_deterministic(image_set):
 
 
 # ========================================================================= bad input
+@pytest.mark.slow
 def test_bad_rows_and_images_are_reported_by_name(tmp_path):
     d = tmp_path / 'imgs'
     _write_set(str(d), 5)
@@ -370,6 +374,7 @@ def test_positions_in_another_frame(small_db):
 
 
 # ======================================================================== retrieval
+@pytest.mark.slow
 def test_retrieval_on_a_synthetic_sequence(tmp_path):
     """Frames every 24 m along a street panorama; queries 4 m further on, relit."""
     strip = np.hstack([synthetic_scene(100 + k, seed=3) for k in range(6)])   # 3840 px
@@ -402,6 +407,7 @@ def test_retrieval_on_a_synthetic_sequence(tmp_path):
 
 
 # ================================================================================ CLI
+@pytest.mark.slow
 def test_cli_build_and_query_json(image_set, tmp_path, capsys):
     d, csv_path = image_set
     out = tmp_path / 'db.npz'
@@ -454,6 +460,7 @@ def test_cli_errors(tmp_path, capsys):
     assert info.value.code == 2
 
 
+@pytest.mark.slow
 def test_cli_lat_lon_csv_columns_in_json(tmp_path, capsys):
     d = tmp_path / 'll'
     d.mkdir()
@@ -479,12 +486,14 @@ def test_cli_lat_lon_csv_columns_in_json(tmp_path, capsys):
     assert db.positions.enu_m[3, 1] == pytest.approx(33.4, abs=0.2)
 
 
+@pytest.mark.slow
 def test_module_entry_point():
     done = subprocess.run([sys.executable, '-m', 'gnsscam_ros.vision.mapdb_cli', '--help'],
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 0 and 'build' in done.stdout and 'query' in done.stdout
 
 
+@pytest.mark.slow
 def test_bench_runs_small(tmp_path, capsys):
     js = tmp_path / 'bench.json'
     assert mapdb_cli.main(['bench', '--n-images', '20', '--n-queries', '6', '--bf-queries',
