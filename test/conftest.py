@@ -126,6 +126,15 @@ def graph():
     g.close()
 
 
+def wait_until(condition, timeout_s: float, what: str) -> None:
+    """Poll ``condition`` (something another thread or process advances) until it holds;
+    fail after ``timeout_s`` naming ``what``."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f'timed out after {timeout_s} s: {what}'
+        time.sleep(0.05)
+
+
 def stop(proc: subprocess.Popen, timeout_s: float = 20.0) -> int:
     """SIGINT (Ctrl-C, as ros2 run forwards it) and the exit status; a process that does
     not stop within ``timeout_s`` is killed and the test fails."""

