@@ -4,7 +4,7 @@ Every converter raises :class:`MessageError` (with a short ``reason``) on malfor
 time stamps are integer nanoseconds. Topic and frame names, point layouts, system codes and
 the equal-stamp order are in :mod:`.wire`; the writers the bag converter shares build with
 a :class:`MessageKit` (:mod:`.kit`). See each module for the message layouts
-(design.md §3).
+(:mod:`.wire`).
 """
 from . import wire
 from .errors import MessageError

@@ -1,6 +1,6 @@
 """``integrity_risk`` and ``diagnostics`` (``diagnostic_msgs/DiagnosticArray``) <-> dataclasses.
 
-``integrity_risk`` carries one status (design.md §3):
+``integrity_risk`` carries one status:
 
 * level ``OK`` (0): integrity sufficient, the protection level is within the alert limit
   (so the risk bound at the alert limit is at most the target risk) and no input is missing;

@@ -5,7 +5,7 @@
 ``array.tobytes()`` writes one.
 
 Layouts: :data:`.wire.GNSS_DTYPE` (``gnss/pseudoranges``, ``gnss/measurements``, frame
-``earth``) and :data:`.wire.MATCH_DTYPE` (``camera/matches``, frame ``map``), design.md §3.
+``earth``) and :data:`.wire.MATCH_DTYPE` (``camera/matches``, frame ``map``).
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The wire contract of gnsscam_ros, in one place (design.md §3).
+"""The wire contract of gnsscam_ros, in one place.
 
 Topic and frame names, the point layouts of the GNSS and camera-match clouds, the GNSS
 ``system`` codes and their ``NavSatStatus`` service bits, time stamps (integer ns <->

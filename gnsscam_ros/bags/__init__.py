@@ -1,7 +1,7 @@
 """rosbag2 bags: dataset -> bag converter, bag -> dataset reader, result-bag reading.
 
 * :func:`convert_drive` (``gnsscam_convert``): a :class:`~gnsscam_ros.core.types.Drive`
-  into a new MCAP (or sqlite3) bag with the input topics of design.md §3 and ground truth.
+  into a new MCAP (or sqlite3) bag with the input topics (``msg_adapters.wire``) and ground truth.
 * :mod:`.read` (``read_drive``: the inverse; ``read_results``: the nodes' output topics
   ``pose``, ``fix``, ``particles``, ``integrity_risk`` for the evaluation).
 

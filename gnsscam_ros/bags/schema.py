@@ -2,7 +2,7 @@
 tag and the typestore. Topic and frame names and the point layouts are the wire contract's
 (:mod:`msg_adapters.wire`).
 
-A converted dataset bag holds (design.md §3 for the input topics), by topic, type, frame:
+A converted dataset bag holds (``msg_adapters.wire`` for the input topics), by topic, type, frame:
 
 * ``dataset/info``: ``std_msgs/msg/String``, JSON (below); once.
 * ``map/origin``: ``sensor_msgs/msg/NavSatFix``, frame ``map``; once (when known).

@@ -6,7 +6,7 @@ satellites, ``sum_k gamma_k N(pr_k | range_k + clock, sigma_k^2)``, with the mix
 residuals, normalised per particle and pooled across particles by MAP with a Dirichlet
 prior. Everything is computed in log space with a max shift (log-sum-exp).
 
-The receiver clock is estimated online (design.md §4): per constellation, a robust mode of
+The receiver clock is estimated online: per constellation, a robust mode of
 the residuals at the prior's centre picks the consistent satellites, then every particle
 gets its own clock as the inlier-weighted mean of its residuals. This profiles the clock out
 per particle (it is strongly correlated with height) at the cost of one small matrix product.

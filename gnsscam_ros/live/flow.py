@@ -1,7 +1,7 @@
 """Flow control of a replay: which input message may be published when, so that no node
 queue overflows at any replay rate.
 
-The nodes take their sensor inputs best effort with bounded queues (design.md §3) and drop
+The nodes take their sensor inputs best effort with bounded queues and drop
 the oldest message when a queue overflows. The replay therefore never lets more messages
 be in flight than the consumer can hold; a message is *in flight* from its publication
 until the node graph acknowledges it on an output topic that it already publishes (no
