@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rclpy
+from gnsscam_ros.nodes.common import stop_process
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -138,11 +139,6 @@ def wait_until(condition, timeout_s: float, what: str) -> None:
 def stop(proc: subprocess.Popen, timeout_s: float = 20.0) -> int:
     """SIGINT (Ctrl-C, as ros2 run forwards it) and the exit status; a process that does
     not stop within ``timeout_s`` is killed and the test fails."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-    try:
-        return proc.wait(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
-        raise
+    rc = stop_process(proc, timeout_s)
+    assert rc != -signal.SIGKILL, f'the process ignored SIGINT for {timeout_s} s'
+    return rc

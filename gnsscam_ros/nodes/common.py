@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import math
 import os
+import signal
+import subprocess
 import sys
 import threading
 import time
@@ -563,8 +565,6 @@ class NodeSpinner:
 def stop_process(proc, timeout_s: float = 20.0) -> int:
     """Stop a node's child process as Ctrl-C does (SIGINT), SIGKILL after ``timeout_s``;
     its exit status."""
-    import signal
-    import subprocess
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
     try:
