@@ -1,15 +1,11 @@
-"""The nodes in-process (fresh context per test) and the dead reckoning they share.
+"""The nodes in-process (fresh context per test).
 
-* dead reckoning known answers (core, no rclpy);
 * config/*.yaml = code defaults, loaded through ``--params-file``;
-* an emulated sequence through gnss/camera/imu topics gives the same pose, particles and
-  integrity_risk as the offline core run on the same input (same seed);
 * malformed messages are refused and counted while the nodes keep running;
 * run-time parameter updates (alert limit, target risk) and refusals with a reason;
 * STALE integrity without GNSS, never a stale OK; camera frame drops are counted.
 """
 import math
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +14,7 @@ import rclpy
 import yaml
 from conftest import RosGraph, ros_domain_id
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped, TwistWithCovarianceStamped
+from geometry_msgs.msg import PoseWithCovarianceStamped, TwistWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rclpy.context import Context
 from rclpy.parameter import Parameter
@@ -26,27 +22,19 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from sensor_msgs.msg import Image, Imu, NavSatFix, PointCloud2
 
 import msg_adapters as ma
-from gnsscam_ros.core.engine import EpochEngine, InputTiming, best_match
 from gnsscam_ros.core.filter import PROPAGATED, UPDATED, FilterConfig
-from gnsscam_ros.core.frames import LocalFrame
-from gnsscam_ros.core.gnss import check_epoch
-from gnsscam_ros.core.motion import (ADDED, IMU, ODOMETRY, OUT_OF_ORDER, DeadReckoner,
-                                     DeadReckoningConfig, DeadReckoningState,
-                                     MotionAccumulator, dead_reckon,
-                                     motion_between)
-from gnsscam_ros.core.types import GnssEpoch, ImuSeries, OdometrySeries
+from gnsscam_ros.core.motion import DeadReckoningConfig, DeadReckoningState, dead_reckon
+from gnsscam_ros.core.types import GnssEpoch
 from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
-from gnsscam_ros.evaluation.runner import engine_reports
 from gnsscam_ros.nodes import camera_node, fusion_node, gnss_node, imu_node
 from gnsscam_ros.nodes.camera_node import CameraNode
 from gnsscam_ros.nodes.common import InputFileError, ParameterError
-from gnsscam_ros.nodes.fusion_node import FusionNode, yaw_variance
+from gnsscam_ros.nodes.fusion_node import FusionNode
 from gnsscam_ros.nodes.gnss_node import GnssNode
 from gnsscam_ros.nodes.imu_node import ImuNode
 from gnsscam_ros.vision.database import MapDatabase, PositionTable
 from gnsscam_ros.vision.features import OrbExtractor, OrbParams
 from gnsscam_ros.vision.synthetic import synthetic_scene
-from oracles import integrate_odometry
 
 # Every test here runs ROS nodes in a graph of its own.
 pytestmark = pytest.mark.ros
@@ -57,153 +45,30 @@ NODE_MODULES = {'gnss_node': gnss_node, 'imu_node': imu_node, 'camera_node': cam
 S = 1_000_000_000
 
 
-# ================================================================= dead reckoning (core)
-def _odometry(t_s, speed, yaw_rate, var=(0.0025, 1e-4)):
-    t_s = np.asarray(t_s, float)
-    return OdometrySeries(stamp_ns=(t_s * S).astype(np.int64),
-                          speed_mps=np.broadcast_to(speed, t_s.shape).astype(float),
-                          yaw_rate_rps=np.broadcast_to(yaw_rate, t_s.shape).astype(float),
-                          speed_var=np.full(t_s.shape, var[0]),
-                          yaw_rate_var=np.full(t_s.shape, var[1]))
+def overrides(**values):
+    return [Parameter(k, value=v) for k, v in values.items()]
 
 
-def test_dead_reckoning_constant_turn_is_a_circle():
-    v, r = 10.0, 0.1                                  # radius 100 m
-    t = np.arange(0, 10.0001, 0.1)
-    states = dead_reckon(None, _odometry(t, v, r))
-    end = states[-1]
-    theta = r * 10.0
-    # Steps of the arc length along the mid heading: the vertices lie on a circle whose
-    # chord per step is the arc length, radius R' = R (dtheta / 2) / sin(dtheta / 2).
-    half = r * 0.1 / 2
-    radius = v / r * half / np.sin(half)
-    assert end.x_m == pytest.approx(radius * np.sin(theta), rel=1e-12)
-    assert end.y_m == pytest.approx(radius * (1 - np.cos(theta)), rel=1e-12)
-    assert end.yaw_rad == pytest.approx(theta)
-    # Variance: sigma^2 T dt per step = sigma^2 T^2 per sample, as integrate_odometry.
-    assert end.distance_var_m2 == pytest.approx(0.0025 * 0.1 * 10.0)
+def quantised(epoch: GnssEpoch) -> GnssEpoch:
+    """The epoch as it travels: variance, C/N0 and elevation are FLOAT32 on the wire."""
+    f32 = {k: np.float32(getattr(epoch, k)).astype(float)
+           for k in ('var_m2', 'cn0_dbhz', 'elevation_deg')}
+    return GnssEpoch(**{**epoch.__dict__, **f32})
 
 
-def test_dead_reckoning_motion_equals_integrate_odometry():
-    rng = np.random.default_rng(0)
-    t = np.arange(0, 20.0001, 0.1)
-    odo = _odometry(t, 8 + rng.normal(0, 1, t.size), rng.normal(0, 0.05, t.size))
-    imu = ImuSeries(stamp_ns=(np.arange(0, 20.0001, 0.01) * S).astype(np.int64),
-                    accel_mps2=rng.normal(0, 1, (2001, 3)), gyro_rps=rng.normal(0, 1, (2001, 3)))
-    acc = MotionAccumulator()
-    every = DeadReckoningConfig(output_period_s=0.0)
-    for s in dead_reckon(imu, odo, every):            # odometry preferred for yaw
-        acc.add(s)
-    for t0, t1 in ((0.0, 1.0), (3.05, 7.3), (10.0, 20.0)):
-        a = acc.increment(int(t0 * S), int(t1 * S))
-        b = integrate_odometry(odo, int(t0 * S), int(t1 * S))
-        assert a.distance_m == pytest.approx(b.distance_m, rel=1e-9)
-        assert a.dyaw_rad == pytest.approx(b.dyaw_rad, rel=1e-9, abs=1e-12)
-        assert a.dt_s == pytest.approx(b.dt_s)
-    a = acc.increment(0, 10 * S)
-    b = integrate_odometry(odo, 0, 10 * S)
-    assert a.distance_var_m2 == pytest.approx(b.distance_var_m2, rel=1e-9)
-    assert a.dyaw_var_rad2 == pytest.approx(b.dyaw_var_rad2, rel=1e-9)
+def small_database(images, positions_m) -> MapDatabase:
+    ext = OrbExtractor(OrbParams(nfeatures=500))
+    return MapDatabase.build(
+        [ext.descriptors(im) for im in images], [f'im{i}.png' for i in range(len(images))],
+        PositionTable.from_columns(('east_m', 'north_m', 'up_m'), np.asarray(positions_m)),
+        orb_params=OrbParams(nfeatures=500), branching=8, depth=3, iterations=4, seed=0)
 
 
-def test_dead_reckoning_output_period_thins_the_states_on_a_stamp_grid():
-    rng = np.random.default_rng(2)
-    t = np.arange(201) / 10                       # stamps exact in ns: 10 Hz and 100 Hz
-    odo = _odometry(t, 8 + rng.normal(0, 1, t.size), rng.normal(0, 0.05, t.size))
-    odo = replace(odo, stamp_ns=np.arange(201, dtype=np.int64) * (S // 10))
-    imu = ImuSeries(stamp_ns=np.arange(2001, dtype=np.int64) * (S // 100),
-                    accel_mps2=rng.normal(0, 1, (2001, 3)), gyro_rps=rng.normal(0, 1, (2001, 3)))
-    every = dead_reckon(imu, odo, DeadReckoningConfig(output_period_s=0.0))
-    thinned = dead_reckon(imu, odo, DeadReckoningConfig(output_period_s=0.5))
-    assert len(every) == 2001
-    # The first state at or after each multiple of 0.5 s: the integration is the same,
-    # only fewer states are emitted.
-    assert [s.stamp_ns for s in thinned] == [int(k * 0.5 * S) for k in range(41)]
-    by_stamp = {s.stamp_ns: s for s in every}
-    assert all(s == by_stamp[s.stamp_ns] for s in thinned)
-    coarse, fine = MotionAccumulator(), MotionAccumulator()
-    for s in thinned:
-        coarse.add(s)
-    for s in every:
-        fine.add(s)
-    # Intervals on the grid: the same heading change and variances; the distance is the
-    # chord of each 0.5 s segment instead of the sum of its 0.01 s chords (shorter by
-    # ~dyaw^2 / 24 of it). Off the grid: the linear split of one segment on top.
-    for t0, t1 in ((0.0, 1.0), (2.5, 17.0)):
-        a = coarse.increment(int(t0 * S), int(t1 * S))
-        b = fine.increment(int(t0 * S), int(t1 * S))
-        assert a.distance_m == pytest.approx(b.distance_m, rel=1e-4)
-        assert a.dyaw_rad == pytest.approx(b.dyaw_rad, rel=1e-9)
-        assert a.distance_var_m2 == pytest.approx(b.distance_var_m2, rel=1e-9)
-        assert a.dyaw_var_rad2 == pytest.approx(b.dyaw_var_rad2, rel=1e-9)
-    a, b = coarse.increment(int(3.05 * S), int(7.3 * S)), fine.increment(int(3.05 * S),
-                                                                         int(7.3 * S))
-    assert a.distance_m == pytest.approx(b.distance_m, rel=1e-2)
-    assert a.dyaw_rad == pytest.approx(b.dyaw_rad, abs=0.02)
-    with pytest.raises(ValueError, match='output_period_s'):
-        DeadReckoningConfig(output_period_s=-1.0)
-
-
-def test_dead_reckoning_does_not_depend_on_stream_interleaving():
-    rng = np.random.default_rng(1)
-    t_odo = np.arange(0, 3.0001, 0.1)
-    t_imu = np.arange(0, 3.0001, 0.01)
-    odo = [(int(t * S), 5 + rng.normal(), rng.normal(0, 0.1)) for t in t_odo]
-    imu = [(int(t * S), rng.normal(), rng.normal(0, 0.1)) for t in t_imu]
-    cfg = DeadReckoningConfig(yaw_rate_source=IMU, output_period_s=0.0)   # every state
-    a, b = DeadReckoner(cfg), DeadReckoner(cfg)
-    out_a, out_b = [], []
-    a.add_odometry(*odo[0])
-    for s in imu:                                    # then all IMU, then the odometry
-        a.add_imu(*s)
-        out_a += a.advance({IMU, ODOMETRY})
-    assert len(out_a) == 1                           # held at the odometry's newest stamp
-    for s in odo[1:]:
-        a.add_odometry(*s)
-        out_a += a.advance({IMU, ODOMETRY})
-    b.add_odometry(*odo[0])
-    events = sorted([(s[0], 0, s) for s in odo[1:]] + [(s[0], 1, s) for s in imu])
-    for _, kind, s in events:                        # in stamp order
-        (b.add_odometry if kind == 0 else b.add_imu)(*s)
-        out_b += b.advance({IMU, ODOMETRY})
-    assert len(out_b) == len(t_imu)
-    assert out_a == out_b
-
-
-def test_dead_reckoning_imu_only_integrates_acceleration_and_refuses_bad_samples():
-    dr = DeadReckoner()
-    for k in range(101):                             # 1 m/s^2 for 1 s from rest
-        dr.add_imu(k * S // 100, 1.0, 0.0)
-        dr.advance()
-    assert dr.state.speed_mps == pytest.approx(1.0)
-    assert dr.state.x_m == pytest.approx(0.5, rel=1e-9)
-    assert dr.state.distance_var_m2 > 0.0
-    with pytest.raises(ValueError, match='not after'):
-        dr.add_imu(50 * S // 100, 0.0, 0.0)
-    with pytest.raises(ValueError, match='non-finite'):
-        dr.add_odometry(2 * S, math.nan, 0.0)
-    with pytest.raises(ValueError):
-        DeadReckoningConfig(yaw_rate_source='compass')
-
-
-def test_motion_between_inverts_a_step_and_accumulator_overlaps():
-    s0 = DeadReckoningState(0, 1.0, 2.0, 3.1, 0, 0, 0, 0, 1.0, 0.1)
-    s1 = DeadReckoningState(S, 1.0 + 2 * np.cos(3.2), 2.0 + 2 * np.sin(3.2), 3.3, 0, 0, 0, 0,
-                            1.5, 0.3)
-    m = motion_between(s0, s1)
-    assert m.distance_m == pytest.approx(2.0) and m.dyaw_rad == pytest.approx(0.2)
-    assert m.distance_var_m2 == pytest.approx(0.5) and m.dyaw_var_rad2 == pytest.approx(0.2)
-    acc = MotionAccumulator()
-    assert [acc.add(s0), acc.add(s1), acc.add(s0)] == [ADDED, ADDED, OUT_OF_ORDER]
-    half = acc.increment(S // 4, 3 * S // 4)
-    assert half.distance_m == pytest.approx(1.0) and half.dt_s == pytest.approx(0.5)
-    assert half.unknown_s == 0.0
-    # Beyond the newest state the motion is unknown, not a standstill.
-    beyond = acc.increment(2 * S, 3 * S)
-    assert beyond.distance_m == 0.0 and beyond.unknown_s == pytest.approx(1.0)
-    assert acc.increment(S // 2, 2 * S).unknown_s == pytest.approx(1.0)
-    with pytest.raises(ValueError):
-        acc.increment(S, 0)
+@pytest.fixture(scope='module')
+def drive():
+    d = make_emulated_drive(21, faults=3, bias_m=80.0, duration_s=12.0)
+    d.gnss = [quantised(e) for e in d.gnss]
+    return d
 
 
 # ============================================================================ config
@@ -318,174 +183,6 @@ def test_diagnostics_report_matched_links_for_the_replay(graph):
         return False
 
     g.spin_until(reported, 5.0, 'the link counts in fusion_node diagnostics')
-
-
-def overrides(**values):
-    return [Parameter(k, value=v) for k, v in values.items()]
-
-
-def quantised(epoch: GnssEpoch) -> GnssEpoch:
-    """The epoch as it travels: variance, C/N0 and elevation are FLOAT32 on the wire."""
-    f32 = {k: np.float32(getattr(epoch, k)).astype(float)
-           for k in ('var_m2', 'cn0_dbhz', 'elevation_deg')}
-    return GnssEpoch(**{**epoch.__dict__, **f32})
-
-
-def small_database(images, positions_m) -> MapDatabase:
-    ext = OrbExtractor(OrbParams(nfeatures=500))
-    return MapDatabase.build(
-        [ext.descriptors(im) for im in images], [f'im{i}.png' for i in range(len(images))],
-        PositionTable.from_columns(('east_m', 'north_m', 'up_m'), np.asarray(positions_m)),
-        orb_params=OrbParams(nfeatures=500), branching=8, depth=3, iterations=4, seed=0)
-
-
-# ================================================== equivalence with the offline core run
-@pytest.fixture(scope='module')
-def drive():
-    d = make_emulated_drive(21, faults=3, bias_m=80.0, duration_s=12.0)
-    d.gnss = [quantised(e) for e in d.gnss]
-    return d
-
-
-@pytest.mark.slow
-def test_nodes_equal_offline_core_run(graph, drive, tmp_path):
-    origin = list(drive.origin_llh)
-    frame = LocalFrame(*origin)
-    truth_enu = frame.ecef_to_enu(drive.truth.ecef_m)
-    epochs = drive.gnss
-    # Camera: images just before epochs 3..7, database geotagged at the truth there.
-    cam_stamps = [epochs[k].stamp_ns - 400_000_000 for k in range(3, 8)]
-    cam_pos = [[np.interp(t, drive.truth.stamp_ns, truth_enu[:, j]) for j in range(3)]
-               for t in cam_stamps]
-    images = [synthetic_scene(i, seed=5) for i in range(len(cam_stamps))]
-    db_path = tmp_path / 'map.npz'
-    small_database(images, cam_pos).save(db_path)
-
-    seed, n_particles = 7, 200
-    g = graph
-    gnss = g.add(GnssNode(context=g.ctx))
-    imu = g.add(ImuNode(context=g.ctx, parameter_overrides=overrides(
-        source_timeout_s=60.0, input_queue_depth=1000)))
-    cam = g.add(CameraNode(context=g.ctx, parameter_overrides=overrides(
-        database_path=str(db_path), top_k=3)))
-    fusion = g.add(FusionNode(context=g.ctx, parameter_overrides=overrides(
-        n_particles=n_particles, seed=seed, use_map_origin=True, map_origin_llh=origin,
-        max_published_particles=0, gnss_timeout_s=1e6, odometry_wait_s=1e6,
-        odometry_timeout_s=1e6)))
-    pub_gnss = g.publisher(PointCloud2, 'gnss/pseudoranges')
-    pub_imu = g.publisher(Imu, 'imu/data')
-    pub_odo = g.publisher(TwistWithCovarianceStamped, 'odom/twist')
-    pub_cam = g.publisher(Image, 'camera/image_raw')
-    risks = g.collect(DiagnosticArray, 'integrity_risk')
-    poses = g.collect(PoseWithCovarianceStamped, 'pose')
-    clouds = g.collect(PoseArray, 'particles')
-    fixes = g.collect(NavSatFix, 'fix')
-    matches = g.collect(PointCloud2, 'camera/matches')
-    g.connect(pub_gnss, pub_imu, pub_odo, pub_cam)
-    g.spin_until(lambda: fusion.sub_dr.handle is not None and imu.pub.get_subscription_count()
-                 > 0 and gnss.pub_measurements.get_subscription_count() > 0
-                 and cam.pub.get_subscription_count() > 0, what='internal connections')
-
-    odo, imu_s = drive.odometry, drive.imu
-    events = sorted([(int(t), 0, k) for k, t in enumerate(odo.stamp_ns)]
-                    + [(int(t), 1, k) for k, t in enumerate(imu_s.stamp_ns)])
-    ev, sent_images, results = 0, 0, []
-    for epoch in epochs:
-        t_k = epoch.stamp_ns
-        # Inputs in stamp order, each delivered before the next (as a live system would).
-        while ev < len(events) and events[ev][0] <= t_k:
-            stamp, kind, k = events[ev]
-            ev += 1
-            if kind == 0:
-                n = imu.stats.get('received_odom_twist')
-                pub_odo.publish(ma.sample_to_twist(ma.TwistSample(
-                    stamp, odo.speed_mps[k], odo.yaw_rate_rps[k], odo.speed_var[k],
-                    odo.yaw_rate_var[k])))
-                g.spin_until(lambda: imu.stats.get('received_odom_twist') > n)
-            else:
-                n = imu.stats.get('received_imu')
-                pub_imu.publish(ma.sample_to_imu(ma.ImuSample(
-                    stamp, imu_s.accel_mps2[k], imu_s.gyro_rps[k])))
-                g.spin_until(lambda: imu.stats.get('received_imu') > n)
-        while sent_images < len(cam_stamps) and cam_stamps[sent_images] <= t_k:
-            n = fusion.stats.get('received_matches')
-            pub_cam.publish(ma.array_to_image(images[sent_images], cam_stamps[sent_images]))
-            sent_images += 1
-            g.spin_until(lambda: fusion.stats.get('received_matches') > n, what='matches')
-        g.spin_until(lambda: (fusion.engine.motion.newest_stamp_ns or -1) >= t_k,
-                     what='dead reckoning at the epoch')
-        pub_gnss.publish(ma.gnss_epoch_to_pointcloud2(epoch))
-        g.spin_until(lambda: fusion.last_result is not None
-                     and fusion.last_result.stamp_ns == t_k, what='the filter epoch')
-        status = fusion.last_result.status
-        n_est = 1 if status in (UPDATED, PROPAGATED) else 0
-        g.spin_until(lambda: sum(ma.parse_integrity_risk(m).epoch_stamp_ns == t_k
-                                 for m in risks) == 1
-                     and sum(ma.stamp_to_ns(m.header.stamp) == t_k for m in poses) == n_est
-                     and sum(ma.stamp_to_ns(m.header.stamp) == t_k for m in clouds) == n_est
-                     and sum(ma.stamp_to_ns(m.header.stamp) == t_k for m in fixes) == int(
-                         status == UPDATED),
-                     what='outputs of the epoch')
-        results.append(status)
-    assert results.count(UPDATED) >= len(epochs) - 1, results
-    assert len(matches) == len(cam_stamps) and not cam.stats.rejected
-    assert [ma.pointcloud2_to_matches(m).image_id[0] for m in matches] == list(
-        range(len(cam_stamps)))                    # each image finds itself first
-
-    # ---- offline: the same core functions on the same input, same seed
-    engine = EpochEngine(FilterConfig(n_particles=n_particles), frame=frame,
-                         rng=np.random.default_rng(seed),
-                         timing=InputTiming(gnss_queue_size=None))
-    states = dead_reckon(drive.imu, drive.odometry, DeadReckoningConfig())
-    camera = []
-    for i, m in enumerate(matches):
-        parsed = ma.pointcloud2_to_matches(m)
-        camera.append(best_match(parsed.stamp_ns, parsed.position_m, parsed.score, i))
-    gd = gnss_node.DEFAULTS
-    checked = [epoch.subset(check_epoch(epoch, gd['min_satellites'], gd['elevation_mask_deg'],
-                                        gd['cn0_mask_dbhz']).keep) for epoch in epochs]
-    filt = engine.filter
-    offline = [(report.result, filt.particles.copy(),
-                yaw_variance(filt.particles[:, 3], filt.log_w))
-               for report in engine_reports(engine, checked, states, camera)]
-    used_camera = [r for r, _, _ in offline if r.camera_alpha is not None]
-    assert used_camera, 'the camera matches reached the filter'
-
-    by_stamp = {}
-    for m in risks:
-        risk = ma.parse_integrity_risk(m)
-        by_stamp[risk.epoch_stamp_ns] = risk
-    pose_by = {ma.stamp_to_ns(m.header.stamp): ma.msg_to_pose(m) for m in poses}
-    cloud_by = {ma.stamp_to_ns(m.header.stamp): ma.posearray_to_particles(m) for m in clouds}
-    fix_by = {ma.stamp_to_ns(m.header.stamp): ma.navsatfix_to_fix(m) for m in fixes}
-    for (r, particles, yaw_var), status in zip(offline, results):
-        assert r.status == status
-        risk = by_stamp[r.stamp_ns]
-        if r.status != UPDATED:
-            assert risk.level == ma.STALE and math.isnan(risk.risk_bound)
-            continue
-        assert risk.level == (ma.OK if r.integrity_ok else ma.ERROR)
-        np.testing.assert_allclose(
-            [risk.risk_bound, risk.empirical_risk, risk.divergence_risk],
-            [r.risk.risk_bound[0], r.risk.empirical_risk[0], r.risk.divergence_risk[0]],
-            rtol=1e-9, atol=1e-12)
-        assert risk.alert_limit_m == 8.0 and risk.target_risk == 0.1
-        pose = pose_by[r.stamp_ns]
-        np.testing.assert_allclose(pose.position_m, r.position_enu_m, rtol=0, atol=1e-9)
-        np.testing.assert_allclose(pose.position_covariance_m2, r.covariance_m2, rtol=1e-9,
-                                   atol=1e-9)
-        assert pose.yaw_rad == pytest.approx(r.yaw_rad, abs=1e-9)
-        assert pose.covariance[5, 5] == pytest.approx(yaw_var, rel=1e-9)
-        cloud = cloud_by[r.stamp_ns]
-        assert cloud.shape == particles.shape
-        np.testing.assert_allclose(cloud[:, :3], particles[:, :3], rtol=0, atol=1e-9)
-        dyaw = np.angle(np.exp(1j * (cloud[:, 3] - particles[:, 3])))
-        assert np.abs(dyaw).max() < 1e-9
-        lat, lon, alt = frame.enu_to_geodetic(r.position_enu_m)
-        fix = fix_by[r.stamp_ns]
-        assert (fix.lat_deg, fix.lon_deg) == pytest.approx((lat, lon), abs=1e-12)
-    values = fusion.stats.values()
-    assert values['processing_count'] == len(epochs) and values['rejected_total'] == 0
 
 
 # ================================================================ malformed messages
