@@ -195,7 +195,9 @@ def write_result(args: argparse.Namespace, result: dict, epochs=None, label: str
     if args.json is not None:
         try:
             write_json_atomic(args.json, result, force=args.force)
-        except (OSError, OutputExistsError) as err:
+        except (OSError, OutputExistsError, ValueError) as err:
+            # ValueError: a NaN the JSON cannot hold (inputs are checked at load, so this
+            # is a metric without a value); nothing is written either way.
             print(f'gnsscam_eval: cannot write {args.json}: {err}', file=sys.stderr)
             return EXIT_OUTPUT
         print(f'\nwrote {args.json}')
@@ -238,7 +240,11 @@ def run_campaign_command(args: argparse.Namespace) -> int:
     print(f"\ncampaign: {len(result['cases'])} runs in {result['seconds']:.0f} s "
           f"on {result['workers']} processes")
     if args.json is not None:
-        write_json_atomic(args.json, result, force=args.force)
+        try:
+            write_json_atomic(args.json, result, force=args.force)
+        except (OSError, OutputExistsError, ValueError) as err:
+            print(f'gnsscam_eval: cannot write {args.json}: {err}', file=sys.stderr)
+            return EXIT_OUTPUT
         print(f'wrote {args.json}')
     return EXIT_OK
 
