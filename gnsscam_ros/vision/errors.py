@@ -12,3 +12,11 @@ class ImageError(VisionError):
 
 class MapDatabaseError(VisionError):
     """A map database, its positions CSV or its image set cannot be built or loaded."""
+
+
+class MapDatabaseOutputError(MapDatabaseError):
+    """A map database or result file cannot be written, or exists and may not be replaced.
+
+    A subclass of :class:`MapDatabaseError` so that existing handlers still catch it; the
+    command line tells it apart (exit code 4, not 3).
+    """
