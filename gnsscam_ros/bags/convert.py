@@ -455,6 +455,8 @@ def convert_drive(drive: Drive, out_path: str | os.PathLike, storage: str = 'mca
     workers = min(4, os.cpu_count() or 1) if workers is None else int(workers)
 
     started = time.perf_counter()
+    if out.parent.exists() and not out.parent.is_dir():
+        raise BagError(f'{out}: cannot write here: {out.parent} is not a folder', path=out)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         # Named after this host and pid, so that a later run can tell the leftover of a

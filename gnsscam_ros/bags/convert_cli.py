@@ -28,7 +28,7 @@ from ..datasets.emulated.camera import with_camera
 from ..datasets.emulated.drive import make_emulated_drive
 from ..datasets.errors import DatasetError
 from ..datasets.smartloc import load_smartloc_args
-from ..io.atomic import write_json_atomic
+from ..io.atomic import check_writable, write_json_atomic
 from ..io.partials import sweep_and_report
 from ..io.tables import format_table
 from .convert import STORAGES, ConvertSummary, convert_drive
@@ -143,6 +143,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.json is not None and (args.json.exists() or args.json.is_symlink()):
         print(f'gnsscam_convert: {args.json} exists; not overwriting', file=sys.stderr)
         return EXIT_OUTPUT
+    if args.json is not None:
+        try:
+            check_writable(args.json)       # said now, not after the whole run
+        except OSError as err:
+            print(f'gnsscam_convert: cannot write {args.json}: {err.strerror or err}',
+                  file=sys.stderr)
+            return EXIT_OUTPUT
     # The hidden partial bags of killed conversions or recordings beside the output:
     # removed when provably stale, else reported with the command that removes them.
     sweep_and_report(args.out, 'gnsscam_convert')

@@ -25,7 +25,8 @@ from ..datasets.emulated.drive import make_emulated_drive
 from ..datasets.errors import DatasetError
 from ..datasets.faults import FaultEpisodes, inject_pseudorange_faults
 from ..datasets.smartloc import load_smartloc_args
-from ..io.atomic import OutputExistsError, write_csv_atomic, write_json_atomic
+from ..io.atomic import (OutputExistsError, check_writable, write_csv_atomic,
+                         write_json_atomic)
 from ..io.tables import format_table
 from .bag_eval import evaluate_result_bag_epochs
 from .campaign import campaign_config, campaign_tables, run_campaign
@@ -270,6 +271,14 @@ def main(argv: list[str] | None = None) -> int:
             print(f'gnsscam_eval: {path} exists; pass --force to replace it',
                   file=sys.stderr)
             return EXIT_OUTPUT
+        if path is not None:
+            try:
+                # A read-only or missing folder is said now, not after the whole run.
+                check_writable(path)
+            except OSError as err:
+                print(f'gnsscam_eval: cannot write {path}: {err.strerror or err}',
+                      file=sys.stderr)
+                return EXIT_OUTPUT
     if args.command == 'campaign':
         return run_campaign_command(args)
     if args.command == 'bag':

@@ -60,7 +60,7 @@ from rclpy.validate_namespace import validate_namespace
 
 from ..bags import schema
 from ..bags.errors import BagError
-from ..io.atomic import write_json_atomic
+from ..io.atomic import check_writable, write_json_atomic
 from .chain import ReplayOptions, replay_through_nodes
 from .launch import LAYOUTS, use_dds_profile
 from .player import BagReplayer
@@ -117,6 +117,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.json is not None and (args.json.exists() or args.json.is_symlink()):
         print(f'gnsscam_replay: {args.json} exists; not overwriting', file=sys.stderr)
         return EXIT_OUTPUT
+    if args.json is not None:
+        try:
+            check_writable(args.json)       # said now, not after the whole run
+        except OSError as err:
+            print(f'gnsscam_replay: cannot write {args.json}: {err.strerror or err}',
+                  file=sys.stderr)
+            return EXIT_OUTPUT
     try:
         # The node's namespace, as __ns:= gives it (a remap in --ros-args still wins).
         namespace = schema.qualified('', args.namespace)

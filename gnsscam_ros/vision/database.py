@@ -368,6 +368,15 @@ def read_positions_csv(path: str | os.PathLike
     return rows, names, skipped
 
 
+def _no_usable_image(positions_csv, report: BuildReport) -> MapDatabaseError:
+    """The error of a build without a single usable row; ``.skipped`` says why each row
+    was left out (the command line prints them)."""
+    err = MapDatabaseError(f'{os.fspath(positions_csv)}: no usable image '
+                           f'({len(report.skipped)} rows skipped)')
+    err.skipped = list(report.skipped)
+    return err
+
+
 def _outside(images_dir: str, name: str) -> str | None:
     """Why the CSV file name ``name`` may not be read from ``images_dir``, or None.
 
@@ -587,8 +596,7 @@ class MapDatabase:
         report.seconds['features'] = time.perf_counter() - t0
         if not kept:
             report.skipped.sort(key=lambda s: (s.line is None, s.line or 0))
-            raise MapDatabaseError(f'{positions_csv}: no usable image '
-                                   f'({len(report.skipped)} rows skipped)')
+            raise _no_usable_image(positions_csv, report)
         try:
             positions = PositionTable.from_columns(
                 columns, np.array([r[2] for r in kept]), origin_llh)
@@ -603,8 +611,8 @@ class MapDatabase:
                 descs = [d for d, f in zip(descs, far) if not f]
                 kept = [r for r, f in zip(kept, far) if not f]
                 if not kept:
-                    raise MapDatabaseError(f'{positions_csv}: no usable image '
-                                           f'({len(report.skipped)} rows skipped)')
+                    report.skipped.sort(key=lambda s: (s.line is None, s.line or 0))
+                    raise _no_usable_image(positions_csv, report)
                 positions = positions.subset(~far)
         except ValueError as err:
             raise MapDatabaseError(f'{positions_csv}: {err}') from err

@@ -29,7 +29,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..io.atomic import write_json_atomic
+from ..io.atomic import check_writable, write_json_atomic
 from .database import MAX_POSITION_M, MapDatabase
 from .errors import MapDatabaseOutputError, VisionError
 from .features import OrbExtractor, OrbParams, load_gray
@@ -152,6 +152,11 @@ def _output_refused(path: str | None, force: bool) -> bool:
     if os.path.isdir(path):
         _err(f'{path}: is a folder')
         return True
+    try:
+        check_writable(Path(path))      # a read-only folder: said before any work
+    except OSError as err:
+        _err(f'{path}: cannot write here ({err.strerror or err})')
+        return True
     return False
 
 
@@ -216,8 +221,14 @@ def _cmd_build(args) -> int:
     except ValueError as err:
         return _usage(err)
     t0 = time.perf_counter()
-    db, report = MapDatabase.build_from_files(args.images, args.positions,
-                                              origin_llh=args.origin, progress=progress, **kw)
+    try:
+        db, report = MapDatabase.build_from_files(args.images, args.positions,
+                                                  origin_llh=args.origin, progress=progress,
+                                                  **kw)
+    except VisionError as err:
+        for s in getattr(err, 'skipped', ()):      # why no row was usable
+            print(f'{PROG}: skipped {s}', file=sys.stderr)
+        raise
     t1 = time.perf_counter()
     size = db.save(args.out, overwrite=args.force)
     for s in report.skipped:
