@@ -201,10 +201,11 @@ class BagReplayer(Node):
                                    path=self.bag, topic=conn.topic)
             # A topic the nodes know with another type would reach them as messages they
             # cannot read (or not at all): refuse the bag before publishing anything.
-            expected = schema.TOPIC_TYPES.get(schema.relative(conn.topic, self.bag_namespace))
+            expected = _graph_type(conn.topic)
             if expected is not None and conn.msgtype != expected:
                 raise BagTypeError(f'{self.bag}: topic {conn.topic} has type {conn.msgtype}, '
-                                   f'expected {expected}', path=self.bag, topic=conn.topic)
+                                   f'expected {expected} (--topics plays the others)',
+                                   path=self.bag, topic=conn.topic)
             previous = self._topics.get(conn.topic)
             if previous is not None and previous[0] != conn.msgtype:
                 raise BagTypeError(f'{self.bag}: topic {conn.topic} has two types, '
@@ -507,6 +508,17 @@ class BagReplayer(Node):
                 sum(1 for s in gnss_stamps if s in self._epochs_seen) if has_filter else None)
             self.flow.report(summary)
             summary.node_diagnostics = {k: dict(v) for k, v in self._diagnostics.items()}
+
+
+def _graph_type(topic: str) -> str | None:
+    """The type the nodes use on ``topic`` when it ends in a topic of the graph (in any
+    namespace: ``/a/gnss/pseudoranges`` reaches nodes run under ``/a`` wherever the replay
+    runs), else None."""
+    name = topic.lstrip('/')
+    for known, msgtype in schema.TOPIC_TYPES.items():
+        if name == known or name.endswith('/' + known):
+            return msgtype
+    return None
 
 
 def _bag_namespace(connections, namespace: str) -> str:

@@ -25,9 +25,10 @@ renamed to ``RESULT_BAG`` when recording stops cleanly (:meth:`BagRecorder.close
 Ctrl-C / SIGTERM in the CLI). An existing ``RESULT_BAG`` is never overwritten; after an
 error the partial folder is removed (:meth:`BagRecorder.abort`).
 
-Exit codes of the CLI: 0 recorded (Ctrl-C is the normal way to stop), 2 bad usage,
-4 output exists or cannot be written (a read-only or missing folder, a write error while
-recording: the message names the path; no bag is left behind).
+Exit codes of the CLI: 0 recorded (Ctrl-C is the normal way to stop), 2 bad usage (also
+a ``name:pkg/msg/Type`` with a type nobody knows, malformed ``--ros-args``), 4 output
+exists or cannot be written (a read-only folder, a parent that is a file, a write error
+while recording: the message names the path; no bag is left behind).
 
 A recorder killed by SIGKILL leaves its ``.NAME.partial-HOST-PID-*`` folder; the next
 ``gnsscam_record`` (or ``gnsscam_convert``) writing into that folder removes it when its
@@ -371,7 +372,9 @@ def main(argv: list[str] | None = None) -> int:
         pass
     except (BagError, ValueError) as err:
         print(f'gnsscam_record: {err}', file=sys.stderr)
-        code = EXIT_OUTPUT if isinstance(err, BagError) else EXIT_USAGE
+        # A type named on the command line that nobody knows is a usage error.
+        code = (EXIT_OUTPUT if isinstance(err, BagError)
+                and not isinstance(err, BagTypeError) else EXIT_USAGE)
     finally:
         signal.signal(signal.SIGTERM, previous)
     if node is not None:

@@ -58,7 +58,6 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.validate_namespace import validate_namespace
 
-from ..bags import schema
 from ..bags.errors import BagError
 from ..io.atomic import check_writable, write_json_atomic
 from .chain import ReplayOptions, replay_through_nodes
@@ -126,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
             return EXIT_OUTPUT
     try:
         # The node's namespace, as __ns:= gives it (a remap in --ros-args still wins).
-        namespace = schema.qualified('', args.namespace)
+        namespace = '/' + args.namespace.strip('/')
         validate_namespace(namespace)
     except Exception as err:            # rclpy's InvalidNamespaceException and kin
         print(f'gnsscam_replay: --namespace {args.namespace!r}: '
