@@ -12,7 +12,6 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 import zipfile
 from pathlib import Path
 
@@ -137,7 +136,8 @@ def _convert_cases():
     """The malformed files, and a sample of the bad numbers (one value per field)."""
     cases = [(c[0], c[1], c[2]) for c in librsf_cases()]
     for k, (tag, index, value, line) in enumerate(_field_cases()):
-        if k % len(BAD_NUMBERS) == index % len(BAD_NUMBERS):
+        # Two values per field, a different pair from field to field.
+        if k % len(BAD_NUMBERS) in (index % len(BAD_NUMBERS), (index + 5) % len(BAD_NUMBERS)):
             if tag == 'point3':
                 cases.append((f'{tag}-{index}-{value}', GOOD_INPUT, GOOD_TRUTH + line))
             else:
@@ -145,7 +145,11 @@ def _convert_cases():
     return cases
 
 
-def test_convert_refuses_bad_librsf_and_leaves_nothing(tmp_path, capsys):
+def test_convert_refuses_bad_librsf_and_leaves_nothing(tmp_path, capsys, monkeypatch):
+    from gnsscam_ros.bags import convert_cli
+    # The parser is built once (see the eval table): parse_args keeps no state.
+    monkeypatch.setattr(convert_cli, 'build_parser', functools.lru_cache(
+        convert_cli.build_parser))
     tried = 0
     for k, (name, text, truth) in enumerate(_convert_cases()):
         folder = tmp_path / f'c{k}'
@@ -157,7 +161,7 @@ def test_convert_refuses_bad_librsf_and_leaves_nothing(tmp_path, capsys):
                        name.startswith('point3') else inp)
         assert not out.exists() and not hidden_leftovers(folder), name
         tried += 1
-    assert tried >= 70
+    assert tried >= 100
 
 
 def test_convert_output_refusals(tmp_path, capsys):
@@ -641,7 +645,6 @@ def test_mapdb_real_oversized_image_is_refused(tmp_path, capsys, mapdb_set):
     _, _, _, db = mapdb_set
     big = tmp_path / 'big.png'
     cv2.imwrite(str(big), np.zeros((8000, 8100), np.uint8))
-    started = time.perf_counter()
     code, _, err = run(mapdb_cli.main, ['query', '--db', db, big], capsys)
-    assert 'larger than 64 Mpx' in assert_refused(code, err, 3, 'gnsscam_mapdb', big)
-    assert time.perf_counter() - started < 5.0
+    line = assert_refused(code, err, 3, 'gnsscam_mapdb', big)
+    assert 'larger than 64 Mpx' in line and 'declared in its header' in line

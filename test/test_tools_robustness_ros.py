@@ -117,14 +117,15 @@ def corrupt_bags(bags: Path, folder: Path) -> dict[str, str]:
     out['zero.mcap'] = 'not a readable rosbag2 bag'
     (folder / 'zero.db3').write_bytes(b'')
     out['zero.db3'] = ''
-    for seed in range(6):
+    for seed in range(10):
         junk = rng.integers(0, 256, 64 + 4000 * seed, dtype=np.uint8).tobytes()
         (folder / f'junk_{seed}.mcap').write_bytes(junk)
         out[f'junk_{seed}.mcap'] = ''
         (folder / f'junk_{seed}.db3').write_bytes(junk)
         out[f'junk_{seed}.db3'] = ''
     good = (bags / 'mcap' / 'mcap.mcap').read_bytes()
-    for fraction in (0.02, 0.2, 0.4, 0.6, 0.8, 0.97, 0.999):
+    for fraction in (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.97,
+                     0.999):
         cut = int(len(good) * fraction)
         name = f'cut_{int(fraction * 1000)}'
         shutil.copytree(bags / 'mcap', folder / name)
@@ -133,7 +134,7 @@ def corrupt_bags(bags: Path, folder: Path) -> dict[str, str]:
         (folder / f'{name}.mcap').write_bytes(good[:cut])
         out[f'{name}.mcap'] = ''
     db3 = (bags / 'sqlite' / 'sqlite.db3').read_bytes()
-    for fraction in (0.1, 0.5, 0.9):
+    for fraction in (0.05, 0.1, 0.3, 0.5, 0.9):
         name = f'sqlite_cut_{int(fraction * 100)}'
         shutil.copytree(bags / 'sqlite', folder / name)
         (folder / name / 'sqlite.db3').write_bytes(db3[:int(len(db3) * fraction)])
@@ -175,7 +176,7 @@ def test_replay_refuses_corrupt_bags_and_wrong_types(bags, tmp_path, capfd):
         line = assert_refused(code, err, 3, 'gnsscam_replay', path, strict=False)
         assert why in line, (name, line)
         assert out == '', (name, out)                    # no summary of a replay
-    assert len(cases) >= 50
+    assert len(cases) >= 80
     # --namespace finds the bag's topics under it: the wrong type is refused there too.
     code, _, err = replay([tmp_path / 'type_in_namespace', '--namespace', '/a'] + REPLAY,
                           capfd)
