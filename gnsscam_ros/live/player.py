@@ -515,9 +515,10 @@ def _graph_type(topic: str) -> str | None:
     namespace: ``/a/gnss/pseudoranges`` reaches nodes run under ``/a`` wherever the replay
     runs), else None."""
     name = topic.lstrip('/')
-    for known, msgtype in schema.TOPIC_TYPES.items():
+    # Longest first: ground_truth/pose is not pose.
+    for known in sorted(schema.TOPIC_TYPES, key=len, reverse=True):
         if name == known or name.endswith('/' + known):
-            return msgtype
+            return schema.TOPIC_TYPES[known]
     return None
 
 

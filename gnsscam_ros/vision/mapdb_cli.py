@@ -456,6 +456,10 @@ def _print_bench(f: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``gnsscam_mapdb``; returns the exit code."""
     args = _parser().parse_args(argv)
+    # OpenCV logs its codecs' complaints ("PNG input buffer is incomplete") on stderr; the
+    # tool says what matters on one line naming the file, so they stay silent meanwhile.
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
         return {'build': _cmd_build, 'query': _cmd_query, 'bench': _cmd_bench}[
             args.command](args)
@@ -468,6 +472,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         _err('interrupted')
         return EXIT_INTERRUPTED
+    finally:
+        cv2.utils.logging.setLogLevel(level)
 
 
 if __name__ == '__main__':
