@@ -9,9 +9,11 @@ work of a writer that still runs:
 * it is **stale** (:func:`sweep_partials` removes it) when it was written on this host and
   its writer cannot be running: no process with that pid exists, or the process that has
   the pid now started after the folder was last written to (the pid was reused);
-* anything else (another host, a running pid, an older name without a pid, a folder that
-  cannot be removed) is **reported** with the command that removes it, never touched:
-  deleting the bag of a writer that is still running would lose data.
+* it is **in use** when its writer provably runs (the process with that pid started before
+  the folder was last written): left alone and not reported;
+* anything else (another host, an older name without a pid, a running pid whose start
+  time is unknown, a folder that cannot be removed) is **reported** with the command that
+  removes it, never touched: deleting the bag of a writer that still runs would lose data.
 """
 from __future__ import annotations
 
@@ -66,11 +68,13 @@ class Leftover:
         path: The hidden folder (or file).
         removed: True when it was provably stale and has been removed.
         reason: Why it was removed, or why it was kept.
+        in_use: Its writer provably runs (not a leftover: nothing to report).
     """
 
     path: Path
     removed: bool
     reason: str
+    in_use: bool = False
 
     @property
     def remove_command(self) -> str:
@@ -133,16 +137,19 @@ def _last_write_s(path: Path) -> float:
     return latest
 
 
-def _staleness(path: Path, host: str, pid: int) -> str | None:
-    """Why ``path`` (written by ``host``/``pid``) is provably stale, or None."""
+def _staleness(path: Path, host: str, pid: int) -> tuple[str | None, bool]:
+    """``(why path is provably stale or None, whether its writer provably runs)``."""
     if host != _host():
-        return None
+        return None, False
     if not _pid_runs(pid):
-        return f'its writer, pid {pid}, no longer runs'
+        return f'its writer, pid {pid}, no longer runs', False
     started = _process_start_s(pid)
-    if started is not None and started > _last_write_s(path) + _CLOCK_SLACK_S:
-        return f'pid {pid} now belongs to a process started after it was last written'
-    return None
+    if started is None:
+        return None, False
+    if started > _last_write_s(path) + _CLOCK_SLACK_S:
+        return f'pid {pid} now belongs to a process started after it was last written', False
+    # Alive with this pid when the folder was last written, and alive now: the writer.
+    return None, True
 
 
 def _remove(path: Path) -> None:
@@ -178,13 +185,17 @@ def sweep_partials(folder: str | os.PathLike, remove: bool = True) -> list[Lefto
                                                    'their writer; its writer is unknown'))
             continue
         try:
-            stale = _staleness(path, owned['host'], int(owned['pid']))
+            stale, in_use = _staleness(path, owned['host'], int(owned['pid']))
         except OSError:
             continue           # vanished meanwhile (its writer finished or removed it)
         if stale is None:
-            why = (f'written on host {owned["host"]}' if owned['host'] != _host()
-                   else f'its writer, pid {owned["pid"]}, still runs')
-            found.append(Leftover(path, False, why))
+            if owned['host'] != _host():
+                why = f'written on host {owned["host"]}'
+            elif in_use:
+                why = f'its writer, pid {owned["pid"]}, runs'
+            else:
+                why = f'pid {owned["pid"]} runs, whether as its writer is unknown'
+            found.append(Leftover(path, False, why, in_use))
             continue
         if not remove:
             found.append(Leftover(path, False, stale))
@@ -210,5 +221,6 @@ def sweep_and_report(out: str | os.PathLike, prog: str, stream=None) -> list[Lef
     stream = sys.stderr if stream is None else stream
     found = sweep_partials(Path(out).parent)
     for leftover in found:
-        print(f'{prog}: {leftover.message()}', file=stream)
+        if not leftover.in_use:        # another run writing beside us is no news
+            print(f'{prog}: {leftover.message()}', file=stream)
     return found
