@@ -37,9 +37,9 @@ def test_discover_files_finds_input_and_truth():
 
 @pytest.mark.parametrize('bad_line,message', [
     ('pseudorange3 0 1 2 3\n', 'needs 11 fields, got 5'),
-    ('pseudorange3 0 x 25 1 2 3 12 1 85 49\n', 'could not convert'),
+    ('pseudorange3 0 x 25 1 2 3 12 1 85 49\n', "pseudorange .* 'x' is not a number"),
     ('gyro3 0 1 2 3\n', "unknown record type 'gyro3'"),
-    ('odom3 nan 1 0 0 0 0 0 0 0 0 0 0 0\n', 'time stamp is not finite'),
+    ('odom3 nan 1 0 0 0 0 0 0 0 0 0 0 0\n', r'time \[s\] is nan, not finite'),
 ])
 def test_malformed_line_names_file_and_line(tmp_path, bad_line, message):
     path = tmp_path / 'run_Input.txt'
@@ -66,11 +66,14 @@ def test_epochs_out_of_order(tmp_path):
         load_smartloc(path)
 
 
-def test_nan_pseudorange_loads_and_is_left_to_the_filter(tmp_path):
+def test_nan_pseudorange_is_refused_at_load(tmp_path):
+    # Refused where it is read (file and line), not left to the filter: a NaN that gets
+    # through fails late, in the JSON writer, without saying where it came from.
     path = tmp_path / 'x_Input.txt'
     path.write_text(GOOD_PR.replace('19949087.65', 'nan'))
-    drive = load_smartloc(path)
-    assert np.isnan(drive.gnss[0].pr_m[0])
+    with pytest.raises(DatasetError, match=r'x_Input.txt:1: pseudorange3: pseudorange .* '
+                       'not finite'):
+        load_smartloc(path)
 
 
 def test_folder_without_input_file(tmp_path):

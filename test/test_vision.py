@@ -416,7 +416,7 @@ def test_cli_build_and_query_json(image_set, tmp_path, capsys):
     assert mapdb_cli.main(args) == 0
     err = capsys.readouterr().err
     assert 'wrote' in err and '12 images' in err
-    assert mapdb_cli.main(args) == 1                                   # refuses overwrite
+    assert mapdb_cli.main(args) == 4                                   # refuses overwrite
     assert 'already exists' in capsys.readouterr().err
     assert mapdb_cli.main(args + ['--force']) == 0
     capsys.readouterr()
@@ -440,9 +440,13 @@ def test_cli_build_and_query_json(image_set, tmp_path, capsys):
     scores = [m['score'] for m in result[0]['matches']]
     assert scores == sorted(scores, reverse=True)
 
-    # A bad query image is named, the others still answered, exit code 1.
+    # An existing --json is never replaced without --force (nothing is queried).
+    before = js.read_text()
+    assert mapdb_cli.main(['query', '--db', str(out), str(q1), '--json', str(js)]) == 4
+    assert 'already exists' in capsys.readouterr().err and js.read_text() == before
+    # A bad query image is named, the others still answered, exit code 3 (bad input).
     assert mapdb_cli.main(['query', '--db', str(out), str(tmp_path / 'nope.png'),
-                           str(q1), '--json', str(js)]) == 1
+                           str(q1), '--json', str(js), '--force']) == 3
     assert 'nope.png' in capsys.readouterr().err
     result = json.loads(js.read_text())
     assert result[0]['matches'] == [] and 'nope.png' in result[0]['error']
@@ -451,9 +455,9 @@ def test_cli_build_and_query_json(image_set, tmp_path, capsys):
 
 def test_cli_errors(tmp_path, capsys):
     assert mapdb_cli.main(['build', '--images', str(tmp_path), '--positions',
-                           str(tmp_path / 'none.csv'), '--out', str(tmp_path / 'x.npz')]) == 1
+                           str(tmp_path / 'none.csv'), '--out', str(tmp_path / 'x.npz')]) == 3
     assert 'none.csv' in capsys.readouterr().err
-    assert mapdb_cli.main(['query', '--db', str(tmp_path / 'none.npz'), 'a.png']) == 1
+    assert mapdb_cli.main(['query', '--db', str(tmp_path / 'none.npz'), 'a.png']) == 3
     assert 'none.npz' in capsys.readouterr().err
     with pytest.raises(SystemExit) as info:
         mapdb_cli.main(['build', '--images', 'x'])

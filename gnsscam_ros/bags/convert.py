@@ -10,8 +10,9 @@ Guarantees:
 * **Never overwrites**: an existing output path (file, folder or dangling link) is refused
   before any work, and again just before the final rename.
 * **All or nothing**: the bag is written into a hidden temporary sibling folder
-  (``.NAME.partial-*`` next to the output) and renamed into place only after the writer
-  closed cleanly; on any error or ``KeyboardInterrupt`` the temporary folder is removed.
+  (``.NAME.partial-HOST-PID-*`` next to the output) and renamed into place only after the
+  writer closed cleanly; on any error or ``KeyboardInterrupt`` the temporary folder is
+  removed (after a SIGKILL the next ``gnsscam_convert`` finds it: :mod:`..io.partials`).
 * **Bounded memory**: camera frames are rendered while writing, a few ahead on worker
   threads (rendering costs ~60 ms per VGA frame, writing ~1 ms), never all at once.
 * **Time order**: the streams are merged by stamp, so the bag can be played or read
@@ -26,7 +27,6 @@ import json
 import math
 import os
 import shutil
-import tempfile
 import threading
 import time
 from collections import deque
@@ -47,6 +47,7 @@ from msg_adapters.wire import (BASE_FRAME, CAMERA_FRAME, EARTH_FRAME, GNSS, IMAG
 
 from ..core.frames import LocalFrame
 from ..core.types import Drive
+from ..io.partials import make_partial_dir
 from . import schema
 from .errors import BagContentError, BagError, BagExistsError
 
@@ -454,8 +455,15 @@ def convert_drive(drive: Drive, out_path: str | os.PathLike, storage: str = 'mca
     workers = min(4, os.cpu_count() or 1) if workers is None else int(workers)
 
     started = time.perf_counter()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp_root = Path(tempfile.mkdtemp(prefix=f'.{out.name}.partial-', dir=out.parent))
+    if out.parent.exists() and not out.parent.is_dir():
+        raise BagError(f'{out}: cannot write here: {out.parent} is not a folder', path=out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        # Named after this host and pid, so that a later run can tell the leftover of a
+        # killed conversion from a running one (io.partials.sweep_partials).
+        tmp_root = make_partial_dir(out)
+    except OSError as err:
+        raise BagError(f'{out}: cannot write here: {err.strerror or err}', path=out) from err
     summary = ConvertSummary(path=out, storage=storage)
     waited = [0.0]
     try:

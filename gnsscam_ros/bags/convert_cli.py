@@ -10,6 +10,11 @@ Progress goes to stderr, the summary (topics, counts, duration, size, MB/s) to s
 Exit codes: 0 done, 2 bad usage, 3 bad input (dataset or data a bag cannot hold),
 4 output refused or failed (an existing path is never overwritten), 130 interrupted (the
 partial bag is removed).
+
+The bag is written into a hidden ``.NAME.partial-HOST-PID-*`` folder beside ``--out``.
+One left by a killed run (SIGKILL, power cut) is found by the next run in that folder:
+removed when its writer provably no longer runs, else reported with the command that
+removes it (:mod:`..io.partials`).
 """
 from __future__ import annotations
 
@@ -23,7 +28,8 @@ from ..datasets.emulated.camera import with_camera
 from ..datasets.emulated.drive import make_emulated_drive
 from ..datasets.errors import DatasetError
 from ..datasets.smartloc import load_smartloc_args
-from ..io.atomic import write_json_atomic
+from ..io.atomic import check_writable, write_json_atomic
+from ..io.partials import sweep_and_report
 from ..io.tables import format_table
 from .convert import STORAGES, ConvertSummary, convert_drive
 from .errors import BagContentError, BagError, BagExistsError
@@ -134,9 +140,19 @@ def main(argv: list[str] | None = None) -> int:
         # Refuse before generating or loading anything.
         print(f'gnsscam_convert: {args.out} exists; not overwriting', file=sys.stderr)
         return EXIT_OUTPUT
-    if args.json is not None and args.json.exists():
+    if args.json is not None and (args.json.exists() or args.json.is_symlink()):
         print(f'gnsscam_convert: {args.json} exists; not overwriting', file=sys.stderr)
         return EXIT_OUTPUT
+    if args.json is not None:
+        try:
+            check_writable(args.json)       # said now, not after the whole run
+        except OSError as err:
+            print(f'gnsscam_convert: cannot write {args.json}: {err.strerror or err}',
+                  file=sys.stderr)
+            return EXIT_OUTPUT
+    # The hidden partial bags of killed conversions or recordings beside the output:
+    # removed when provably stale, else reported with the command that removes them.
+    sweep_and_report(args.out, 'gnsscam_convert')
     previous = None
     try:
         try:
@@ -172,7 +188,12 @@ def main(argv: list[str] | None = None) -> int:
             signal.signal(signal.SIGTERM, previous)
     print(format_summary(summary))
     if args.json is not None:
-        write_json_atomic(args.json, summary.as_dict())
+        try:
+            write_json_atomic(args.json, summary.as_dict())
+        except (OSError, ValueError) as err:
+            # The bag is complete and stays; only the summary file is missing.
+            print(f'gnsscam_convert: cannot write {args.json}: {err}', file=sys.stderr)
+            return EXIT_OUTPUT
     return EXIT_OK
 
 

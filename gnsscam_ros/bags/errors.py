@@ -18,7 +18,9 @@ class BagError(Exception):
 
     def __init__(self, message: str, path: str | Path | None = None,
                  topic: str | None = None):
-        super().__init__(message)
+        # One line: the tools print the message as their one error line, and the errors
+        # of rosbags, YAML and sqlite they quote may span several.
+        super().__init__(' '.join(str(message).split()))
         self.path = None if path is None else Path(path)
         self.topic = topic
 

@@ -53,8 +53,10 @@ from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
 from rosbags.typesys import Stores, get_typestore
 
 from msg_adapters.kit import MessageKit, numpy_kit
-from msg_adapters.wire import (BASE_FRAME, CAMERA_FRAME, EARTH_FRAME, FIX, GNSS, IMAGE, IMU,
-                               INFO, INTEGRITY, MAP_FRAME, ORIGIN, PARTICLES, POSE, TRUTH, TWIST)
+from msg_adapters.wire import (BASE_FRAME, CAMERA_FRAME, DEAD_RECKONING, DIAGNOSTICS,
+                               EARTH_FRAME, FIX, GNSS, GNSS_FIX, GNSS_MEASUREMENTS, IMAGE, IMU,
+                               INFO, INTEGRITY, MAP_FRAME, MATCHES, ODOMETRY_GLOBAL, ORIGIN,
+                               PARTICLES, POSE, TRUTH, TWIST)
 
 #: The typestore every bag of this package is written and read with.
 STORE = Stores.ROS2_JAZZY
@@ -111,6 +113,16 @@ RESULT_TOPICS: dict[str, TopicSpec] = {t.name: t for t in (
     TopicSpec(PARTICLES, POSE_ARRAY, MAP_FRAME, False, 'particle cloud after resampling'),
     TopicSpec(INTEGRITY, DIAGNOSTIC_ARRAY, None, False, 'integrity verdict and risk bound'),
 )}
+
+#: Every topic of the gnsscam_ros graph (relative name) with its one message type: a bag
+#: that holds one of them with another type is refused by the replay (the nodes would
+#: receive messages they cannot read, and the replay would end as if all went well).
+TOPIC_TYPES: dict[str, str] = {
+    **{t.name: t.msgtype for t in DATASET_TOPICS.values()},
+    **{t.name: t.msgtype for t in RESULT_TOPICS.values()},
+    GNSS_MEASUREMENTS: POINTCLOUD2, GNSS_FIX: NAVSATFIX, MATCHES: POINTCLOUD2,
+    DEAD_RECKONING: ODOMETRY, ODOMETRY_GLOBAL: ODOMETRY, DIAGNOSTICS: DIAGNOSTIC_ARRAY,
+}
 
 
 @lru_cache(maxsize=1)

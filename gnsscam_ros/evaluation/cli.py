@@ -25,7 +25,8 @@ from ..datasets.emulated.drive import make_emulated_drive
 from ..datasets.errors import DatasetError
 from ..datasets.faults import FaultEpisodes, inject_pseudorange_faults
 from ..datasets.smartloc import load_smartloc_args
-from ..io.atomic import OutputExistsError, write_csv_atomic, write_json_atomic
+from ..io.atomic import (OutputExistsError, check_writable, write_csv_atomic,
+                         write_json_atomic)
 from ..io.tables import format_table
 from .bag_eval import evaluate_result_bag_epochs
 from .campaign import campaign_config, campaign_tables, run_campaign
@@ -195,7 +196,9 @@ def write_result(args: argparse.Namespace, result: dict, epochs=None, label: str
     if args.json is not None:
         try:
             write_json_atomic(args.json, result, force=args.force)
-        except (OSError, OutputExistsError) as err:
+        except (OSError, OutputExistsError, ValueError) as err:
+            # ValueError: a NaN the JSON cannot hold (inputs are checked at load, so this
+            # is a metric without a value); nothing is written either way.
             print(f'gnsscam_eval: cannot write {args.json}: {err}', file=sys.stderr)
             return EXIT_OUTPUT
         print(f'\nwrote {args.json}')
@@ -238,7 +241,11 @@ def run_campaign_command(args: argparse.Namespace) -> int:
     print(f"\ncampaign: {len(result['cases'])} runs in {result['seconds']:.0f} s "
           f"on {result['workers']} processes")
     if args.json is not None:
-        write_json_atomic(args.json, result, force=args.force)
+        try:
+            write_json_atomic(args.json, result, force=args.force)
+        except (OSError, OutputExistsError, ValueError) as err:
+            print(f'gnsscam_eval: cannot write {args.json}: {err}', file=sys.stderr)
+            return EXIT_OUTPUT
         print(f'wrote {args.json}')
     return EXIT_OK
 
@@ -264,6 +271,14 @@ def main(argv: list[str] | None = None) -> int:
             print(f'gnsscam_eval: {path} exists; pass --force to replace it',
                   file=sys.stderr)
             return EXIT_OUTPUT
+        if path is not None:
+            try:
+                # A read-only or missing folder is said now, not after the whole run.
+                check_writable(path)
+            except OSError as err:
+                print(f'gnsscam_eval: cannot write {path}: {err.strerror or err}',
+                      file=sys.stderr)
+                return EXIT_OUTPUT
     if args.command == 'campaign':
         return run_campaign_command(args)
     if args.command == 'bag':

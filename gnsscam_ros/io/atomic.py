@@ -45,6 +45,30 @@ def atomic_output(path: Path, force: bool = False, mode: str = 'w', suffix: str 
         raise
 
 
+def check_writable(path: Path) -> None:
+    """Raise the OSError that writing ``path`` would meet, before any work is done.
+
+    Probes the folder (or its nearest existing ancestor, which the writers create the rest
+    of) with an anonymous temporary file, so a read-only or special folder is found at
+    once, not after an hour of computing; nothing is left behind. Permission bits do not
+    stop root, so this asks the file system itself.
+
+    Raises:
+        OSError: naming ``path``: the folder is not a folder or refuses new files.
+    """
+    path = Path(path)
+    folder = path.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise NotADirectoryError(20, f'{folder} is not a folder', str(path))
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as err:
+        raise type(err)(err.errno, err.strerror, str(path)) from err
+
+
 def write_json_atomic(path: Path, data, force: bool = False) -> Path:
     """Write JSON to ``path`` via a temporary file and an atomic rename.
 

@@ -44,7 +44,7 @@ from msg_adapters import MessageError, parse_integrity_risk, status_values
 from msg_adapters.wire import DIAGNOSTICS, GNSS, INTEGRITY, TIE_ORDER, header_stamp_ns
 
 from ..bags import schema
-from ..bags.errors import BagError, BagReadError, BagTypeError
+from ..bags.errors import BagContentError, BagError, BagReadError, BagTypeError
 from ..bags.read import open_bag
 from .endpoints import NO_PUB_EVENTS, NO_SUB_EVENTS, ros_message_class
 from .flow import GNSS_GRACE_S, FlowControl
@@ -82,12 +82,17 @@ class BagReplayer(Node):
             matches are acknowledged (see :meth:`.FlowControl.admit`) [s].
         bag_namespace: Namespace the bag's topics were written under (to recognise them);
             they are published relative to the node's own namespace (``namespace=``).
+            None: the node's namespace when the bag has topics under it, else ``/`` (a
+            bag converted at the root played into a namespace).
         node_name: Node name.
         **kwargs: Forwarded to ``rclpy.node.Node`` (``context=``, ...).
 
     Raises:
         BagReadError: The bag is missing or unreadable.
-        BagTypeError: A selected topic has a message type rclpy does not know.
+        BagTypeError: A selected topic has a message type rclpy does not know, or a topic
+            of the gnsscam_ros graph (:data:`.schema.TOPIC_TYPES`) has another type than
+            the nodes use (e.g. ``std_msgs/msg/String`` on ``gnss/pseudoranges``).
+        BagContentError: The selected topics hold no message.
         ValueError: Negative rate or start, or a named topic that the bag does not hold.
     """
 
@@ -96,7 +101,8 @@ class BagReplayer(Node):
                  windows: dict[str, int] | None = None, ack_timeout_s: float = 30.0,
                  wait_s: float = 10.0, require_subscribers: tuple[str, ...] = (),
                  settle_s: float = MATCH_SETTLE_S, gnss_grace_s: float = GNSS_GRACE_S,
-                 bag_namespace: str = '/', node_name: str = 'gnsscam_replay', **kwargs):
+                 bag_namespace: str | None = '/', node_name: str = 'gnsscam_replay',
+                 **kwargs):
         if not (rate >= 0.0 and math.isfinite(rate)):
             raise ValueError(f'rate must be finite and >= 0, got {rate}')
         if not (start_s >= 0.0 and math.isfinite(start_s)):
@@ -104,7 +110,6 @@ class BagReplayer(Node):
         self.bag = Path(bag)
         self.rate = float(rate)
         self.start_s = float(start_s)
-        self.bag_namespace = bag_namespace
         self.ack_timeout_s = float(ack_timeout_s)
         self.wait_s = float(wait_s)
         self.settle_s = float(settle_s)
@@ -115,6 +120,9 @@ class BagReplayer(Node):
         with open_bag(self.bag) as reader:
             self._connections = list(reader.connections)
             self._bag_start_ns = int(reader.start_time)
+        if bag_namespace is None:
+            bag_namespace = _bag_namespace(self._connections, kwargs.get('namespace') or '/')
+        self.bag_namespace = bag_namespace
         self._select(topics)
         # The executor of this node wakes for every acknowledgement (100 per second of an
         # IMU stream) and rclpy rebuilds its wait set at each wake, at a cost that grows
@@ -132,7 +140,7 @@ class BagReplayer(Node):
         self._stop = False
         self._start_mode = ''
         self._bag_pubs: dict[str, object] = {}
-        store = schema.typestore()
+        store = self._store = schema.typestore()
         for topic, (msgtype, latched) in self._topics.items():
             cls = ros_message_class(msgtype)
             if latched:
@@ -191,12 +199,24 @@ class BagReplayer(Node):
                 raise BagTypeError(f'{self.bag}: topic {conn.topic} has a message type '
                                    f'unknown to the typestore: {conn.msgtype}',
                                    path=self.bag, topic=conn.topic)
+            # A topic the nodes know with another type would reach them as messages they
+            # cannot read (or not at all): refuse the bag before publishing anything.
+            expected = _graph_type(conn.topic)
+            if expected is not None and conn.msgtype != expected:
+                raise BagTypeError(f'{self.bag}: topic {conn.topic} has type {conn.msgtype}, '
+                                   f'expected {expected} (--topics plays the others)',
+                                   path=self.bag, topic=conn.topic)
             previous = self._topics.get(conn.topic)
             if previous is not None and previous[0] != conn.msgtype:
                 raise BagTypeError(f'{self.bag}: topic {conn.topic} has two types, '
                                    f'{previous[0]} and {conn.msgtype}', path=self.bag,
                                    topic=conn.topic)
             self._topics[conn.topic] = (conn.msgtype, _latched(conn))
+        # An empty bag would "play" in no time and exit 0 as if the data had gone through.
+        if not sum(int(getattr(c, 'msgcount', 0) or 0) for c in self._play):
+            raise BagContentError(f'{self.bag}: no messages to play'
+                                  + (f' on {", ".join(sorted(self._topics))}'
+                                     if self._topics else ' (no topics)'), path=self.bag)
 
     # ------------------------------------------------------------ acknowledgements
     def _subscribe_acks(self) -> None:
@@ -395,8 +415,10 @@ class BagReplayer(Node):
             with open_bag(self.bag) as reader:
                 # Once-only topics first, whatever --start says: they describe the data.
                 if latched:
-                    for conn, _, raw in reader.messages(connections=latched):
-                        self._bag_pubs[conn.topic].publish(bytes(raw))
+                    for conn, log_ns, raw in reader.messages(connections=latched):
+                        raw = bytes(raw)
+                        self._check_decodes(conn, log_ns, raw)
+                        self._bag_pubs[conn.topic].publish(raw)
                         summary.published[conn.topic] = summary.published.get(conn.topic,
                                                                               0) + 1
                 if not timed:
@@ -443,6 +465,7 @@ class BagReplayer(Node):
         group: list = []
         for conn, log_ns, raw in reader.messages(connections=connections, start=start_ns):
             raw = bytes(raw)
+            self._check_decodes(conn, log_ns, raw)
             stamp = log_ns
             if self._has_header[conn.topic]:
                 try:
@@ -456,6 +479,17 @@ class BagReplayer(Node):
                 group = []
             group.append((conn, stamp, raw))
         yield from self._tie_sorted(group)
+
+    def _check_decodes(self, conn, log_ns: int, raw: bytes) -> None:
+        """Refuse a message that does not decode as its type: the nodes could not read it
+        (rmw drops it before any callback), so playing on would report a clean replay of
+        data that never arrived. Costs ~20 us per small message, ~0.2 ms per image."""
+        try:
+            self._store.deserialize_cdr(raw, conn.msgtype)
+        except Exception as err:    # rosbags raises plain struct/index/value errors
+            raise BagReadError(f'{self.bag}: topic {conn.topic}: message at {log_ns} ns does '
+                               f'not decode as {conn.msgtype}: {type(err).__name__}: {err}',
+                               path=self.bag, topic=conn.topic) from err
 
     def _tie_sorted(self, group: list) -> list:
         if len(group) < 2:
@@ -474,6 +508,26 @@ class BagReplayer(Node):
                 sum(1 for s in gnss_stamps if s in self._epochs_seen) if has_filter else None)
             self.flow.report(summary)
             summary.node_diagnostics = {k: dict(v) for k, v in self._diagnostics.items()}
+
+
+def _graph_type(topic: str) -> str | None:
+    """The type the nodes use on ``topic`` when it ends in a topic of the graph (in any
+    namespace: ``/a/gnss/pseudoranges`` reaches nodes run under ``/a`` wherever the replay
+    runs), else None."""
+    name = topic.lstrip('/')
+    # Longest first: ground_truth/pose is not pose.
+    for known in sorted(schema.TOPIC_TYPES, key=len, reverse=True):
+        if name == known or name.endswith('/' + known):
+            return schema.TOPIC_TYPES[known]
+    return None
+
+
+def _bag_namespace(connections, namespace: str) -> str:
+    """``namespace`` when the bag has topics under it, else ``/`` (see ``bag_namespace``)."""
+    prefix = schema.qualified('', namespace)
+    if prefix != '/' and any(c.topic.startswith(prefix) for c in connections):
+        return namespace
+    return '/'
 
 
 def _as_int(value) -> int:

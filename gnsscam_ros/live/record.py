@@ -25,8 +25,15 @@ renamed to ``RESULT_BAG`` when recording stops cleanly (:meth:`BagRecorder.close
 Ctrl-C / SIGTERM in the CLI). An existing ``RESULT_BAG`` is never overwritten; after an
 error the partial folder is removed (:meth:`BagRecorder.abort`).
 
-Exit codes of the CLI: 0 recorded (Ctrl-C is the normal way to stop), 2 bad usage,
-4 output exists or cannot be written.
+Exit codes of the CLI: 0 recorded (Ctrl-C is the normal way to stop), 2 bad usage (also
+a ``name:pkg/msg/Type`` with a type nobody knows, malformed ``--ros-args``), 4 output
+exists or cannot be written (a read-only folder, a parent that is a file, a write error
+while recording: the message names the path; no bag is left behind).
+
+A recorder killed by SIGKILL leaves its ``.NAME.partial-HOST-PID-*`` folder; the next
+``gnsscam_record`` (or ``gnsscam_convert``) writing into that folder removes it when its
+writer provably no longer runs, else reports it with the command that removes it
+(:mod:`..io.partials`).
 
 On a ROS 2 machine the equivalent is ``ros2 bag record -o RESULT_BAG /pose /fix
 /particles /integrity_risk /odometry/global /ground_truth/pose /map/origin``.
@@ -34,10 +41,11 @@ On a ROS 2 machine the equivalent is ``ros2 bag record -o RESULT_BAG /pose /fix
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import shutil
 import signal
 import sys
-import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -54,6 +62,7 @@ from msg_adapters.wire import ODOMETRY_GLOBAL
 from ..bags import schema
 from ..bags.convert import STORAGES
 from ..bags.errors import BagError, BagExistsError, BagTypeError
+from ..io.partials import make_partial_dir, sweep_and_report
 from .endpoints import NO_SUB_EVENTS, ros_message_class
 
 EXIT_OK, EXIT_USAGE, EXIT_OUTPUT = 0, 2, 4
@@ -141,19 +150,31 @@ class BagRecorder(Node):
                     raise BagTypeError(f'{name}: message type {msgtype} unknown to the '
                                        'typestore', topic=name)
                 ros_message_class(msgtype)
-        # Woken for every message: no parameter services or QoS event handlers, whose
-        # entities rclpy walks at each wake (the recorder has no ROS parameters).
-        kwargs.setdefault('start_parameter_services', False)
-        super().__init__(node_name, **kwargs)
-        self.out.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = Path(tempfile.mkdtemp(prefix=f'.{self.out.name}.partial-',
-                                          dir=self.out.parent))
+        # The partial folder first: an output that cannot be written is refused before
+        # the node joins the graph. Its name holds this host and pid, so that a later run
+        # can tell the leftover of a killed recorder from a running one (io.partials).
+        try:
+            self.out.parent.mkdir(parents=True, exist_ok=True)
+            self._tmp = make_partial_dir(self.out)
+        except OSError as err:
+            raise BagError(f'{self.out}: cannot write here: {err.strerror or err}',
+                           path=self.out) from err
         self._lock = threading.Lock()
         self._writer = None
         self._connections: dict[str, object] = {}
         self.summary = RecordSummary(path=self.out)
         self._started = time.monotonic()
         self._closed = False
+        #: The first write error (disk full, I/O error): recording stopped, see main().
+        self.failure: BagError | None = None
+        try:
+            # Woken for every message: no parameter services or QoS event handlers, whose
+            # entities rclpy walks at each wake (the recorder has no ROS parameters).
+            kwargs.setdefault('start_parameter_services', False)
+            super().__init__(node_name, **kwargs)
+        except BaseException:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            raise
         try:
             # rosbags wants a folder that does not exist yet: write inside the temp dir.
             self._writer = Writer(self._tmp / 'bag', version=9,
@@ -161,6 +182,7 @@ class BagRecorder(Node):
             self._writer.open()
         except Exception as err:
             shutil.rmtree(self._tmp, ignore_errors=True)
+            self.destroy_node()
             raise BagError(f'{self.out}: cannot open the bag writer: {err}',
                            path=self.out) from err
         self._strip = strip_namespace
@@ -215,9 +237,14 @@ class BagRecorder(Node):
         def callback(data: bytes) -> None:
             now = self.get_clock().now().nanoseconds
             with self._lock:
-                if self._closed:
+                if self._closed or self.failure is not None:
                     return
-                self._writer.write(self._connections[topic], now, data)
+                try:
+                    self._writer.write(self._connections[topic], now, data)
+                except Exception as err:   # disk full, I/O error: stop, main() says so
+                    self.failure = BagError(f'{self.out}: writing failed: '
+                                            f'{type(err).__name__}: {err}', path=self.out)
+                    return
                 self.summary.counts[name] += 1
         return callback
 
@@ -250,9 +277,25 @@ class BagRecorder(Node):
         self.summary.seconds = time.monotonic() - self._started
         self.summary.pending_topics = sorted(self._waiting)
         if self.out.exists() or self.out.is_symlink():
-            raise BagExistsError(f'{self.out} appeared while recording; the bag is left in '
-                                 f'{self._tmp / "bag"}', path=self.out)
-        (self._tmp / 'bag').rename(self.out)
+            # Keep the recording under a name of its own: left in the partial folder, the
+            # next run would remove it as the leftover of a dead writer.
+            kept = self.out.with_name(f'{self.out.name}.{os.getpid()}')
+            where = self._tmp / 'bag'
+            if not (kept.exists() or kept.is_symlink()):
+                try:
+                    where.rename(kept)
+                    where = kept
+                    shutil.rmtree(self._tmp, ignore_errors=True)
+                except OSError:
+                    pass
+            raise BagExistsError(f'{self.out} appeared while recording; the bag is kept '
+                                 f'in {where}', path=self.out)
+        try:
+            (self._tmp / 'bag').rename(self.out)
+        except OSError as err:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            raise BagError(f'{self.out}: cannot move the bag into place: '
+                           f'{err.strerror or err}', path=self.out) from err
         shutil.rmtree(self._tmp, ignore_errors=True)
         self.summary.bag_bytes = sum(p.stat().st_size for p in self.out.rglob('*')
                                      if p.is_file())
@@ -294,7 +337,19 @@ def main(argv: list[str] | None = None) -> int:
     if args.out.exists() or args.out.is_symlink():
         print(f'gnsscam_record: {args.out} exists; not overwriting', file=sys.stderr)
         return EXIT_OUTPUT
-    rclpy.init(args=['gnsscam_record'] + args_all[ros_at:])
+    if args.duration is not None and not (args.duration >= 0 and math.isfinite(args.duration)):
+        print(f'gnsscam_record: --duration must be finite and >= 0, got {args.duration}',
+              file=sys.stderr)
+        return EXIT_USAGE
+    # The hidden partial bags of killed recordings or conversions beside the output:
+    # removed when provably stale, else reported with the command that removes them.
+    sweep_and_report(args.out, 'gnsscam_record')
+    try:
+        rclpy.init(args=['gnsscam_record'] + args_all[ros_at:])
+    except Exception as err:            # malformed --ros-args (rcl's own message)
+        print(f'gnsscam_record: bad ROS arguments: {str(err).splitlines()[0]}',
+              file=sys.stderr)
+        return EXIT_USAGE
     previous = signal.signal(signal.SIGTERM, _terminate)
     node = None
     code = EXIT_OK
@@ -303,23 +358,38 @@ def main(argv: list[str] | None = None) -> int:
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         deadline = None if args.duration is None else time.monotonic() + args.duration
-        while rclpy.ok() and (deadline is None or time.monotonic() < deadline):
-            executor.spin_once(timeout_sec=0.1)
+        while (rclpy.ok() and node.failure is None
+               and (deadline is None or time.monotonic() < deadline)):
+            try:
+                executor.spin_once(timeout_sec=0.1)
+            except (KeyboardInterrupt, ExternalShutdownException):
+                raise
+            except Exception:
+                if rclpy.ok():
+                    raise
+                break       # Ctrl-C invalidated the context during the wait: a normal stop
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (BagError, ValueError) as err:
         print(f'gnsscam_record: {err}', file=sys.stderr)
-        code = EXIT_OUTPUT if isinstance(err, BagError) else EXIT_USAGE
+        # A type named on the command line that nobody knows is a usage error.
+        code = (EXIT_OUTPUT if isinstance(err, BagError)
+                and not isinstance(err, BagTypeError) else EXIT_USAGE)
     finally:
         signal.signal(signal.SIGTERM, previous)
     if node is not None:
-        try:
-            summary = node.close()
-            print(f'gnsscam_record: wrote {summary.path}: '
-                  + ', '.join(f'{k} {v}' for k, v in summary.counts.items()))
-        except BagError as err:
-            print(f'gnsscam_record: {err}', file=sys.stderr)
+        if node.failure is not None:
+            print(f'gnsscam_record: {node.failure}; no bag written', file=sys.stderr)
+            node.abort()
             code = EXIT_OUTPUT
+        else:
+            try:
+                summary = node.close()
+                print(f'gnsscam_record: wrote {summary.path}: '
+                      + ', '.join(f'{k} {v}' for k, v in summary.counts.items()))
+            except BagError as err:
+                print(f'gnsscam_record: {err}', file=sys.stderr)
+                code = EXIT_OUTPUT
         node.destroy_node()
     rclpy.try_shutdown()
     return code

@@ -32,8 +32,16 @@ The CLI starts with the Fast DDS profile of :mod:`.launch` (a shared-memory segm
 enough for camera images) unless ``FASTRTPS_DEFAULT_PROFILES_FILE`` is set or
 ``--no-dds-profile`` is given.
 
+``--namespace NS`` plays into ``NS``: the topics are published under it (as the nodes'
+``__ns:=NS``), whether the bag's topics were written under ``NS`` or at the root.
+
 Exit codes of the CLI: 0 done (also on Ctrl-C: the replay stops after the current
-message), 2 bad usage, 3 the bag is missing, unreadable or has an unknown message type.
+message), 2 bad usage, 3 bad input: the bag is missing, unreadable, truncated or empty,
+has an unknown message type, a topic of the gnsscam_ros graph with another type than the
+nodes use (e.g. ``std_msgs/msg/String`` on ``gnss/pseudoranges``: refused before anything
+is published), or a message that does not decode (the replay stops there); 4 the
+``--json`` file exists or cannot be written. Every error is one line naming the bag (and
+the topic and bag time where one is at fault).
 
 ``python -m gnsscam_ros.bench.replay`` measures replay through the nodes at 10,000
 particles (speed as a multiple of real time, dropped GNSS epochs).
@@ -48,9 +56,10 @@ from pathlib import Path
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
+from rclpy.validate_namespace import validate_namespace
 
 from ..bags.errors import BagError
-from ..io.atomic import write_json_atomic
+from ..io.atomic import check_writable, write_json_atomic
 from .chain import ReplayOptions, replay_through_nodes
 from .launch import LAYOUTS, use_dds_profile
 from .player import BagReplayer
@@ -61,7 +70,7 @@ from .summary import ReplaySummary
 __all__ = ['BagReplayer', 'LAYOUTS', 'ReplayOptions', 'ReplaySummary', 'build_parser', 'main',
            'replay_through_nodes', 'use_dds_profile']
 
-EXIT_OK, EXIT_USAGE, EXIT_INPUT = 0, 2, 3
+EXIT_OK, EXIT_USAGE, EXIT_INPUT, EXIT_OUTPUT = 0, 2, 3, 4
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -86,7 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument('--wait', type=float, default=10.0, metavar='SECONDS',
                         help='longest wait for the nodes to appear (default %(default)s)')
     parser.add_argument('--namespace', default='/',
-                        help='namespace the bag topics were written under (default /)')
+                        help='namespace to play into: the topics are published under it, '
+                        'where nodes started with __ns:=NAMESPACE listen; the bag\'s topics '
+                        'may be written under it or at the root (default /)')
     parser.add_argument('--no-dds-profile', action='store_true',
                         help='keep Fast DDS\'s default transports (by default the replay '
                         'uses a shared-memory segment large enough for camera images, unless '
@@ -102,20 +113,42 @@ def main(argv: list[str] | None = None) -> int:
     ros_at = args_all.index('--ros-args') if '--ros-args' in args_all else len(args_all)
     parser = build_parser()
     args = parser.parse_args(args_all[:ros_at])
-    if args.json is not None and args.json.exists():
+    if args.json is not None and (args.json.exists() or args.json.is_symlink()):
         print(f'gnsscam_replay: {args.json} exists; not overwriting', file=sys.stderr)
+        return EXIT_OUTPUT
+    if args.json is not None:
+        try:
+            check_writable(args.json)       # said now, not after the whole run
+        except OSError as err:
+            print(f'gnsscam_replay: cannot write {args.json}: {err.strerror or err}',
+                  file=sys.stderr)
+            return EXIT_OUTPUT
+    try:
+        # The node's namespace, as __ns:= gives it (a remap in --ros-args still wins).
+        namespace = '/' + args.namespace.strip('/')
+        validate_namespace(namespace)
+    except Exception as err:            # rclpy's InvalidNamespaceException and kin
+        print(f'gnsscam_replay: --namespace {args.namespace!r}: '
+              f'{str(err).splitlines()[0]}', file=sys.stderr)
         return EXIT_USAGE
     if not args.no_dds_profile:
         use_dds_profile(Path(tempfile.gettempdir()) / f'gnsscam_replay_{os.getuid()}')
-    rclpy.init(args=['gnsscam_replay'] + args_all[ros_at:])
+    try:
+        rclpy.init(args=['gnsscam_replay'] + args_all[ros_at:])
+    except Exception as err:            # malformed --ros-args (rcl's own message)
+        print(f'gnsscam_replay: bad ROS arguments: {str(err).splitlines()[0]}',
+              file=sys.stderr)
+        return EXIT_USAGE
     node = None
     summary = None
     code = EXIT_OK
     try:
+        # bag_namespace None: the bag's topics are found under --namespace or at the root,
+        # and published under --namespace either way.
         node = BagReplayer(args.bag, rate=args.rate, start_s=args.start, topics=args.topics,
                            flow_control=not args.no_flow_control,
                            ack_timeout_s=args.ack_timeout, wait_s=args.wait,
-                           bag_namespace=args.namespace)
+                           bag_namespace=None, namespace=namespace)
         summary = node.play()
     except (BagError, ValueError) as err:
         print(f'gnsscam_replay: {err}', file=sys.stderr)
@@ -129,7 +162,11 @@ def main(argv: list[str] | None = None) -> int:
     if summary is not None:
         print(summary.text())
         if args.json is not None:
-            write_json_atomic(args.json, summary.as_dict())
+            try:
+                write_json_atomic(args.json, summary.as_dict())
+            except (OSError, ValueError) as err:
+                print(f'gnsscam_replay: cannot write {args.json}: {err}', file=sys.stderr)
+                code = code or EXIT_OUTPUT
     return code
 
 

@@ -14,6 +14,20 @@ words the query and the image share: it is accumulated from the inverted file (t
 images and their ``d_i``) of each query word.
 
 A database is stored as one uncompressed ``.npz`` (no pickled objects), written atomically.
+
+**Untrusted files.** A database file, a positions CSV and the images it names may come from
+anyone, so what is read is bounded and checked before use:
+
+* :meth:`MapDatabase.load` reads the zip directory and every member's ``.npy`` header
+  first and refuses, before allocating anything, a file whose members declare more than
+  :data:`MAX_DATABASE_BYTES` in all, or an array larger than the bytes its member holds (a
+  "zip bomb"); then it checks what it loaded (array shapes, word and image indices in
+  range, finite weights, positions within :data:`MAX_POSITION_M` of the origin and valid
+  latitudes/longitudes, ORB settings OpenCV accepts).
+* :func:`read_positions_csv` skips rows whose position is not finite or out of range, and
+  :meth:`MapDatabase.build_from_files` rows whose ``filename`` resolves outside the image
+  folder (an absolute path, ``..``, or a symbolic link leading out) or lies more than
+  :data:`MAX_POSITION_M` from the origin, by name with the reason.
 """
 from __future__ import annotations
 
@@ -21,6 +35,7 @@ import csv
 import json
 import math
 import os
+import stat
 import tempfile
 import threading
 import time
@@ -33,15 +48,31 @@ import numpy as np
 from scipy import sparse
 
 from ..core.frames import LocalFrame
-from .errors import ImageError, MapDatabaseError
+from .errors import ImageError, MapDatabaseError, MapDatabaseOutputError
 from .features import DESCRIPTOR_BYTES, OrbExtractor, OrbParams, load_gray
-from .vocab_tree import VocabularyTree
+from .vocab_tree import _MAX_LEAVES, VocabularyTree
 
 FORMAT_NAME = 'gnsscam_mapdb'
 FORMAT_VERSION = 1
 
 WGS84_COLUMNS = ('lat', 'lon', 'alt_m')          # degrees, degrees, metres (ellipsoidal)
 LOCAL_COLUMNS = ('east_m', 'north_m', 'up_m')    # metres in the local ENU (map) frame
+
+#: Largest coordinate of a database position [m]: local east/north/up and altitude, and
+#: the ENU offset of a WGS84 position from the origin (a map spans a city, not the globe;
+#: 1e300 would overflow the filter downstream).
+MAX_POSITION_M = 1.0e7
+#: Most bytes the members of a database file may declare in all (uncompressed); a database
+#: of 2,000 images takes 17 MB.
+MAX_DATABASE_BYTES = 2 * 1024 ** 3
+#: Largest positions CSV read [bytes] (~50 bytes a row).
+MAX_CSV_BYTES = 256 * 1024 ** 2
+#: The arrays a database file holds (FORMAT_VERSION 1); other members are never read.
+DATABASE_KEYS = ('format', 'version', 'score_levels', 'filenames', 'n_features',
+                 'pos_columns', 'pos_values', 'pos_enu_m', 'pos_llh', 'pos_origin_llh',
+                 'orb_params', 'meta', 'tree_branching', 'tree_depth', 'tree_centres',
+                 'tree_valid', 'inv_n_images', 'inv_idf', 'inv_indptr', 'inv_images',
+                 'inv_weights')
 
 #: ``progress(stage, done, total)``; called from the building thread.
 ProgressFn = Callable[[str, int, int], None]
@@ -275,6 +306,12 @@ def read_positions_csv(path: str | os.PathLike
     """
     path = os.fspath(path)
     try:
+        info = os.stat(path)
+        if not stat.S_ISREG(info.st_mode):
+            raise MapDatabaseError(f'{path}: positions CSV is not a regular file')
+        if info.st_size > MAX_CSV_BYTES:
+            raise MapDatabaseError(f'{path}: positions CSV of {info.st_size / 1e6:.0f} MB is '
+                                   f'larger than {MAX_CSV_BYTES / 1e6:.0f} MB')
         with open(path, newline='', encoding='utf-8-sig') as f:
             reader = csv.reader(f)
             header = next(reader, None)
@@ -283,7 +320,10 @@ def read_positions_csv(path: str | os.PathLike
             lines = [(reader.line_num, r) for r in reader]
     except FileNotFoundError as err:
         raise MapDatabaseError(f'{path}: no such positions CSV') from err
-    except (OSError, UnicodeDecodeError, csv.Error) as err:
+    except UnicodeDecodeError as err:
+        raise MapDatabaseError(f'{path}: cannot read positions CSV (not UTF-8 text: '
+                               f'{err.reason})') from err
+    except (OSError, csv.Error, ValueError) as err:
         raise MapDatabaseError(f'{path}: cannot read positions CSV ({err})') from err
     key = {h.strip().lower(): i for i, h in enumerate(header)}
     if 'filename' not in key:
@@ -318,9 +358,41 @@ def read_positions_csv(path: str | os.PathLike
         if abs(lowered.get('lat', 0.0)) > 90 or abs(lowered.get('lon', 0.0)) > 180:
             skipped.append(SkippedImage(name, 'latitude/longitude out of range', line))
             continue
+        metres = [abs(v) for c, v in lowered.items() if c not in ('lat', 'lon')]
+        if metres and max(metres) > MAX_POSITION_M:
+            skipped.append(SkippedImage(name, f'position value out of range (|value| > '
+                                              f'{MAX_POSITION_M:g} m)', line))
+            continue
         seen.add(name)
         rows.append((line, name, vals))
     return rows, names, skipped
+
+
+def _no_usable_image(positions_csv, report: BuildReport) -> MapDatabaseError:
+    """The error of a build without a single usable row; ``.skipped`` says why each row
+    was left out (the command line prints them)."""
+    err = MapDatabaseError(f'{os.fspath(positions_csv)}: no usable image '
+                           f'({len(report.skipped)} rows skipped)')
+    err.skipped = list(report.skipped)
+    return err
+
+
+def _outside(images_dir: str, name: str) -> str | None:
+    """Why the CSV file name ``name`` may not be read from ``images_dir``, or None.
+
+    Refused: a NUL byte, and any name whose real path (symbolic links followed) is not
+    inside the real path of ``images_dir`` (absolute names, ``..``, links leading out).
+    """
+    if '\x00' in name:
+        return 'file name contains a NUL byte'
+    try:
+        root = os.path.realpath(images_dir)
+        target = os.path.realpath(os.path.join(images_dir, name))
+    except (OSError, ValueError) as err:
+        return f'file name cannot be resolved ({err})'
+    if os.path.commonpath([root, target]) != root or target == root:
+        return f'resolves outside the image folder {images_dir} (to {target}); not read'
+    return None
 
 
 # ======================================================================== matches
@@ -481,6 +553,16 @@ class MapDatabase:
         t0 = time.perf_counter()
         rows, columns, report.skipped = read_positions_csv(positions_csv)
         report.n_rows = len(rows) + len(report.skipped)
+        # A file name is the CSV author's, not a licence to read any file: one that
+        # resolves outside the image folder is skipped unread.
+        inside = []
+        for row in rows:
+            reason = _outside(images_dir, row[1])
+            if reason is None:
+                inside.append(row)
+            else:
+                report.skipped.append(SkippedImage(row[1], reason, row[0]))
+        rows = inside
         orb_params = orb_params or OrbParams()
         local = threading.local()
 
@@ -512,15 +594,29 @@ class MapDatabase:
                 if progress and ((k + 1) % 25 == 0 or k + 1 == len(rows)):
                     progress('features', k + 1, len(rows))
         report.seconds['features'] = time.perf_counter() - t0
-        report.skipped.sort(key=lambda s: (s.line is None, s.line or 0))
         if not kept:
-            raise MapDatabaseError(f'{positions_csv}: no usable image '
-                                   f'({len(report.skipped)} rows skipped)')
+            report.skipped.sort(key=lambda s: (s.line is None, s.line or 0))
+            raise _no_usable_image(positions_csv, report)
         try:
             positions = PositionTable.from_columns(
                 columns, np.array([r[2] for r in kept]), origin_llh)
+            # WGS84 rows far from the origin (another continent) give ENU offsets no map
+            # of one area has: skipped by name like any other unusable row.
+            far = ~np.all(np.abs(positions.enu_m) <= MAX_POSITION_M, axis=1)
+            if far.any():
+                for k in np.flatnonzero(far):
+                    report.skipped.append(SkippedImage(
+                        kept[k][1], f'more than {MAX_POSITION_M:g} m from the origin',
+                        kept[k][0]))
+                descs = [d for d, f in zip(descs, far) if not f]
+                kept = [r for r, f in zip(kept, far) if not f]
+                if not kept:
+                    report.skipped.sort(key=lambda s: (s.line is None, s.line or 0))
+                    raise _no_usable_image(positions_csv, report)
+                positions = positions.subset(~far)
         except ValueError as err:
             raise MapDatabaseError(f'{positions_csv}: {err}') from err
+        report.skipped.sort(key=lambda s: (s.line is None, s.line or 0))
         t1 = time.perf_counter()
         db = cls.build(descs, [r[1] for r in kept], positions, orb_params=orb_params,
                        progress=progress, **build_kwargs)
@@ -607,8 +703,8 @@ class MapDatabase:
             MapDatabaseError: if ``path`` exists and ``overwrite`` is False, or on I/O error.
         """
         path = os.fspath(path)
-        if os.path.exists(path) and not overwrite:
-            raise MapDatabaseError(f'{path}: already exists (use --force to overwrite)')
+        if os.path.lexists(path) and not overwrite:
+            raise MapDatabaseOutputError(f'{path}: already exists (use --force to overwrite)')
         directory = os.path.dirname(os.path.abspath(path))
         tmp = None
         try:
@@ -618,12 +714,14 @@ class MapDatabase:
                 np.savez(f, **self.to_arrays())   # a file object: no '.npz' appended
                 f.flush()
                 os.fsync(f.fileno())
-            if os.path.exists(path) and not overwrite:   # appeared while writing
-                raise MapDatabaseError(f'{path}: already exists (use --force to overwrite)')
+            if os.path.lexists(path) and not overwrite:   # appeared while writing
+                raise MapDatabaseOutputError(f'{path}: already exists (use --force to '
+                                             'overwrite)')
             os.replace(tmp, path)
             tmp = None
         except OSError as err:
-            raise MapDatabaseError(f'{path}: cannot write database ({err})') from err
+            raise MapDatabaseOutputError(f'{path}: cannot write database '
+                                         f'({err.strerror or err})') from err
         finally:
             if tmp is not None and os.path.exists(tmp):
                 os.unlink(tmp)
@@ -638,18 +736,25 @@ class MapDatabase:
         """
         path = os.fspath(path)
         try:
+            _check_npz(path)
             with np.load(path, allow_pickle=False) as z:
-                a = {k: z[k] for k in z.files}
+                # Only the known arrays (each checked by _check_npz); others are not read.
+                a = {k: z[k] for k in DATABASE_KEYS}
         except FileNotFoundError as err:
             raise MapDatabaseError(f'{path}: no such database file') from err
-        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
-            raise MapDatabaseError(f'{path}: not a readable map database ({err})') from err
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError,
+                NotImplementedError, RuntimeError) as err:
+            # NotImplementedError, RuntimeError: zipfile on an unsupported compression or
+            # an encrypted member.
+            raise MapDatabaseError(f'{path}: not a readable map database '
+                                   f'({type(err).__name__}: {err})') from err
         try:
             if str(a['format']) != FORMAT_NAME:
-                raise ValueError(f'format is {str(a["format"])!r}')
+                raise ValueError(f'format is {str(a["format"])[:80]!r}')
             if int(a['version']) != FORMAT_VERSION:
                 raise ValueError(f'format version {int(a["version"])}, this code reads '
                                  f'{FORMAT_VERSION}')
+            _check_arrays(a)
             origin = a['pos_origin_llh']
             positions = PositionTable(
                 tuple(str(c) for c in a['pos_columns']), a['pos_values'], a['pos_enu_m'],
@@ -659,5 +764,106 @@ class MapDatabase:
                        [str(f) for f in a['filenames']], positions,
                        OrbParams(**json.loads(str(a['orb_params']))),
                        int(a['score_levels']), a['n_features'], json.loads(str(a['meta'])))
-        except (KeyError, ValueError, TypeError) as err:
-            raise MapDatabaseError(f'{path}: not a valid map database ({err})') from err
+        except (KeyError, ValueError, TypeError, IndexError, OverflowError,
+                RecursionError) as err:
+            # Parsing an untrusted file: any of these means "not what save() writes"
+            # (RecursionError: absurdly nested JSON in meta or orb_params).
+            raise MapDatabaseError(f'{path}: not a valid map database '
+                                   f'({type(err).__name__}: {err})') from err
+
+
+def _check_npz(path: str) -> None:
+    """Refuse a database file before allocating its arrays (see the module docstring).
+
+    Reads only the zip directory and the ``.npy`` header of each known member.
+
+    Raises:
+        MapDatabaseError: Not a regular file, a missing member, an object array, sizes
+            beyond :data:`MAX_DATABASE_BYTES`, or an array larger than its member.
+        OSError, zipfile.BadZipFile, ValueError: Unreadable file or header (the caller
+            names the file).
+    """
+    if not stat.S_ISREG(os.stat(path).st_mode):
+        raise MapDatabaseError(f'{path}: not a regular file')
+    with zipfile.ZipFile(path) as zf:
+        infos = {i.filename: i for i in zf.infolist()}
+        declared = sum(i.file_size for i in infos.values())
+        if declared > MAX_DATABASE_BYTES:
+            raise MapDatabaseError(f'{path}: its members declare {declared / 1e6:.0f} MB, more '
+                                   f'than a map database may hold '
+                                   f'({MAX_DATABASE_BYTES / 1e6:.0f} MB); not loaded')
+        for key in DATABASE_KEYS:
+            info = infos.get(key + '.npy')
+            if info is None:
+                raise MapDatabaseError(f'{path}: not a valid map database (no array {key!r})')
+            with zf.open(info) as f:
+                version = np.lib.format.read_magic(f)
+                if version == (1, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_1_0(f)
+                elif version == (2, 0):
+                    shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+                else:
+                    raise MapDatabaseError(f'{path}: array {key!r} has .npy format '
+                                           f'{version}, not 1.0 or 2.0')
+                header = f.tell()
+            if dtype.hasobject:
+                raise MapDatabaseError(f'{path}: array {key!r} holds Python objects')
+            wanted = math.prod(shape) * dtype.itemsize
+            if wanted > info.file_size - header:
+                # numpy allocates the declared array before reading it: a few bytes that
+                # declare terabytes would end in MemoryError.
+                raise MapDatabaseError(f'{path}: array {key!r} declares {shape} {dtype} '
+                                       f'({wanted / 1e6:.3g} MB) but its member holds '
+                                       f'{(info.file_size - header) / 1e6:.3g} MB; not loaded')
+
+
+def _check_arrays(a: dict) -> None:
+    """Shapes, ranges and indices of a loaded database (ValueError naming the array)."""
+    n = int(a['inv_n_images'])
+    names = a['filenames']
+    if names.ndim != 1 or names.shape[0] != n or n < 1:
+        raise ValueError(f'{names.shape[0] if names.ndim == 1 else names.shape} file names '
+                         f'for {n} images')
+    _require(np.asarray(a['n_features']).shape == (n,) and np.all(a['n_features'] >= 0),
+             'n_features')
+    columns = a['pos_columns']
+    values = a['pos_values']
+    _require(columns.ndim == 1 and values.shape == (n, columns.shape[0]), 'pos_values shape')
+    _require(values.dtype.kind == 'f' and np.all(np.isfinite(values)), 'pos_values finite')
+    enu = a['pos_enu_m']
+    _require(enu.shape == (n, 3) and enu.dtype.kind == 'f', 'pos_enu_m shape')
+    if not np.all(np.abs(enu) <= MAX_POSITION_M):     # NaN fails too
+        raise ValueError(f'pos_enu_m: positions not finite or beyond {MAX_POSITION_M:g} m')
+    llh = a['pos_llh']
+    if llh.size:
+        _require(llh.shape == (n, 3) and llh.dtype.kind == 'f', 'pos_llh shape')
+        _check_llh(llh, 'pos_llh')
+    origin = a['pos_origin_llh']
+    if origin.size:
+        _require(origin.shape == (3,) and origin.dtype.kind == 'f', 'pos_origin_llh shape')
+        _check_llh(origin.reshape(1, 3), 'pos_origin_llh')
+    branching, depth = int(a['tree_branching']), int(a['tree_depth'])
+    if not (2 <= branching <= 1024 and 1 <= depth <= 32
+            and branching ** depth <= _MAX_LEAVES):
+        raise ValueError(f'tree branching {branching} and depth {depth} out of range')
+    idf, indptr = a['inv_idf'], a['inv_indptr']
+    images, weights = a['inv_images'], a['inv_weights']
+    _require(idf.ndim == 1 and np.all(np.isfinite(idf)) and np.all(idf >= 0), 'inv_idf')
+    _require(indptr.ndim == 1 and indptr.dtype.kind in 'iu' and indptr.size == idf.size + 1
+             and np.all(np.diff(indptr) >= 0), 'inv_indptr')
+    _require(images.ndim == 1 and images.dtype.kind in 'iu'
+             and (images.size == 0 or (images.min() >= 0 and images.max() < n)),
+             'inv_images (image index out of range)')
+    _require(weights.shape == images.shape and np.all(np.isfinite(weights))
+             and np.all(weights >= 0), 'inv_weights')
+
+
+def _check_llh(llh: np.ndarray, name: str) -> None:
+    if not (np.all(np.abs(llh[:, 0]) <= 90) and np.all(np.abs(llh[:, 1]) <= 180)
+            and np.all(np.abs(llh[:, 2]) <= MAX_POSITION_M)):
+        raise ValueError(f'{name}: latitude, longitude or altitude out of range')
+
+
+def _require(ok, what: str) -> None:
+    if not ok:
+        raise ValueError(f'{what} inconsistent')

@@ -6,29 +6,38 @@ Usage::
     gnsscam_mapdb query --db DB IMAGE... [--top-k 5] [--json out.json]
     gnsscam_mapdb bench [--n-images 2000] [--n-queries 200] [--bf-queries 20]
 
-Exit codes: 0 success, 1 error (message on stderr naming the file), 2 bad usage.
+Exit codes: 0 success, 2 bad usage, 3 bad input (an image, the positions CSV or the
+database is missing, unreadable, corrupt, too large or out of range; ``query`` answers the
+other images and then exits 3), 4 output refused or failed (``--out``/``--json`` exists
+without ``--force``, or cannot be written; nothing is left behind), 130 interrupted.
+Every error is one line on stderr naming the file (and the CSV line where there is one).
+``build`` skips unusable rows by name with the reason (missing, unreadable, featureless or
+too small/large image, position out of range, file name resolving outside ``--images``).
 Progress and reports go to stderr; results to stdout.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import shutil
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from .database import MapDatabase
-from .errors import VisionError
+from ..io.atomic import check_writable, write_json_atomic
+from .database import MAX_POSITION_M, MapDatabase
+from .errors import MapDatabaseOutputError, VisionError
 from .features import OrbExtractor, OrbParams, load_gray
 from .synthetic import perturb_view, synthetic_scene
+from .vocab_tree import _MAX_LEAVES as MAX_LEAVES
 
 PROG = 'gnsscam_mapdb'
+EXIT_OK, EXIT_USAGE, EXIT_INPUT, EXIT_OUTPUT, EXIT_INTERRUPTED = 0, 2, 3, 4, 130
 
 
 # ============================================================================ progress
@@ -66,7 +75,12 @@ def _origin(text: str) -> tuple[float, float, float]:
         vals = []
     if len(vals) not in (2, 3):
         raise argparse.ArgumentTypeError(f'expected LAT,LON[,ALT], got {text!r}')
-    return (vals[0], vals[1], vals[2] if len(vals) == 3 else 0.0)
+    lat, lon, alt = vals[0], vals[1], vals[2] if len(vals) == 3 else 0.0
+    if not (abs(lat) <= 90 and abs(lon) <= 180 and abs(alt) <= MAX_POSITION_M):
+        raise argparse.ArgumentTypeError(f'expected latitude in [-90, 90], longitude in '
+                                         f'[-180, 180] and |altitude| <= '
+                                         f'{MAX_POSITION_M:g} m, got {text!r}')
+    return (lat, lon, alt)
 
 
 def _positive(kind):
@@ -103,10 +117,57 @@ def _add_build_options(p: argparse.ArgumentParser) -> None:
 
 
 def _build_kwargs(args) -> dict:
+    """The build settings; ValueError (a usage error) for values the build would refuse
+    only after extracting every image's features."""
+    if args.branching < 2:
+        raise ValueError(f'--branching must be >= 2, got {args.branching}')
+    if args.branching ** args.depth > MAX_LEAVES:
+        raise ValueError(f'--branching ** --depth = {args.branching ** args.depth} leaves, '
+                         f'more than {MAX_LEAVES}')
+    if args.score_levels > args.depth:
+        raise ValueError(f'--score-levels must be <= --depth, got {args.score_levels}')
     return dict(orb_params=OrbParams(nfeatures=args.nfeatures, n_levels=args.orb_levels),
                 branching=args.branching, depth=args.depth, score_levels=args.score_levels,
                 iterations=args.iterations, seed=args.seed,
                 max_train_descriptors=args.max_train, jobs=args.jobs)
+
+
+def _usage(err: ValueError) -> int:
+    _err(str(err))
+    return EXIT_USAGE
+
+
+def _output_refused(path: str | None, force: bool) -> bool:
+    """Say so and return True when ``path`` cannot be written: it exists without
+    ``--force``, or its folder is missing or not a folder (checked before any work)."""
+    if path is None:
+        return False
+    if os.path.lexists(path) and not force:
+        _err(f'{path}: already exists (use --force to overwrite)')
+        return True
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        _err(f'{path}: cannot write here: no such folder {folder}')
+        return True
+    if os.path.isdir(path):
+        _err(f'{path}: is a folder')
+        return True
+    try:
+        check_writable(Path(path))      # a read-only folder: said before any work
+    except OSError as err:
+        _err(f'{path}: cannot write here ({err.strerror or err})')
+        return True
+    return False
+
+
+def _write_json(path: str, data, force: bool) -> int:
+    """Write JSON atomically (never over an existing file without ``force``)."""
+    try:
+        write_json_atomic(Path(path), data, force=force)
+    except (OSError, ValueError) as err:      # OutputExistsError is an OSError
+        _err(f'{path}: cannot write JSON ({getattr(err, "strerror", None) or err})')
+        return EXIT_OUTPUT
+    return EXIT_OK
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -133,6 +194,7 @@ def _parser() -> argparse.ArgumentParser:
     q.add_argument('images', nargs='+', metavar='IMAGE', help='query image files')
     q.add_argument('--top-k', type=_positive(int), default=5, help='matches per image')
     q.add_argument('--json', metavar='FILE', help='also write the results as JSON')
+    q.add_argument('--force', action='store_true', help='replace an existing --json file')
 
     bn = sub.add_parser('bench', help='synthetic benchmark: build, load, query latency and '
                         'accuracy vs brute-force matching')
@@ -143,6 +205,7 @@ def _parser() -> argparse.ArgumentParser:
     bn.add_argument('--bench-seed', type=int, default=0, help='scene/query seed')
     bn.add_argument('--workdir', help='keep images and database here (default: temp dir)')
     bn.add_argument('--json', metavar='FILE', help='also write the figures as JSON')
+    bn.add_argument('--force', action='store_true', help='replace an existing --json file')
     bn.add_argument('--quiet', action='store_true', help='no progress output')
     _add_build_options(bn)
     return ap
@@ -151,13 +214,21 @@ def _parser() -> argparse.ArgumentParser:
 # ============================================================================== build
 def _cmd_build(args) -> int:
     progress = _Progress(not args.quiet)
-    if os.path.exists(args.out) and not args.force:
-        _err(f'{args.out}: already exists (use --force to overwrite)')
-        return 1
-    kw = _build_kwargs(args)
+    if _output_refused(args.out, args.force):
+        return EXIT_OUTPUT
+    try:
+        kw = _build_kwargs(args)
+    except ValueError as err:
+        return _usage(err)
     t0 = time.perf_counter()
-    db, report = MapDatabase.build_from_files(args.images, args.positions,
-                                              origin_llh=args.origin, progress=progress, **kw)
+    try:
+        db, report = MapDatabase.build_from_files(args.images, args.positions,
+                                                  origin_llh=args.origin, progress=progress,
+                                                  **kw)
+    except VisionError as err:
+        for s in getattr(err, 'skipped', ()):      # why no row was usable
+            print(f'{PROG}: skipped {s}', file=sys.stderr)
+        raise
     t1 = time.perf_counter()
     size = db.save(args.out, overwrite=args.force)
     for s in report.skipped:
@@ -166,11 +237,13 @@ def _cmd_build(args) -> int:
           f'{report.n_rows} rows), {report.n_descriptors} descriptors, '
           f'{db.tree.n_leaves} leaves, {size / 1e6:.1f} MB; built in {t1 - t0:.1f} s '
           f'({report.n_rows / (t1 - t0):.0f} images/s)', file=sys.stderr)
-    return 0
+    return EXIT_OK
 
 
 # ============================================================================== query
 def _cmd_query(args) -> int:
+    if _output_refused(args.json, args.force):      # before loading anything
+        return EXIT_OUTPUT
     db = MapDatabase.load(args.db)
     results, failed = [], 0
     for path in args.images:
@@ -178,8 +251,10 @@ def _cmd_query(args) -> int:
         try:
             matches = db.query(load_gray(path), top_k=args.top_k)
         except VisionError as err:
-            _err(str(err))
-            entry['error'] = str(err)
+            # load_gray names the file; the extractor's errors (too small) do not.
+            text = str(err) if str(err).startswith(f'{path}: ') else f'{path}: {err}'
+            _err(text)
+            entry['error'] = text
             failed += 1
             results.append(entry)
             continue
@@ -191,15 +266,9 @@ def _cmd_query(args) -> int:
         for rank, m in enumerate(matches, 1):
             pos = ' '.join(f'{k}={v:.9g}' for k, v in m.columns.items())
             print(f'  {rank}. {m.filename}  score {m.score:.4f}  {pos}')
-    if args.json:
-        try:
-            with open(args.json, 'w', encoding='utf-8') as f:
-                json.dump(results, f, indent=2)
-                f.write('\n')
-        except OSError as err:
-            _err(f'{args.json}: cannot write JSON ({err.strerror or err})')
-            return 1
-    return 1 if failed else 0
+    if args.json and _write_json(args.json, results, args.force) != EXIT_OK:
+        return EXIT_OUTPUT
+    return EXIT_INPUT if failed else EXIT_OK
 
 
 # ===================================================================== synthetic data
@@ -240,8 +309,19 @@ def _brute_force_best(bf: cv2.BFMatcher, qd: np.ndarray, db_desc: list[np.ndarra
 
 def _cmd_bench(args) -> int:
     progress = _Progress(not args.quiet)
-    work = args.workdir or tempfile.mkdtemp(prefix='gnsscam_mapdb_bench_')
-    os.makedirs(work, exist_ok=True)
+    if _output_refused(args.json, args.force):
+        return EXIT_OUTPUT
+    try:
+        _build_kwargs(args)
+    except ValueError as err:
+        return _usage(err)
+    try:
+        work = args.workdir or tempfile.mkdtemp(prefix='gnsscam_mapdb_bench_')
+        os.makedirs(work, exist_ok=True)
+    except OSError as err:
+        _err(f'{args.workdir or tempfile.gettempdir()}: cannot write here '
+             f'({err.strerror or err})')
+        return EXIT_OUTPUT
     try:
         return _bench(args, work, progress)
     finally:
@@ -344,10 +424,8 @@ def _bench(args, work: str, progress) -> int:
         })
     _print_bench(fig)
     if args.json:
-        with open(args.json, 'w', encoding='utf-8') as f:
-            json.dump(fig, f, indent=2)
-            f.write('\n')
-    return 0
+        return _write_json(args.json, fig, args.force)
+    return EXIT_OK
 
 
 def _print_bench(f: dict) -> None:
@@ -378,15 +456,24 @@ def _print_bench(f: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``gnsscam_mapdb``; returns the exit code."""
     args = _parser().parse_args(argv)
+    # OpenCV logs its codecs' complaints ("PNG input buffer is incomplete") on stderr; the
+    # tool says what matters on one line naming the file, so they stay silent meanwhile.
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
         return {'build': _cmd_build, 'query': _cmd_query, 'bench': _cmd_bench}[
             args.command](args)
+    except MapDatabaseOutputError as err:
+        _err(str(err))
+        return EXIT_OUTPUT
     except VisionError as err:
         _err(str(err))
-        return 1
+        return EXIT_INPUT
     except KeyboardInterrupt:
         _err('interrupted')
-        return 130
+        return EXIT_INTERRUPTED
+    finally:
+        cv2.utils.logging.setLogLevel(level)
 
 
 if __name__ == '__main__':
