@@ -20,10 +20,11 @@ anyone, so what is read is bounded and checked before use:
 
 * :meth:`MapDatabase.load` reads the zip directory and every member's ``.npy`` header
   first and refuses, before allocating anything, a file whose members declare more than
-  :data:`MAX_DATABASE_BYTES` in all, or an array larger than the bytes its member holds (a
-  "zip bomb"); then it checks what it loaded (array shapes, word and image indices in
-  range, finite weights, positions within :data:`MAX_POSITION_M` of the origin and valid
-  latitudes/longitudes, ORB settings OpenCV accepts).
+  :data:`.database_checks.MAX_DATABASE_BYTES` in all, or an array larger than the bytes
+  its member holds (a "zip bomb"); then it checks what it loaded (array shapes, word and
+  image indices in range, finite weights, positions within
+  :data:`.positions.MAX_POSITION_M` of the origin and valid latitudes/longitudes, ORB
+  settings OpenCV accepts).
 * :func:`read_positions_csv` skips rows whose position is not finite or out of range, and
   :meth:`MapDatabase.build_from_files` rows whose ``filename`` resolves outside the image
   folder (an absolute path, ``..``, or a symbolic link leading out) or lies more than
@@ -31,11 +32,8 @@ anyone, so what is read is bounded and checked before use:
 """
 from __future__ import annotations
 
-import csv
 import json
-import math
 import os
-import stat
 import tempfile
 import threading
 import time
@@ -50,29 +48,14 @@ from scipy import sparse
 from ..core.frames import LocalFrame
 from .errors import ImageError, MapDatabaseError, MapDatabaseOutputError
 from .features import DESCRIPTOR_BYTES, OrbExtractor, OrbParams, load_gray
-from .vocab_tree import _MAX_LEAVES, VocabularyTree
+from .database_checks import DATABASE_KEYS, _check_arrays, _check_npz
+from .positions import (MAX_POSITION_M, PositionTable, SkippedImage, _outside,
+                        read_positions_csv)
+from .vocab_tree import VocabularyTree
 
 FORMAT_NAME = 'gnsscam_mapdb'
 FORMAT_VERSION = 1
 
-WGS84_COLUMNS = ('lat', 'lon', 'alt_m')          # degrees, degrees, metres (ellipsoidal)
-LOCAL_COLUMNS = ('east_m', 'north_m', 'up_m')    # metres in the local ENU (map) frame
-
-#: Largest coordinate of a database position [m]: local east/north/up and altitude, and
-#: the ENU offset of a WGS84 position from the origin (a map spans a city, not the globe;
-#: 1e300 would overflow the filter downstream).
-MAX_POSITION_M = 1.0e7
-#: Most bytes the members of a database file may declare in all (uncompressed); a database
-#: of 2,000 images takes 17 MB.
-MAX_DATABASE_BYTES = 2 * 1024 ** 3
-#: Largest positions CSV read [bytes] (~50 bytes a row).
-MAX_CSV_BYTES = 256 * 1024 ** 2
-#: The arrays a database file holds (FORMAT_VERSION 1); other members are never read.
-DATABASE_KEYS = ('format', 'version', 'score_levels', 'filenames', 'n_features',
-                 'pos_columns', 'pos_values', 'pos_enu_m', 'pos_llh', 'pos_origin_llh',
-                 'orb_params', 'meta', 'tree_branching', 'tree_depth', 'tree_centres',
-                 'tree_valid', 'inv_n_images', 'inv_idf', 'inv_indptr', 'inv_images',
-                 'inv_weights')
 
 #: ``progress(stage, done, total)``; called from the building thread.
 ProgressFn = Callable[[str, int, int], None]
@@ -181,96 +164,6 @@ class InvertedIndex:
 
 
 # ======================================================================= positions
-@dataclass(frozen=True)
-class PositionTable:
-    """Positions of the database images.
-
-    Attributes:
-        columns: Names of the position columns as in the CSV header, in CSV order
-            (e.g. ``('lat', 'lon', 'alt_m')`` or ``('east_m', 'north_m')``).
-        values: (N, C) float64 values of those columns, as given.
-        enu_m: (N, 3) east, north, up [m] in the database's local frame (for WGS84 input:
-            the frame at ``origin_llh``; for local input: the coordinates as given, up = 0
-            when absent).
-        llh: (N, 3) latitude [deg], longitude [deg], ellipsoidal altitude [m] (0 when
-            absent), or None for a local-only database.
-        origin_llh: Origin of ``enu_m`` for WGS84 input, else None.
-    """
-
-    columns: tuple[str, ...]
-    values: np.ndarray
-    enu_m: np.ndarray
-    llh: np.ndarray | None = None
-    origin_llh: tuple[float, float, float] | None = None
-
-    def __len__(self) -> int:
-        return int(self.enu_m.shape[0])
-
-    def column_dict(self, i: int) -> dict[str, float]:
-        """Position columns of image ``i`` as ``{name: value}``."""
-        return {c: float(v) for c, v in zip(self.columns, self.values[i])}
-
-    def subset(self, keep: np.ndarray) -> 'PositionTable':
-        return PositionTable(self.columns, self.values[keep], self.enu_m[keep],
-                             None if self.llh is None else self.llh[keep], self.origin_llh)
-
-    @classmethod
-    def from_columns(cls, columns: Sequence[str], values: np.ndarray,
-                     origin_llh: tuple[float, float, float] | None = None
-                     ) -> 'PositionTable':
-        """Interpret position columns (names lower-cased: see module constants).
-
-        Args:
-            columns: Column names; must contain ``lat, lon`` or ``east_m, north_m``.
-            values: (N, C) float values.
-            origin_llh: Local frame origin for WGS84 input (default: the first row).
-
-        Raises:
-            ValueError: when neither column set is present or values are out of range.
-        """
-        columns = tuple(columns)
-        values = np.asarray(values, dtype=np.float64).reshape(-1, len(columns))
-        key = {c.strip().lower(): i for i, c in enumerate(columns)}
-
-        def col(name, default=0.0):
-            return values[:, key[name]] if name in key else np.full(len(values), default)
-
-        llh = None
-        if 'lat' in key and 'lon' in key:
-            llh = np.stack([col('lat'), col('lon'), col('alt_m')], axis=1)
-            if np.any(np.abs(llh[:, 0]) > 90) or np.any(np.abs(llh[:, 1]) > 180):
-                raise ValueError('latitude must be in [-90, 90] and longitude in [-180, 180]')
-        if 'east_m' in key and 'north_m' in key:
-            # Local coordinates win for the ENU array when both sets are given: they are
-            # the user's own map frame.
-            enu = np.stack([col('east_m'), col('north_m'), col('up_m')], axis=1)
-        elif llh is not None:
-            if origin_llh is None and len(llh):
-                origin_llh = tuple(float(v) for v in llh[0])
-            enu = (LocalFrame(*origin_llh).geodetic_to_enu(llh[:, 0], llh[:, 1], llh[:, 2])
-                   if len(llh) else np.zeros((0, 3)))
-        else:
-            raise ValueError(f'position columns must include lat,lon or east_m,north_m; '
-                             f'got {list(columns)}')
-        if llh is None:
-            origin_llh = None
-        return cls(columns, values, np.asarray(enu, dtype=np.float64).reshape(-1, 3), llh,
-                   None if origin_llh is None else tuple(float(v) for v in origin_llh))
-
-
-@dataclass(frozen=True)
-class SkippedImage:
-    """A CSV row or image left out of a build, and why."""
-
-    filename: str
-    reason: str
-    line: int | None = None      # CSV line number (header = 1)
-
-    def __str__(self) -> str:
-        where = f' (line {self.line})' if self.line is not None else ''
-        return f'{self.filename}{where}: {self.reason}'
-
-
 @dataclass
 class BuildReport:
     """What a build from files did."""
@@ -289,85 +182,6 @@ class BuildReport:
         return self.n_rows / total if total > 0 else float('nan')
 
 
-def read_positions_csv(path: str | os.PathLike
-                       ) -> tuple[list[tuple[int, str, list[float]]], tuple[str, ...],
-                                  list[SkippedImage]]:
-    """Read the positions CSV of a build.
-
-    The header must have ``filename`` and ``lat,lon[,alt_m]`` and/or
-    ``east_m,north_m[,up_m]`` (case-insensitive); other columns are ignored.
-
-    Returns:
-        (rows, position column names as in the header, skipped rows). Each row is
-        (line number, filename, values of the position columns).
-
-    Raises:
-        MapDatabaseError: naming the file when it is missing, unreadable or lacks columns.
-    """
-    path = os.fspath(path)
-    try:
-        info = os.stat(path)
-        if not stat.S_ISREG(info.st_mode):
-            raise MapDatabaseError(f'{path}: positions CSV is not a regular file')
-        if info.st_size > MAX_CSV_BYTES:
-            raise MapDatabaseError(f'{path}: positions CSV of {info.st_size / 1e6:.0f} MB is '
-                                   f'larger than {MAX_CSV_BYTES / 1e6:.0f} MB')
-        with open(path, newline='', encoding='utf-8-sig') as f:
-            reader = csv.reader(f)
-            header = next(reader, None)
-            if header is None:
-                raise MapDatabaseError(f'{path}: empty positions CSV (no header)')
-            lines = [(reader.line_num, r) for r in reader]
-    except FileNotFoundError as err:
-        raise MapDatabaseError(f'{path}: no such positions CSV') from err
-    except UnicodeDecodeError as err:
-        raise MapDatabaseError(f'{path}: cannot read positions CSV (not UTF-8 text: '
-                               f'{err.reason})') from err
-    except (OSError, csv.Error, ValueError) as err:
-        raise MapDatabaseError(f'{path}: cannot read positions CSV ({err})') from err
-    key = {h.strip().lower(): i for i, h in enumerate(header)}
-    if 'filename' not in key:
-        raise MapDatabaseError(f'{path}: positions CSV needs a "filename" column; header is '
-                               f'{header}')
-    wanted = [c for c in WGS84_COLUMNS + LOCAL_COLUMNS if c in key]
-    if not ({'lat', 'lon'} <= set(wanted) or {'east_m', 'north_m'} <= set(wanted)):
-        raise MapDatabaseError(f'{path}: positions CSV needs lat,lon[,alt_m] or '
-                               f'east_m,north_m[,up_m] columns; header is {header}')
-    idx = sorted(key[c] for c in wanted)          # CSV order
-    names = tuple(header[i].strip() for i in idx)
-    rows, skipped, seen = [], [], set()
-    for line, r in lines:
-        if not any(cell.strip() for cell in r):
-            continue                               # blank line
-        name = r[key['filename']].strip() if len(r) > key['filename'] else ''
-        if not name:
-            skipped.append(SkippedImage('<no filename>', 'empty filename', line))
-            continue
-        if name in seen:
-            skipped.append(SkippedImage(name, 'duplicate row for this image', line))
-            continue
-        try:
-            vals = [float(r[i]) for i in idx]
-        except (IndexError, ValueError):
-            skipped.append(SkippedImage(name, 'missing or non-numeric position value', line))
-            continue
-        if not all(math.isfinite(v) for v in vals):
-            skipped.append(SkippedImage(name, 'non-finite position value', line))
-            continue
-        lowered = {c.lower(): v for c, v in zip(names, vals)}
-        if abs(lowered.get('lat', 0.0)) > 90 or abs(lowered.get('lon', 0.0)) > 180:
-            skipped.append(SkippedImage(name, 'latitude/longitude out of range', line))
-            continue
-        metres = [abs(v) for c, v in lowered.items() if c not in ('lat', 'lon')]
-        if metres and max(metres) > MAX_POSITION_M:
-            skipped.append(SkippedImage(name, f'position value out of range (|value| > '
-                                              f'{MAX_POSITION_M:g} m)', line))
-            continue
-        seen.add(name)
-        rows.append((line, name, vals))
-    return rows, names, skipped
-
-
 def _no_usable_image(positions_csv, report: BuildReport) -> MapDatabaseError:
     """The error of a build without a single usable row; ``.skipped`` says why each row
     was left out (the command line prints them)."""
@@ -377,25 +191,6 @@ def _no_usable_image(positions_csv, report: BuildReport) -> MapDatabaseError:
     return err
 
 
-def _outside(images_dir: str, name: str) -> str | None:
-    """Why the CSV file name ``name`` may not be read from ``images_dir``, or None.
-
-    Refused: a NUL byte, and any name whose real path (symbolic links followed) is not
-    inside the real path of ``images_dir`` (absolute names, ``..``, links leading out).
-    """
-    if '\x00' in name:
-        return 'file name contains a NUL byte'
-    try:
-        root = os.path.realpath(images_dir)
-        target = os.path.realpath(os.path.join(images_dir, name))
-    except (OSError, ValueError) as err:
-        return f'file name cannot be resolved ({err})'
-    if os.path.commonpath([root, target]) != root or target == root:
-        return f'resolves outside the image folder {images_dir} (to {target}); not read'
-    return None
-
-
-# ======================================================================== matches
 @dataclass(frozen=True)
 class Match:
     """One database image returned by a query.
@@ -770,100 +565,3 @@ class MapDatabase:
             # (RecursionError: absurdly nested JSON in meta or orb_params).
             raise MapDatabaseError(f'{path}: not a valid map database '
                                    f'({type(err).__name__}: {err})') from err
-
-
-def _check_npz(path: str) -> None:
-    """Refuse a database file before allocating its arrays (see the module docstring).
-
-    Reads only the zip directory and the ``.npy`` header of each known member.
-
-    Raises:
-        MapDatabaseError: Not a regular file, a missing member, an object array, sizes
-            beyond :data:`MAX_DATABASE_BYTES`, or an array larger than its member.
-        OSError, zipfile.BadZipFile, ValueError: Unreadable file or header (the caller
-            names the file).
-    """
-    if not stat.S_ISREG(os.stat(path).st_mode):
-        raise MapDatabaseError(f'{path}: not a regular file')
-    with zipfile.ZipFile(path) as zf:
-        infos = {i.filename: i for i in zf.infolist()}
-        declared = sum(i.file_size for i in infos.values())
-        if declared > MAX_DATABASE_BYTES:
-            raise MapDatabaseError(f'{path}: its members declare {declared / 1e6:.0f} MB, more '
-                                   f'than a map database may hold '
-                                   f'({MAX_DATABASE_BYTES / 1e6:.0f} MB); not loaded')
-        for key in DATABASE_KEYS:
-            info = infos.get(key + '.npy')
-            if info is None:
-                raise MapDatabaseError(f'{path}: not a valid map database (no array {key!r})')
-            with zf.open(info) as f:
-                version = np.lib.format.read_magic(f)
-                if version == (1, 0):
-                    shape, _, dtype = np.lib.format.read_array_header_1_0(f)
-                elif version == (2, 0):
-                    shape, _, dtype = np.lib.format.read_array_header_2_0(f)
-                else:
-                    raise MapDatabaseError(f'{path}: array {key!r} has .npy format '
-                                           f'{version}, not 1.0 or 2.0')
-                header = f.tell()
-            if dtype.hasobject:
-                raise MapDatabaseError(f'{path}: array {key!r} holds Python objects')
-            wanted = math.prod(shape) * dtype.itemsize
-            if wanted > info.file_size - header:
-                # numpy allocates the declared array before reading it: a few bytes that
-                # declare terabytes would end in MemoryError.
-                raise MapDatabaseError(f'{path}: array {key!r} declares {shape} {dtype} '
-                                       f'({wanted / 1e6:.3g} MB) but its member holds '
-                                       f'{(info.file_size - header) / 1e6:.3g} MB; not loaded')
-
-
-def _check_arrays(a: dict) -> None:
-    """Shapes, ranges and indices of a loaded database (ValueError naming the array)."""
-    n = int(a['inv_n_images'])
-    names = a['filenames']
-    if names.ndim != 1 or names.shape[0] != n or n < 1:
-        raise ValueError(f'{names.shape[0] if names.ndim == 1 else names.shape} file names '
-                         f'for {n} images')
-    _require(np.asarray(a['n_features']).shape == (n,) and np.all(a['n_features'] >= 0),
-             'n_features')
-    columns = a['pos_columns']
-    values = a['pos_values']
-    _require(columns.ndim == 1 and values.shape == (n, columns.shape[0]), 'pos_values shape')
-    _require(values.dtype.kind == 'f' and np.all(np.isfinite(values)), 'pos_values finite')
-    enu = a['pos_enu_m']
-    _require(enu.shape == (n, 3) and enu.dtype.kind == 'f', 'pos_enu_m shape')
-    if not np.all(np.abs(enu) <= MAX_POSITION_M):     # NaN fails too
-        raise ValueError(f'pos_enu_m: positions not finite or beyond {MAX_POSITION_M:g} m')
-    llh = a['pos_llh']
-    if llh.size:
-        _require(llh.shape == (n, 3) and llh.dtype.kind == 'f', 'pos_llh shape')
-        _check_llh(llh, 'pos_llh')
-    origin = a['pos_origin_llh']
-    if origin.size:
-        _require(origin.shape == (3,) and origin.dtype.kind == 'f', 'pos_origin_llh shape')
-        _check_llh(origin.reshape(1, 3), 'pos_origin_llh')
-    branching, depth = int(a['tree_branching']), int(a['tree_depth'])
-    if not (2 <= branching <= 1024 and 1 <= depth <= 32
-            and branching ** depth <= _MAX_LEAVES):
-        raise ValueError(f'tree branching {branching} and depth {depth} out of range')
-    idf, indptr = a['inv_idf'], a['inv_indptr']
-    images, weights = a['inv_images'], a['inv_weights']
-    _require(idf.ndim == 1 and np.all(np.isfinite(idf)) and np.all(idf >= 0), 'inv_idf')
-    _require(indptr.ndim == 1 and indptr.dtype.kind in 'iu' and indptr.size == idf.size + 1
-             and np.all(np.diff(indptr) >= 0), 'inv_indptr')
-    _require(images.ndim == 1 and images.dtype.kind in 'iu'
-             and (images.size == 0 or (images.min() >= 0 and images.max() < n)),
-             'inv_images (image index out of range)')
-    _require(weights.shape == images.shape and np.all(np.isfinite(weights))
-             and np.all(weights >= 0), 'inv_weights')
-
-
-def _check_llh(llh: np.ndarray, name: str) -> None:
-    if not (np.all(np.abs(llh[:, 0]) <= 90) and np.all(np.abs(llh[:, 1]) <= 180)
-            and np.all(np.abs(llh[:, 2]) <= MAX_POSITION_M)):
-        raise ValueError(f'{name}: latitude, longitude or altitude out of range')
-
-
-def _require(ok, what: str) -> None:
-    if not ok:
-        raise ValueError(f'{what} inconsistent')
