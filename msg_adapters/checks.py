@@ -1,0 +1,44 @@
+"""Checks of decoded values against the limits of :mod:`.limits`, with the reasons the
+nodes count (``'size'``, ``'non_finite'``, ``'range'``)."""
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import MessageError
+
+
+def check_count(n: int, limit: int, what: str, noun: str) -> None:
+    """Refuse more than ``limit`` items (reason ``'size'``); called with the count from the
+    header fields, before the items are decoded."""
+    if n > limit:
+        raise MessageError(f'{what}: {n} {noun}, at most {limit} accepted', 'size')
+
+
+def check_finite(what: str, **values) -> None:
+    """Refuse NaN or infinity in any of ``values`` (name -> number or array; reason
+    ``'non_finite'``)."""
+    for name, value in values.items():
+        if not np.all(np.isfinite(value)):
+            raise MessageError(f'{what}: non-finite {name}', 'non_finite')
+
+
+def check_range(what: str, name: str, value, low: float, high: float, unit: str = '',
+                allow_nan: bool = False) -> None:
+    """Refuse a value (or any element of an array) outside ``[low, high]`` (reason
+    ``'range'``; NaN: ``'non_finite'`` unless ``allow_nan``, infinity always)."""
+    array = np.asarray(value, dtype=float)
+    nan = np.isnan(array)
+    if not allow_nan and nan.any():
+        raise MessageError(f'{what}: non-finite {name}', 'non_finite')
+    if np.isinf(array).any():
+        raise MessageError(f'{what}: non-finite {name}', 'non_finite')
+    bad = ~nan & ((array < low) | (array > high))
+    if bad.any():
+        worst = float(array[bad].flat[0])
+        raise MessageError(f'{what}: {name} {worst:.6g}{unit} outside the plausible '
+                           f'[{low:.6g}, {high:.6g}]{unit}', 'range')
+
+
+def check_abs(what: str, name: str, value, limit: float, unit: str = '') -> None:
+    """Refuse non-finite values or ``|value| > limit`` (see :func:`check_range`)."""
+    check_range(what, name, value, -limit, limit, unit)
