@@ -18,7 +18,7 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 
 from .camera_node import CameraNode
-from .common import (EXIT_FAILED, EXIT_OK, NodeSpinner, print_node_help, quietly,
+from .common import (EXIT_FAILED, EXIT_OK, NodeSpinner, failed, print_node_help, shut_down,
                      start_nodes, wants_help)
 from .fusion_node import FusionNode
 from .gnss_node import GnssNode
@@ -40,21 +40,23 @@ def main(args=None) -> int:
         return EXIT_OK
     nodes, spinner, code = [], None, EXIT_OK
     try:
-        rclpy.init(args=args)
-        nodes, code = start_nodes('pipeline_node', [GnssNode, CameraNode, ImuNode, FusionNode])
-        if nodes:
-            spinner = NodeSpinner(nodes)
-            spinner.wait()
-            if spinner.failed:
+        try:
+            rclpy.init(args=args)
+            nodes, code = start_nodes('pipeline_node',
+                                      [GnssNode, CameraNode, ImuNode, FusionNode])
+            if nodes:
+                spinner = NodeSpinner(nodes)
+                spinner.wait()
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        finally:
+            # Judged before the clean-up, and also after Ctrl-C: a node that failed shuts
+            # the context down, which ends the wait as a stop would.
+            if (spinner is not None and spinner.any_failed) or failed(nodes):
                 code = EXIT_FAILED
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if spinner is not None:
-            quietly(spinner.stop)
-        for node in nodes:
-            quietly(node.destroy_node)
-        quietly(rclpy.try_shutdown)
+            shut_down(nodes, spinner)
+    except KeyboardInterrupt:
+        pass                            # a second Ctrl-C between clean-up steps
     return code
 
 
