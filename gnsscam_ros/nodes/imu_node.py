@@ -170,7 +170,18 @@ class ImuNode(GnssCamNode):
     def _advance(self) -> None:
         odom_frame, base_frame = self.param('odom_frame_id'), self.param('base_frame_id')
         for state in self.dead_reckoner.advance(self.active_sources()):
-            self.pub.publish(dead_reckoning_to_odometry(state, odom_frame, base_frame))
+            try:
+                msg = dead_reckoning_to_odometry(state, odom_frame, base_frame)
+            except MessageError as err:
+                # The inputs are within the limits, so this should not happen; if it does,
+                # a dead reckoning that cannot be published must not stay: start again
+                # (fusion_node sees a restart, as of a restarted imu_node).
+                self.stats.count('dead_reckoning_invalid')
+                self.get_logger().error(f'dead reckoning not publishable ({err}): '
+                                        'restarted at its origin', throttle_duration_sec=5.0)
+                self.dead_reckoner = DeadReckoner(self.dead_reckoner.config)
+                return
+            self.pub.publish(msg)
             self.stats.count('published_dead_reckoning')
 
     def validate_parameters(self, changes: dict) -> str | None:
