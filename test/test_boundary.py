@@ -614,3 +614,66 @@ def test_messages_overwritten_in_a_full_input_queue_are_counted(graph, short_dri
     assert fusion.stats.get(key) >= n - 10 - 2
     fusion.publish_diagnostics()
     assert fusion.stats.values()[key] == fusion.stats.get(key)
+
+
+# ================================================================== exit codes
+_FAULTY = '''
+import sys
+from gnsscam_ros.nodes import {module}
+from gnsscam_ros.nodes.camera_node import CameraNode
+from gnsscam_ros.nodes.gnss_node import GnssNode
+
+
+def boom(self, *args):
+    raise RuntimeError('injected fault')
+
+
+{patches}
+sys.exit({module}.main())
+'''
+
+
+@pytest.mark.slow
+@pytest.mark.ros
+@pytest.mark.parametrize('module, patches, topic', [
+    # camera_node's matcher thread dies (no callback raises): the node fails itself.
+    ('pipeline', 'CameraNode.process = CameraNode._answer_unmatched = boom',
+     'camera/image_raw'),
+    ('camera_node', 'CameraNode.process = CameraNode._answer_unmatched = boom',
+     'camera/image_raw'),
+    # A callback raises in one of pipeline_node's nodes.
+    ('pipeline', 'GnssNode.on_epoch = boom', 'gnss/pseudoranges'),
+])
+def test_a_node_that_fails_while_running_exits_1(tmp_path, module, patches, topic):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from conftest import RosGraph, ros_env, stop
+    root = Path(__file__).resolve().parents[1]
+    script = tmp_path / 'faulty.py'
+    script.write_text(_FAULTY.format(module=module, patches=patches))
+    probe = RosGraph()
+    err = tmp_path / 'stderr.txt'
+    with open(err, 'w') as stderr:
+        proc = subprocess.Popen([sys.executable, str(script)], cwd=root, stderr=stderr,
+                                stdout=subprocess.DEVNULL,
+                                env=ros_env(tmp_path, probe.domain))
+    try:
+        if topic == 'camera/image_raw':
+            pub = probe.publisher(Image, topic)
+            msg = ma.array_to_image(np.zeros((64, 64), np.uint8), T0)
+        else:
+            pub = probe.publisher(PointCloud2, topic)
+            msg = ma.gnss_epoch_to_pointcloud2(_epoch())
+        probe.spin_until(lambda: pub.get_subscription_count() > 0 or proc.poll() is not None,
+                         60.0, 'the node subscribing')
+        # Best effort input: sent again until the node has it (and fails).
+        probe.spin_until(lambda: proc.poll() is not None or pub.publish(msg), 60.0,
+                         'the node failing')
+    finally:
+        probe.close()
+        rc = stop(proc)
+    text = err.read_text()
+    assert rc == 1, text
+    assert 'injected fault' in text

@@ -550,7 +550,7 @@ __all__ = ['BIG', 'EXIT_FAILED', 'EXIT_INPUT', 'EXIT_OK', 'EXIT_PARAMETER', 'Gns
            'SequenceGaps', 'StartupError', 'WARN',
            'latched_qos', 'reliable_qos', 'run_node', 'sensor_qos',
            'NodeSpinner', 'stop_process', 'wants_help', 'print_node_help', 'spin_node',
-           'start_nodes', 'quietly', 'failed', 'shut_down']
+           'start_nodes', 'quietly', 'failed', 'shut_down', 'quiet_interrupted_rclpy_objects']
 
 
 def wants_help(args=None) -> bool:
@@ -610,8 +610,8 @@ def start_nodes(executable: str, constructors: list[Callable], context=None
     return [], code
 
 
-def spin_node(node) -> None:
-    """Spin ``node`` until Ctrl-C or shutdown.
+def spin_node(node, executor=None) -> None:
+    """Spin ``node`` until Ctrl-C or shutdown (on ``executor``; None: rclpy's global one).
 
     Ctrl-C shuts the context down from rclpy's signal handler, concurrently with the
     executor: when it lands between the executor's ``context.ok()`` check and its next
@@ -620,12 +620,31 @@ def spin_node(node) -> None:
     stop, not a failure; one raised while it is up is a failure and propagates.
     """
     try:
-        rclpy.spin(node)
+        rclpy.spin(node, executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:
         if node.context.ok():
             raise
+
+
+def _quiet_unraisable(unraisable) -> None:
+    """``sys.unraisablehook`` of the node processes: an rclpy object whose constructor a
+    Ctrl-C interrupted (an executor built while rclpy's signal handler shuts the context
+    down fails creating its guard condition) fails again in its ``__del__`` ("Exception
+    ignored in: Executor.__del__ ... AttributeError: ... '_sigint_gc'", 3 stops in 20
+    here): that is the stop, not an error worth a traceback on stderr. Everything else
+    goes to Python's hook."""
+    where = getattr(unraisable.object, '__module__', None) or ''
+    if (where.startswith('rclpy') and isinstance(unraisable.exc_value, AttributeError)
+            and not rclpy.ok()):
+        return
+    sys.__unraisablehook__(unraisable)
+
+
+def quiet_interrupted_rclpy_objects() -> None:
+    """Install :func:`_quiet_unraisable` (node process entry points)."""
+    sys.unraisablehook = _quiet_unraisable
 
 
 def quietly(action) -> None:
@@ -659,34 +678,57 @@ def run_node(node_class, args=None) -> int:
     if wants_help(args):
         print_node_help(name, sys.modules[node_class.__module__].__doc__, (name,))
         return EXIT_OK
+    quiet_interrupted_rclpy_objects()
     nodes: list = []
+    executor = None
     code = EXIT_OK
     try:
         try:
             rclpy.init(args=args)
+            # Built before the node logs its ready line: a stop right after the line does
+            # not interrupt the executor's construction (see _quiet_unraisable).
+            executor = SingleThreadedExecutor()
             nodes, code = start_nodes(name, [node_class])
             if nodes:
-                spin_node(nodes[0])
+                spin_node(nodes[0], executor)
         except (KeyboardInterrupt, ExternalShutdownException):
             pass                        # Ctrl-C during start-up
+        except Exception:
+            if rclpy.ok():
+                raise                   # a failure while running: traceback, exit 1
+            # else: an rclpy call failed because Ctrl-C shut the context down under it
         finally:
             # A node that failed shut the context down itself: that stop is a failure.
             if failed(nodes):
                 code = EXIT_FAILED
-            shut_down(nodes)
+            shut_down(nodes, executor=executor)
     except KeyboardInterrupt:
         pass                            # a second Ctrl-C between clean-up steps
     return code
 
 
-def shut_down(nodes, spinner: 'NodeSpinner | None' = None, context=None) -> None:
-    """Clean-up of a node process: the spinner, the nodes, the context (each step
-    :func:`quietly`)."""
+def shut_down(nodes, spinner: 'NodeSpinner | None' = None, executor=None,
+              context=None) -> None:
+    """Clean-up of a node process: the spinner or executor, the nodes, the context (each
+    step :func:`quietly`). Further Ctrl-C is ignored from here on: the process is stopping, and
+    one landing while Python finalises (which resets SIGINT to its default action) killed
+    the process with -SIGINT instead of exit 0."""
+    _ignore_sigint()
     if spinner is not None:
         quietly(spinner.stop)
+    if executor is not None:
+        quietly(executor.shutdown)
     for node in nodes:
         quietly(node.destroy_node)
     quietly(lambda: rclpy.try_shutdown(context=context))
+    _ignore_sigint()                     # rclpy restored its predecessor's handler
+
+
+def _ignore_sigint() -> None:
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:
+        pass                             # not the main thread (a test calling main())
 
 
 class NodeSpinner:
@@ -714,8 +756,10 @@ class NodeSpinner:
         self._nodes = list(nodes)
         self._stop = threading.Event()
         self._pairs = []
-        for node in nodes:
-            executor = SingleThreadedExecutor(context=context)
+        # Every executor first: when one cannot be built (Ctrl-C shut the context down
+        # meanwhile), no thread is left spinning.
+        executors = [SingleThreadedExecutor(context=context) for _ in nodes]
+        for node, executor in zip(nodes, executors):
             executor.add_node(node)
             thread = threading.Thread(target=self._spin, args=(executor, node), daemon=True,
                                       name=f'spin_{node.get_name()}')

@@ -18,8 +18,8 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 
 from .camera_node import CameraNode
-from .common import (EXIT_FAILED, EXIT_OK, NodeSpinner, failed, print_node_help, shut_down,
-                     start_nodes, wants_help)
+from .common import (EXIT_FAILED, EXIT_OK, NodeSpinner, failed, print_node_help,
+                     quiet_interrupted_rclpy_objects, shut_down, start_nodes, wants_help)
 from .fusion_node import FusionNode
 from .gnss_node import GnssNode
 from .imu_node import ImuNode
@@ -38,6 +38,7 @@ def main(args=None) -> int:
         print_node_help('pipeline_node', __doc__,
                         ('gnss_node', 'imu_node', 'camera_node', 'fusion_node'))
         return EXIT_OK
+    quiet_interrupted_rclpy_objects()
     nodes, spinner, code = [], None, EXIT_OK
     try:
         try:
@@ -49,6 +50,11 @@ def main(args=None) -> int:
                 spinner.wait()
         except (KeyboardInterrupt, ExternalShutdownException):
             pass
+        except Exception:
+            if rclpy.ok():
+                raise                   # a failure while running: traceback, exit 1
+            # else: an rclpy call (the executors' construction) failed because Ctrl-C
+            # shut the context down under it: a stop
         finally:
             # Judged before the clean-up, and also after Ctrl-C: a node that failed shuts
             # the context down, which ends the wait as a stop would.
