@@ -103,9 +103,10 @@ MAX_MATCH_SCORE = 1.0 + 1e-6
 #: 50 MB, an 8000 x 8000 one 192 MB (two of them kept the process 0.5 GB larger).
 MAX_IMAGE_WIDTH_PX = 4096
 MAX_IMAGE_HEIGHT_PX = 4096
-#: Smallest side [px]: ORB keeps a 31 px border free of features (OrbParams
-#: edge_threshold), so a side of 2 x 31 px or less leaves nothing to detect, and OpenCV's
-#: pyramid asserts on a 1 px side.
-MIN_IMAGE_SIDE_PX = 64
+#: Smallest side [px]: OpenCV's ORB pyramid asserts when a side rounds to 0 px at its
+#: coarsest level (a 1 px side with the default 8 levels at scale 1.2); 16 px stays above
+#: it for up to 20 levels. Such small frames match nothing anyway (ORB keeps a 31 px
+#: border free of features) but are harmless, so they are still accepted.
+MIN_IMAGE_SIDE_PX = 16
 
 __all__ = [name for name in dir() if name.isupper() and name != 'NS_PER_S']
