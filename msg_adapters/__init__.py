@@ -10,6 +10,7 @@ a :class:`MessageKit` (:mod:`.kit`). See each module for the message layouts
 (:mod:`.wire`).
 """
 from . import limits, wire
+from .checks import check_serialized_size
 from .errors import MessageError
 from .gate import ADVANCE, BEHIND, NEW_BASE, StampGate
 from .geometry import (GeodeticFix, PoseEstimate, fix_to_navsatfix, msg_to_pose,
@@ -36,7 +37,7 @@ from .wire import GNSS_DTYPE, MATCH_DTYPE, header_stamp_ns, service_bits
 __all__ = [
     'ADVANCE', 'BEHIND', 'NEW_BASE', 'StampGate', 'check_image', 'check_image_size',
     'check_serialized_cloud', 'check_serialized_gnss', 'check_serialized_image',
-    'check_serialized_matches', 'limits',
+    'check_serialized_matches', 'check_serialized_size', 'limits',
     'CameraMatches', 'ENCODINGS', 'ERROR', 'GNSS_DTYPE', 'GeodeticFix', 'GlobalOdometry',
     'ImuSample', 'IntegrityRisk', 'MATCH_DTYPE', 'MessageError', 'MessageKit', 'OK',
     'PoseEstimate', 'RCLPY', 'STALE', 'TwistSample', 'WARN', 'array_to_image',

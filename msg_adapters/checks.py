@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import MessageError
+from .limits import MAX_MESSAGE_BYTES
 
 
 def check_count(n: int, limit: int, what: str, noun: str) -> None:
@@ -42,3 +43,11 @@ def check_range(what: str, name: str, value, low: float, high: float, unit: str 
 def check_abs(what: str, name: str, value, limit: float, unit: str = '') -> None:
     """Refuse non-finite values or ``|value| > limit`` (see :func:`check_range`)."""
     check_range(what, name, value, -limit, limit, unit)
+
+
+def check_serialized_size(raw: bytes, what: str, limit: int = MAX_MESSAGE_BYTES) -> None:
+    """Refuse a serialised message of more than ``limit`` bytes before it is decoded
+    (reason ``'size'``; default: a message without arrays,
+    :data:`.limits.MAX_MESSAGE_BYTES`)."""
+    if len(raw) > limit:
+        raise MessageError(f'{what}: {len(raw)} bytes, at most {limit}', 'size')

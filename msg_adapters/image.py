@@ -5,7 +5,8 @@ import numpy as np
 
 from .errors import MessageError
 from .kit import RCLPY, MessageKit
-from .limits import MAX_IMAGE_HEIGHT_PX, MAX_IMAGE_WIDTH_PX, MIN_IMAGE_SIDE_PX
+from .limits import (MAX_IMAGE_HEIGHT_PX, MAX_IMAGE_STEP_BYTES, MAX_IMAGE_WIDTH_PX,
+                     MAX_MESSAGE_BYTES, MIN_IMAGE_SIDE_PX)
 from .stamps import make_header, stamp_to_ns
 from .wire import CAMERA_FRAME, IMAGE, header_dims
 
@@ -37,6 +38,9 @@ def check_image(msg, what: str = IMAGE) -> tuple[int, int, int]:
     check_image_size(w, h, what)
     if step < w * channels:
         raise MessageError(f'{what}: step {step} < width {w} x {channels} channels', 'size')
+    if step > MAX_IMAGE_STEP_BYTES:
+        raise MessageError(f'{what}: step {step} bytes per row, at most '
+                           f'{MAX_IMAGE_STEP_BYTES}', 'size')
     if len(msg.data) != h * step:
         raise MessageError(f'{what}: {len(msg.data)} data bytes, expected height x step = '
                            f'{h * step}', 'size')
@@ -53,8 +57,8 @@ def check_image_size(width: int, height: int, what: str = IMAGE) -> None:
 
 
 def check_serialized_image(raw: bytes, what: str = IMAGE) -> None:
-    """Refuse a CDR-serialised Image whose sides are beyond the limits, before it is
-    decoded (an 8000 x 8000 bgr8 frame would be copied into 192 MB first); a zero side
+    """Refuse a CDR-serialised Image whose sides or size are beyond the limits, before it
+    is decoded (an 8000 x 8000 bgr8 frame would be copied into 192 MB first); a zero side
     is left to :func:`check_image` (reason ``'empty'``).
 
     Raises:
@@ -63,6 +67,9 @@ def check_serialized_image(raw: bytes, what: str = IMAGE) -> None:
     dims = header_dims(raw)
     if dims is not None and dims[0] and dims[1]:
         check_image_size(dims[1], dims[0], what)
+    limit = MAX_IMAGE_HEIGHT_PX * MAX_IMAGE_STEP_BYTES + MAX_MESSAGE_BYTES
+    if len(raw) > limit:
+        raise MessageError(f'{what}: {len(raw)} bytes, at most {limit}', 'size')
 
 
 def image_to_array(msg, what: str = IMAGE) -> tuple[np.ndarray, str]:

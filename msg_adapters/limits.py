@@ -92,6 +92,16 @@ MAX_ACCEL_MPS2 = 160.0
 #: a local frame is anchored near the drive; 1e7 m is more than the Earth's radius.
 MAX_POSITION_M = 1.0e7
 
+# ------------------------------------------------------------------ message bytes
+#: Header strings and other variable parts of any input message [bytes] (frame names,
+#: an image encoding, point field names): an Imu is ~330 bytes, an Odometry ~730, a
+#: PointCloud2 header with its fields ~300. This bounds the serialised size of the
+#: messages without arrays, checked before they are decoded.
+MAX_MESSAGE_BYTES = 65536
+#: Bytes per point of a cloud: a GNSS point is 48, a match 32; a layout with further
+#: fields stays far below. Bounds a cloud to ~128 kB before it is decoded.
+MAX_POINT_STEP_BYTES = 1024
+
 # ---------------------------------------------------------------------------- camera
 #: Matches per ``camera/matches`` cloud: camera_node's ``top_k`` range ends at 1000.
 MAX_MATCHES = 1000
@@ -108,5 +118,7 @@ MAX_IMAGE_HEIGHT_PX = 4096
 #: it for up to 20 levels. Such small frames match nothing anyway (ORB keeps a 31 px
 #: border free of features) but are harmless, so they are still accepted.
 MIN_IMAGE_SIDE_PX = 16
+#: Bytes per image row: 8-bit samples of at most 4 channels, row padding included.
+MAX_IMAGE_STEP_BYTES = 4 * MAX_IMAGE_WIDTH_PX
 
 __all__ = [name for name in dir() if name.isupper() and name != 'NS_PER_S']

@@ -19,7 +19,8 @@ from .checks import check_abs, check_count, check_range
 from .errors import MessageError
 from .kit import RCLPY, MessageKit
 from .limits import (MAX_ABS_ELEVATION_DEG, MAX_CN0_DBHZ, MAX_MATCH_SCORE, MAX_MATCHES,
-                     MAX_POSITION_M, MAX_PSEUDORANGE_M, MAX_SATELLITE_RADIUS_M,
+                     MAX_MESSAGE_BYTES, MAX_POINT_STEP_BYTES, MAX_POSITION_M,
+                     MAX_PSEUDORANGE_M, MAX_SATELLITE_RADIUS_M,
                      MAX_SATELLITES, MAX_VARIANCE, MIN_CN0_DBHZ, MIN_MATCH_SCORE,
                      MIN_PSEUDORANGE_M, MIN_SATELLITE_RADIUS_M)
 from .stamps import make_header, stamp_to_ns
@@ -76,11 +77,15 @@ def pointcloud2_to_structured(msg, wanted: np.dtype, what: str = 'cloud',
         (height * width,) packed array of dtype ``wanted`` (a copy).
 
     Raises:
-        MessageError: More than ``max_points`` points (reason ``'size'``), a wanted field
+        MessageError: More than ``max_points`` points or more than
+            :data:`.limits.MAX_POINT_STEP_BYTES` per point (reason ``'size'``), a wanted field
             missing or of another type or count, or inconsistent buffer sizes.
     """
     if max_points is not None:
         check_count(int(msg.width) * int(msg.height), max_points, what, 'points')
+    if msg.point_step > MAX_POINT_STEP_BYTES:
+        raise MessageError(f'{what}: point_step {msg.point_step} bytes, at most '
+                           f'{MAX_POINT_STEP_BYTES}', 'size')
     by_name = {f.name: f for f in msg.fields}
     names, formats, offsets = [], [], []
     order = '>' if msg.is_bigendian else '<'
@@ -125,11 +130,15 @@ def pointcloud2_to_structured(msg, wanted: np.dtype, what: str = 'cloud',
 
 def check_serialized_cloud(raw: bytes, max_points: int, what: str = 'cloud',
                            noun: str = 'points') -> None:
-    """Refuse a CDR-serialised PointCloud2 of more than ``max_points`` points, from its
-    ``height`` and ``width``, before it is decoded (reason ``'size'``)."""
+    """Refuse a CDR-serialised PointCloud2 of more than ``max_points`` points (from its
+    ``height`` and ``width``) or more bytes than they may take, before it is decoded
+    (reason ``'size'``)."""
     dims = header_dims(raw)
     if dims is not None:
         check_count(dims[0] * dims[1], max_points, what, noun)
+    limit = max_points * MAX_POINT_STEP_BYTES + MAX_MESSAGE_BYTES
+    if len(raw) > limit:
+        raise MessageError(f'{what}: {len(raw)} bytes, at most {limit}', 'size')
 
 
 def check_serialized_gnss(raw: bytes, what: str = GNSS) -> None:

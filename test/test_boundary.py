@@ -265,6 +265,24 @@ def test_image_sides_are_refused_from_the_header_fields(width, height, reason):
         _refused(reason, ma.check_image, fake)
 
 
+def test_bytes_of_a_message_are_bounded_before_decoding():
+    # A cloud of few points whose points are huge, an image whose rows are huge, an IMU
+    # message with a megabyte frame name: refused from their sizes.
+    cloud = ma.gnss_epoch_to_pointcloud2(_epoch(k=4))
+    wide = _Untouchable(header=cloud.header, width=4, height=1, row_step=4 * 10 ** 6,
+                        point_step=10 ** 6, is_bigendian=False)
+    _refused('size', ma.pointcloud2_to_gnss_epoch, wide)
+    _refused('size', ma.check_serialized_gnss, serialize_message(cloud) + bytes(10 ** 6))
+    image = Image(header=ma.make_header(T0, 'camera'), height=64, width=64, encoding='mono8',
+                  step=lim.MAX_IMAGE_STEP_BYTES + 1)
+    image.data = bytes(64 * image.step)
+    _refused('size', ma.check_image, image)
+    imu = ma.sample_to_imu(ma.ImuSample(T0, np.zeros(3), np.zeros(3)))
+    ma.check_serialized_size(serialize_message(imu), 'imu/data')
+    imu.header.frame_id = 'x' * 10 ** 6
+    _refused('size', ma.check_serialized_size, serialize_message(imu), 'imu/data')
+
+
 # ======================================================================= stamp gate
 W = lim.STAMP_WINDOW_NS
 K = lim.NEW_TIME_BASE_MESSAGES

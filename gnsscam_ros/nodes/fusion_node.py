@@ -61,6 +61,7 @@ from msg_adapters import (ERROR, OK, STALE, WARN, GeodeticFix, GlobalOdometry,
                           IntegrityRisk, MessageError, PoseEstimate, fix_to_navsatfix,
                           global_odometry_to_msg, integrity_risk_to_msg, make_status,
                           check_serialized_gnss, check_serialized_matches,
+                          check_serialized_size,
                           odometry_to_dead_reckoning, particles_to_posearray,
                           pointcloud2_to_gnss_epoch, pointcloud2_to_matches, pose_covariance,
                           pose_to_msg, service_bits)
@@ -228,7 +229,7 @@ class FusionNode(GnssCamNode):
         self.sub_dr = self.subscribe_input(
             Odometry, 'odometry/dead_reckoning', self.on_dead_reckoning,
             reliable_qos(self.param('odometry_queue_depth')),
-            'received_dead_reckoning').subscription
+            'received_dead_reckoning', check_serialized_size).subscription
         self.sub_camera = self.subscribe_input(
             PointCloud2, 'camera/matches', self.on_matches, reliable_qos(depth),
             'received_matches', check_serialized_matches).subscription

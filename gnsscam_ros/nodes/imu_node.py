@@ -32,8 +32,8 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu
 
 from gnsscam_ros.core.motion import IMU, ODOMETRY, DeadReckoner, DeadReckoningConfig
-from msg_adapters import (OK, WARN, MessageError, dead_reckoning_to_odometry, imu_to_sample,
-                          twist_to_sample)
+from msg_adapters import (OK, WARN, MessageError, check_serialized_size,
+                          dead_reckoning_to_odometry, imu_to_sample, twist_to_sample)
 
 from .common import BIG, GnssCamNode, ParameterError, reliable_qos, run_node, sensor_qos
 
@@ -104,10 +104,11 @@ class ImuNode(GnssCamNode):
                                          reliable_qos(self.param('output_queue_depth')))
         depth = self.param('input_queue_depth')
         self.sub_imu = self.subscribe_input(Imu, 'imu/data', self.on_imu, sensor_qos(depth),
-                                            'received_imu').subscription
+                                            'received_imu', check_serialized_size).subscription
         self.sub_twist = self.subscribe_input(TwistWithCovarianceStamped, 'odom/twist',
                                               self.on_twist, sensor_qos(depth),
-                                              'received_odom_twist').subscription
+                                              'received_odom_twist',
+                                              check_serialized_size).subscription
         self.parameters_declared()
 
     def ready_settings(self) -> dict:
