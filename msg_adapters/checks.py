@@ -19,7 +19,7 @@ def check_finite(what: str, **values) -> None:
     """Refuse NaN or infinity in any of ``values`` (name -> number or array; reason
     ``'non_finite'``)."""
     for name, value in values.items():
-        if not np.all(np.isfinite(value)):
+        if not np.isfinite(value).all():
             raise MessageError(f'{what}: non-finite {name}', 'non_finite')
 
 
@@ -27,11 +27,18 @@ def check_range(what: str, name: str, value, low: float, high: float, unit: str 
                 allow_nan: bool = False) -> None:
     """Refuse a value (or any element of an array) outside ``[low, high]`` (reason
     ``'range'``; NaN: ``'non_finite'`` unless ``allow_nan``, infinity always)."""
-    array = np.asarray(value, dtype=float)
+    # Every message passes here several times: one comparison decides for valid data
+    # (NaN and infinity fail it too); only a refusal, or an allowed NaN, looks closer.
+    if isinstance(value, (float, int)):
+        if low <= value <= high:
+            return
+        array = np.array([value], dtype=float)
+    else:
+        array = np.asarray(value, dtype=float)
+        if (array >= low).all() and (array <= high).all():     # NaN: False, no warning
+            return
     nan = np.isnan(array)
-    if not allow_nan and nan.any():
-        raise MessageError(f'{what}: non-finite {name}', 'non_finite')
-    if np.isinf(array).any():
+    if (nan.any() and not allow_nan) or np.isinf(array).any():
         raise MessageError(f'{what}: non-finite {name}', 'non_finite')
     bad = ~nan & ((array < low) | (array > high))
     if bad.any():
