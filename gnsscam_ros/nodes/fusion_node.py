@@ -58,10 +58,9 @@ from gnsscam_ros.core.motion import OUT_OF_ORDER, RESET
 from gnsscam_ros.core.particles import SYSTEMATIC
 from gnsscam_ros.core.types import GnssEpoch
 from msg_adapters import (ERROR, OK, STALE, WARN, GeodeticFix, GlobalOdometry,
-                          IntegrityRisk, MessageError, PoseEstimate, fix_to_navsatfix,
+                          IntegrityRisk, MessageError, PoseEstimate, check_serialized_gnss,
+                          check_serialized_matches, check_serialized_size, fix_to_navsatfix,
                           global_odometry_to_msg, integrity_risk_to_msg, make_status,
-                          check_serialized_gnss, check_serialized_matches,
-                          check_serialized_size,
                           odometry_to_dead_reckoning, particles_to_posearray,
                           pointcloud2_to_gnss_epoch, pointcloud2_to_matches, pose_covariance,
                           pose_to_msg, service_bits)
