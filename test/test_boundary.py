@@ -634,6 +634,21 @@ def test_messages_overwritten_in_a_full_input_queue_are_counted(graph, short_dri
     assert fusion.stats.values()[key] == fusion.stats.get(key)
 
 
+@pytest.mark.slow
+@pytest.mark.ros
+def test_a_publisher_with_an_incompatible_qos_is_counted(graph):
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from gnsscam_ros.nodes.fusion_node import FusionNode
+    g = graph
+    fusion = g.add(FusionNode(context=g.ctx, parameter_overrides=_overrides(n_particles=50)))
+    best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+    g.probe.create_publisher(PointCloud2, 'gnss/measurements', best_effort)
+    key = 'qos_incompatible_gnss/measurements'
+    g.spin_until(lambda: fusion.stats.get(key) >= 1, 20.0, key)
+    assert key in fusion.stats.values()
+
+
 # ================================================================== exit codes
 _FAULTY = '''
 import sys

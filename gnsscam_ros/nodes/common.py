@@ -30,7 +30,7 @@ import numpy as np
 import rclpy
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
-from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.event_handler import SubscriptionEventCallbacks, qos_policy_name_from_kind
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -262,8 +262,8 @@ class InputTopic:
     def _incompatible_qos(self, event) -> None:
         self.node.stats.count(f'qos_incompatible_{self.topic}')
         self.node.get_logger().warning(
-            f'{self.topic}: a publisher offers an incompatible QoS '
-            f'(policy {event.last_policy_kind}); its messages never arrive',
+            f'{self.topic}: a publisher offers an incompatible QoS (policy '
+            f'{qos_policy_name_from_kind(event.last_policy_kind)}); its messages never arrive',
             throttle_duration_sec=5.0)
 
     def _incompatible_type(self, event) -> None:
