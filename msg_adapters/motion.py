@@ -29,9 +29,12 @@ from std_msgs.msg import Header
 
 from gnsscam_ros.core.motion import DeadReckoningState
 
+from .checks import check_abs, check_finite, check_range
 from .errors import MessageError
 from .geometry import UNESTIMATED_VAR, quaternion_to_yaw, yaw_to_quaternion
 from .kit import RCLPY, MessageKit
+from .limits import (MAX_ACCEL_MPS2, MAX_GYRO_RPS, MAX_POSITION_M, MAX_SPEED_MPS,
+                     MAX_VARIANCE, MAX_YAW_RATE_RPS)
 from .stamps import make_header, ns_to_stamp, stamp_to_ns
 from .wire import (BASE_FRAME, DEAD_RECKONING, IMU, IMU_FRAME, MAP_FRAME, ODOM_FRAME,
                    ODOMETRY_GLOBAL, TWIST)
@@ -75,18 +78,26 @@ def imu_to_sample(msg: Imu, what: str = IMU) -> ImuSample:
     """Imu -> :class:`ImuSample`.
 
     Raises:
-        MessageError: Non-finite rates or accelerations, or a message declaring its angular
-            velocity unavailable (covariance[0] == -1, REP 145).
+        MessageError: A message declaring its angular velocity unavailable
+            (covariance[0] == -1, REP 145), an invalid stamp, non-finite rates or
+            accelerations, or ones beyond the sensor and vehicle limits of :mod:`.limits`
+            (``'range'``: any axis beyond :data:`.limits.MAX_ACCEL_MPS2` or
+            :data:`.limits.MAX_GYRO_RPS`, the yaw rate beyond
+            :data:`.limits.MAX_YAW_RATE_RPS`).
     """
     if msg.angular_velocity_covariance[0] == -1.0:
         raise MessageError(f'{what}: angular velocity marked unavailable', 'value')
+    stamp_ns = stamp_to_ns(msg.header.stamp, what)
     a, g = msg.linear_acceleration, msg.angular_velocity
     accel = np.array([a.x, a.y, a.z], dtype=float)
     gyro = np.array([g.x, g.y, g.z], dtype=float)
     if not (np.all(np.isfinite(accel)) and np.all(np.isfinite(gyro))):
         raise MessageError(f'{what}: non-finite acceleration or angular velocity',
                            'non_finite')
-    return ImuSample(stamp_to_ns(msg.header.stamp), accel, gyro)
+    check_abs(what, 'acceleration', accel, MAX_ACCEL_MPS2, ' m/s^2')
+    check_abs(what, 'angular velocity', gyro, MAX_GYRO_RPS, ' rad/s')
+    check_abs(what, 'yaw rate', gyro[2], MAX_YAW_RATE_RPS, ' rad/s')
+    return ImuSample(stamp_ns, accel, gyro)
 
 
 def sample_to_imu(sample: ImuSample, frame_id: str = IMU_FRAME, kit: MessageKit = RCLPY):
@@ -111,15 +122,22 @@ def twist_to_sample(msg: TwistWithCovarianceStamped, what: str = TWIST
                     ) -> TwistSample:
     """TwistWithCovarianceStamped -> :class:`TwistSample`.
 
+    A variance <= 0 means "not reported" (the dead reckoning then uses its default).
+
     Raises:
-        MessageError: Non-finite speed, yaw rate or variances.
+        MessageError: An invalid stamp, non-finite speed, yaw rate or variances, or a
+            speed, yaw rate or variance beyond :mod:`.limits` (``'range'``).
     """
+    stamp_ns = stamp_to_ns(msg.header.stamp, what)
     t = msg.twist.twist
     cov = msg.twist.covariance
     values = [t.linear.x, t.angular.z, cov[0], cov[35]]
     if not np.all(np.isfinite(values)):
         raise MessageError(f'{what}: non-finite speed, yaw rate or covariance', 'non_finite')
-    return TwistSample(stamp_to_ns(msg.header.stamp), float(t.linear.x), float(t.angular.z),
+    check_abs(what, 'speed', t.linear.x, MAX_SPEED_MPS, ' m/s')
+    check_abs(what, 'yaw rate', t.angular.z, MAX_YAW_RATE_RPS, ' rad/s')
+    check_range(what, 'variance', [cov[0], cov[35]], -np.inf, MAX_VARIANCE)
+    return TwistSample(stamp_ns, float(t.linear.x), float(t.angular.z),
                        float(cov[0]), float(cov[35]))
 
 
@@ -171,16 +189,23 @@ def odometry_to_dead_reckoning(msg: Odometry, what: str = DEAD_RECKONING
     The heading comes back wrapped to [-pi, pi]; :func:`motion_between` wraps differences.
 
     Raises:
-        MessageError: Non-finite values.
+        MessageError: An invalid stamp, non-finite values or an invalid quaternion, a
+            position beyond :data:`.limits.MAX_POSITION_M`, a speed or yaw rate beyond
+            the vehicle limits, or a variance outside [0, :data:`.limits.MAX_VARIANCE`]
+            (``'range'``).
     """
+    stamp_ns = stamp_to_ns(msg.header.stamp, what)
     p = msg.pose.pose.position
     pc, tc = msg.pose.covariance, msg.twist.covariance
     t = msg.twist.twist
     values = [p.x, p.y, t.linear.x, t.angular.z, pc[0], pc[35], tc[0], tc[35]]
-    if not np.all(np.isfinite(values)):
-        raise MessageError(f'{what}: non-finite pose, twist or covariance', 'non_finite')
+    check_finite(what, **{'pose, twist or covariance': values})
+    check_abs(what, 'position', [p.x, p.y], MAX_POSITION_M, ' m')
+    check_abs(what, 'speed', t.linear.x, MAX_SPEED_MPS, ' m/s')
+    check_abs(what, 'yaw rate', t.angular.z, MAX_YAW_RATE_RPS, ' rad/s')
+    check_range(what, 'variance', [pc[0], pc[35], tc[0], tc[35]], 0.0, MAX_VARIANCE)
     return DeadReckoningState(
-        stamp_ns=stamp_to_ns(msg.header.stamp), x_m=float(p.x), y_m=float(p.y),
+        stamp_ns=stamp_ns, x_m=float(p.x), y_m=float(p.y),
         yaw_rad=quaternion_to_yaw(msg.pose.pose.orientation), speed_mps=float(t.linear.x),
         yaw_rate_rps=float(t.angular.z), speed_var=float(tc[0]), yaw_rate_var=float(tc[35]),
         distance_var_m2=float(pc[0]), yaw_var_rad2=float(pc[35]))

@@ -15,11 +15,17 @@ import numpy as np
 
 from gnsscam_ros.core.types import GnssEpoch
 
+from .checks import check_abs, check_count, check_range
 from .errors import MessageError
 from .kit import RCLPY, MessageKit
+from .limits import (MAX_ABS_ELEVATION_DEG, MAX_CN0_DBHZ, MAX_MATCH_SCORE, MAX_MATCHES,
+                     MAX_MESSAGE_BYTES, MAX_POINT_STEP_BYTES, MAX_POSITION_M,
+                     MAX_PSEUDORANGE_M, MAX_SATELLITE_RADIUS_M,
+                     MAX_SATELLITES, MAX_VARIANCE, MIN_CN0_DBHZ, MIN_MATCH_SCORE,
+                     MIN_PSEUDORANGE_M, MIN_SATELLITE_RADIUS_M)
 from .stamps import make_header, stamp_to_ns
 from .wire import (EARTH_FRAME, GNSS, GNSS_DTYPE, MAP_FRAME, MATCH_DTYPE, MATCHES,
-                   POINTFIELD_CODE, POINTFIELD_NAMES, POINTFIELD_TYPES)
+                   POINTFIELD_CODE, POINTFIELD_NAMES, POINTFIELD_TYPES, header_dims)
 
 
 def structured_to_pointcloud2(points: np.ndarray, stamp_ns: int, frame_id: str,
@@ -56,21 +62,30 @@ def structured_to_pointcloud2(points: np.ndarray, stamp_ns: int, frame_id: str,
         row_step=points.dtype.itemsize * n, data=kit.octets(points), is_dense=bool(is_dense))
 
 
-def pointcloud2_to_structured(msg, wanted: np.dtype, what: str = 'cloud') -> np.ndarray:
+def pointcloud2_to_structured(msg, wanted: np.dtype, what: str = 'cloud',
+                              max_points: int | None = None) -> np.ndarray:
     """Read the fields of ``wanted`` from a PointCloud2 (other fields are ignored).
 
     Args:
         msg: The cloud (any height, padding and field order; either byte order).
         wanted: Structured dtype naming the fields and their exact numeric types.
         what: Name used in error messages (e.g. the topic).
+        max_points: Most points accepted (None: any), checked from ``width`` and
+            ``height`` before anything is decoded.
 
     Returns:
         (height * width,) packed array of dtype ``wanted`` (a copy).
 
     Raises:
-        MessageError: A wanted field is missing or has another type or count, or the
-            buffer sizes are inconsistent.
+        MessageError: More than ``max_points`` points or more than
+            :data:`.limits.MAX_POINT_STEP_BYTES` per point (reason ``'size'``), a wanted field
+            missing or of another type or count, or inconsistent buffer sizes.
     """
+    if max_points is not None:
+        check_count(int(msg.width) * int(msg.height), max_points, what, 'points')
+    if msg.point_step > MAX_POINT_STEP_BYTES:
+        raise MessageError(f'{what}: point_step {msg.point_step} bytes, at most '
+                           f'{MAX_POINT_STEP_BYTES}', 'size')
     by_name = {f.name: f for f in msg.fields}
     names, formats, offsets = [], [], []
     order = '>' if msg.is_bigendian else '<'
@@ -113,6 +128,29 @@ def pointcloud2_to_structured(msg, wanted: np.dtype, what: str = 'cloud') -> np.
     return out
 
 
+def check_serialized_cloud(raw: bytes, max_points: int, what: str = 'cloud',
+                           noun: str = 'points') -> None:
+    """Refuse a CDR-serialised PointCloud2 of more than ``max_points`` points (from its
+    ``height`` and ``width``) or more bytes than they may take, before it is decoded
+    (reason ``'size'``)."""
+    dims = header_dims(raw)
+    if dims is not None:
+        check_count(dims[0] * dims[1], max_points, what, noun)
+    limit = max_points * MAX_POINT_STEP_BYTES + MAX_MESSAGE_BYTES
+    if len(raw) > limit:
+        raise MessageError(f'{what}: {len(raw)} bytes, at most {limit}', 'size')
+
+
+def check_serialized_gnss(raw: bytes, what: str = GNSS) -> None:
+    """:func:`check_serialized_cloud` with :data:`.limits.MAX_SATELLITES`."""
+    check_serialized_cloud(raw, MAX_SATELLITES, what, 'satellites')
+
+
+def check_serialized_matches(raw: bytes, what: str = MATCHES) -> None:
+    """:func:`check_serialized_cloud` with :data:`.limits.MAX_MATCHES`."""
+    check_serialized_cloud(raw, MAX_MATCHES, what, 'matches')
+
+
 # ---------------------------------------------------------------------------- GNSS
 def gnss_epoch_to_pointcloud2(epoch: GnssEpoch, frame_id: str = EARTH_FRAME,
                               kit: MessageKit = RCLPY):
@@ -145,30 +183,68 @@ def gnss_epoch_to_pointcloud2(epoch: GnssEpoch, frame_id: str = EARTH_FRAME,
 
 
 def pointcloud2_to_gnss_epoch(msg, frame_id: str | None = EARTH_FRAME,
-                              what: str = GNSS) -> GnssEpoch:
+                              what: str = GNSS, checked: bool = False) -> GnssEpoch:
     """The ``gnss/pseudoranges`` cloud -> :class:`GnssEpoch`.
 
-    Non-finite values are passed through: judging satellites (NaN, duplicates, masks) is
-    :func:`gnsscam_ros.core.gnss.check_epoch`'s job, which counts what it drops.
+    Receivers mark a satellite without a measurement with NaN (or infinity) or a
+    non-positive range or variance: such satellites are passed through, since judging
+    them is :func:`gnsscam_ros.core.gnss.check_epoch`'s job, which drops and counts them.
+    Every other value must be plausible (:mod:`.limits`), else the whole message is
+    refused: a corrupt value is no satellite to drop but a message not to trust.
 
     Args:
         msg: The cloud.
         frame_id: Required header frame (None: any).
         what: Name used in error messages.
+        checked: The satellites have passed ``check_epoch`` (``gnss/measurements``):
+            non-finite positions, ranges or variances and non-positive variances are
+            refused too. Elevation and C/N0 may still be NaN (unknown) in both cases.
 
     Raises:
-        MessageError: Wrong frame, missing or mistyped fields, inconsistent sizes.
+        MessageError: Wrong frame, more than :data:`.limits.MAX_SATELLITES` satellites
+            (``'size'``, before decoding), missing or mistyped fields, inconsistent sizes,
+            an invalid stamp, or an implausible value (``'range'``, ``'non_finite'``).
     """
     if frame_id is not None and msg.header.frame_id != frame_id:
         raise MessageError(f'{what}: frame {msg.header.frame_id!r}, expected {frame_id!r} '
                            '(ECEF)', 'frame')
+    check_count(int(msg.width) * int(msg.height), MAX_SATELLITES, what, 'satellites')
+    stamp_ns = stamp_to_ns(msg.header.stamp, what)
     pts = pointcloud2_to_structured(msg, GNSS_DTYPE, what)
+    sv = np.column_stack([pts['x'], pts['y'], pts['z']]).astype(float)
+    pr, var = pts['pseudorange'].astype(float), pts['variance'].astype(float)
+    cn0, elevation = pts['cn0'].astype(float), pts['elevation'].astype(float)
+    _check_satellites(what, sv, pr, var, checked)
+    check_range(what, 'C/N0', cn0, MIN_CN0_DBHZ, MAX_CN0_DBHZ, ' dB-Hz', allow_nan=True)
+    check_range(what, 'elevation', elevation, -MAX_ABS_ELEVATION_DEG, MAX_ABS_ELEVATION_DEG,
+                ' deg', allow_nan=True)
     return GnssEpoch(
-        stamp_ns=stamp_to_ns(msg.header.stamp),
-        sv_pos_ecef_m=np.column_stack([pts['x'], pts['y'], pts['z']]).astype(float),
-        pr_m=pts['pseudorange'].astype(float), var_m2=pts['variance'].astype(float),
+        stamp_ns=stamp_ns, sv_pos_ecef_m=sv, pr_m=pr, var_m2=var,
         sv_id=pts['sv_id'].astype(np.int64), system=pts['system'].astype(np.int64),
-        elevation_deg=pts['elevation'].astype(float), cn0_dbhz=pts['cn0'].astype(float))
+        elevation_deg=elevation, cn0_dbhz=cn0)
+
+
+def _check_satellites(what: str, sv: np.ndarray, pr: np.ndarray, var: np.ndarray,
+                      checked: bool) -> None:
+    """Satellite positions, pseudoranges and variances against :mod:`.limits` (see
+    :func:`pointcloud2_to_gnss_epoch`)."""
+    finite = np.isfinite(sv).all(axis=1) & np.isfinite(pr) & np.isfinite(var)
+    if checked:
+        if not finite.all():
+            raise MessageError(f'{what}: non-finite satellite position, pseudorange or '
+                               'variance', 'non_finite')
+        if (var <= 0.0).any():
+            raise MessageError(f'{what}: non-positive variance', 'range')
+    # Only what a receiver cannot mean as "no measurement" is judged here.
+    rows = finite & (pr > 0.0) & (var > 0.0) if not checked else finite
+    if not rows.any():
+        return
+    # Coordinates first: the norm of a 1e160 coordinate overflows to infinity.
+    check_abs(what, 'satellite coordinate', sv[rows], MAX_SATELLITE_RADIUS_M, ' m')
+    check_range(what, 'satellite radius', np.linalg.norm(sv[rows], axis=1),
+                MIN_SATELLITE_RADIUS_M, MAX_SATELLITE_RADIUS_M, ' m')
+    check_range(what, 'pseudorange', pr[rows], MIN_PSEUDORANGE_M, MAX_PSEUDORANGE_M, ' m')
+    check_range(what, 'variance', var[rows], 0.0, MAX_VARIANCE, ' m^2')
 
 
 # -------------------------------------------------------------------- camera matches
@@ -219,16 +295,23 @@ def pointcloud2_to_matches(msg, frame_id: str | None = MAP_FRAME,
     """The ``camera/matches`` cloud -> :class:`CameraMatches`.
 
     Raises:
-        MessageError: Wrong frame or fields, or non-finite positions or scores.
+        MessageError: Wrong frame or fields, more than :data:`.limits.MAX_MATCHES` matches
+            (``'size'``, before decoding), an invalid stamp, non-finite positions or
+            scores, positions beyond :data:`.limits.MAX_POSITION_M` or scores outside
+            camera_node's [0, 1] (``'range'``).
     """
     if frame_id is not None and msg.header.frame_id != frame_id:
         raise MessageError(f'{what}: frame {msg.header.frame_id!r}, expected {frame_id!r}',
                            'frame')
+    check_count(int(msg.width) * int(msg.height), MAX_MATCHES, what, 'matches')
+    stamp_ns = stamp_to_ns(msg.header.stamp, what)
     pts = pointcloud2_to_structured(msg, MATCH_DTYPE, what)
     pos = np.column_stack([pts['x'], pts['y'], pts['z']]).astype(float)
     score = pts['score'].astype(float)
     if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(score))):
         raise MessageError(f'{what}: non-finite position or score', 'non_finite')
-    return CameraMatches(stamp_ns=stamp_to_ns(msg.header.stamp), position_m=pos, score=score,
+    check_abs(what, 'match position', pos, MAX_POSITION_M, ' m')
+    check_range(what, 'match score', score, MIN_MATCH_SCORE, MAX_MATCH_SCORE)
+    return CameraMatches(stamp_ns=stamp_ns, position_m=pos, score=score,
                          image_id=pts['image_id'].astype(np.int64),
                          frame_id=msg.header.frame_id)

@@ -134,6 +134,30 @@ def header_stamp_ns(raw: bytes | memoryview) -> int:
     return sec * NS_PER_S + nanosec
 
 
+def header_dims(raw: bytes | memoryview) -> tuple[int, int] | None:
+    """``(height, width)`` of a CDR-serialised ``sensor_msgs/Image`` or ``PointCloud2``
+    (both put them right after their ``std_msgs/Header``), read without decoding the
+    rest, so that a message too large to use is refused before its arrays are copied.
+
+    Returns:
+        The sizes, or None when ``raw`` is not plain CDR or too short to hold them (the
+        deserialiser judges such a message).
+    """
+    if len(raw) < 16 or raw[0] != 0 or raw[1] not in (0, 1):
+        return None
+    order = '<' if raw[1] == 1 else '>'
+    # After the 4-byte encapsulation: Time (8 bytes), frame_id (uint32 length with the
+    # terminating NUL, then the characters), then uint32 fields aligned to 4 bytes
+    # relative to the end of the encapsulation.
+    (length,) = struct.unpack_from(f'{order}I', raw, 12)
+    offset = 16 + length
+    offset += -(offset - 4) % 4
+    if len(raw) < offset + 8:
+        return None
+    height, width = struct.unpack_from(f'{order}II', raw, offset)
+    return int(height), int(width)
+
+
 # ------------------------------------------------------------------ equal-stamp order
 # The input topic of each dead-reckoning source of core.motion.
 _DR_SOURCE_TOPIC = {motion.ODOMETRY: TWIST, motion.IMU: IMU}

@@ -92,8 +92,10 @@ def synthetic_drive(camera=True, origin=True, yaw=True, name='synthetic') -> Dri
         cn0 = rng.uniform(20, 50, n)
         if k == 2:
             cn0[1] = np.nan
+        sv = rng.normal(0, 1.5e7, (n, 3))
+        sv *= 2.6e7 / np.linalg.norm(sv, axis=1, keepdims=True)   # at GPS orbit radius
         gnss.append(GnssEpoch(
-            stamp_ns=T0 + k * 200_000_000, sv_pos_ecef_m=rng.normal(0, 1.5e7, (n, 3)),
+            stamp_ns=T0 + k * 200_000_000, sv_pos_ecef_m=sv,
             pr_m=rng.uniform(2.0e7, 2.5e7, n), var_m2=rng.uniform(1, 50, n),
             sv_id=rng.integers(1, 400, n), system=rng.choice([1, 4, 8, 32], n),
             elevation_deg=rng.uniform(5, 90, n), cn0_dbhz=cn0))

@@ -15,8 +15,11 @@ STAMP = 1_718_204_613_123_456_789
 
 def _epoch(k=6, seed=0):
     rng = np.random.default_rng(seed)
+    # Satellites at GPS orbit radii in random directions (the parsers refuse others).
+    direction = rng.normal(0, 1, (k, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
     return GnssEpoch(
-        stamp_ns=STAMP, sv_pos_ecef_m=rng.normal(0, 2e7, (k, 3)),
+        stamp_ns=STAMP, sv_pos_ecef_m=direction * rng.uniform(2.55e7, 2.7e7, (k, 1)),
         pr_m=rng.uniform(2e7, 2.5e7, k),
         var_m2=np.float32(rng.uniform(5, 20, k)).astype(float),
         sv_id=np.arange(1, k + 1), system=np.array([1, 4] * (k // 2) + [1] * (k % 2)),
@@ -182,8 +185,8 @@ def test_matches_round_trip_and_errors():
 
 
 # ---------------------------------------------------------------------------- Image
-@pytest.mark.parametrize('encoding,shape', [('mono8', (4, 5)), ('bgr8', (4, 5, 3)),
-                                            ('rgb8', (3, 7, 3))])
+@pytest.mark.parametrize('encoding,shape', [('mono8', (64, 65)), ('bgr8', (64, 65, 3)),
+                                            ('rgb8', (67, 64, 3))])
 def test_image_round_trip(encoding, shape):
     arr = np.random.default_rng(1).integers(0, 256, shape, dtype=np.uint8)
     msg = ma.array_to_image(arr, STAMP, encoding)
@@ -194,8 +197,8 @@ def test_image_round_trip(encoding, shape):
 
 
 def test_image_with_padded_rows():
-    arr = np.arange(4 * 5, dtype=np.uint8).reshape(4, 5)
-    msg = Image(height=4, width=5, encoding='mono8', step=8)
+    arr = (np.arange(64 * 65) % 251).astype(np.uint8).reshape(64, 65)
+    msg = Image(height=64, width=65, encoding='mono8', step=68)
     msg.data = np.pad(arr, ((0, 0), (0, 3))).tobytes()
     np.testing.assert_array_equal(ma.image_to_array(msg)[0], arr)
 
@@ -204,8 +207,8 @@ def test_image_with_padded_rows():
     (dict(height=0, width=0, encoding='bgr8', step=0, data=b''), 'empty'),
     (dict(height=2, width=2, encoding='16UC1', step=4, data=bytes(8)), 'encoding'),
     (dict(height=2, width=2, encoding='bayer_rggb8', step=2, data=bytes(4)), 'encoding'),
-    (dict(height=2, width=2, encoding='bgr8', step=6, data=bytes(11)), 'size'),
-    (dict(height=2, width=2, encoding='bgr8', step=4, data=bytes(8)), 'size'),
+    (dict(height=64, width=64, encoding='bgr8', step=192, data=bytes(64 * 192 - 1)), 'size'),
+    (dict(height=64, width=64, encoding='bgr8', step=128, data=bytes(64 * 128)), 'size'),
 ])
 def test_image_malformed_is_refused(kwargs, reason):
     data = kwargs.pop('data')

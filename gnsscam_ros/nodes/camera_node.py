@@ -8,11 +8,15 @@ Matching (ORB + vocabulary tree, ``gnsscam_ros.vision``) runs on a worker thread
 bounded queue of ``queue_size`` frames: when images arrive faster than they can be matched
 the *oldest* waiting frame is dropped and counted, so the node always works on recent
 images and never builds an unbounded backlog. Empty images, unsupported encodings, wrong
-buffer sizes and stamps older than the last matched image are refused and counted.
+buffer sizes, sides beyond the limits of ``msg_adapters.limits`` (checked from the
+serialised header before the pixels are copied), invalid stamps, stamps far from the
+stream (``msg_adapters.gate``) and stamps older than the last matched image are refused
+and counted.
 
 Every frame taken from the queue is answered on ``camera/matches``: a frame that cannot be
 matched (no map database, a refused image, a matcher error) gets an *empty* cloud with its
-stamp, as does a frame without any database match. Downstream, fusion_node counts it as a
+stamp, as does a frame without any database match; a frame whose stamp is invalid or far
+from the stream gets none. Downstream, fusion_node counts it as a
 camera frame without a match, and a flow-controlled replay (``live.replay``) takes it as
 the acknowledgement of the image instead of waiting for one that never comes. Only frames
 older than the last answered one get no answer, so that ``camera/matches`` stays in stamp
@@ -38,8 +42,9 @@ from sensor_msgs.msg import Image, PointCloud2
 from gnsscam_ros.core.frames import LocalFrame
 from gnsscam_ros.vision.database import MapDatabase
 from gnsscam_ros.vision.errors import MapDatabaseError, VisionError
-from msg_adapters import (ERROR, OK, WARN, CameraMatches, MessageError, image_to_array,
-                          matches_to_pointcloud2, stamp_to_ns)
+from msg_adapters import (ERROR, OK, WARN, CameraMatches, MessageError, check_image,
+                          check_serialized_image, image_to_array, matches_to_pointcloud2,
+                          stamp_to_ns)
 
 from .common import GnssCamNode, InputFileError, reliable_qos, run_node, sensor_qos
 
@@ -127,17 +132,22 @@ class CameraNode(GnssCamNode):
                 self._positions = self.database.positions_in(frame)
             else:
                 self._positions = self.database.positions.enu_m.copy()
+        # Frames waiting for the matcher: (time base, Image) or (time base, stamp [ns]) of
+        # a refused frame that gets an empty answer.
         self._queue: deque = deque()
         self._cond = threading.Condition()
         self._stop = False
+        self._time_base = 0               # counts new time bases (executor thread)
+        self._worker_time_base = 0        # the one _last_stamp_ns belongs to (worker)
         self._last_stamp_ns: int | None = None
         self._last_receipt: float | None = None
         self._started = time.monotonic()
         self.pub = self.create_publisher(PointCloud2, 'camera/matches', reliable_qos())
         depth = self.param('input_queue_depth')
-        self.sub = self.create_subscription(
+        self.sub = self.subscribe_input(
             Image, 'camera/image_raw', self.on_image,
-            reliable_qos(depth) if self.param('input_reliable') else sensor_qos(depth))
+            reliable_qos(depth) if self.param('input_reliable') else sensor_qos(depth),
+            'received_images', check_serialized_image).subscription
         self._worker = threading.Thread(target=self._work, name=f'{node_name}_matcher',
                                         daemon=True)
         self._worker.start()
@@ -153,36 +163,79 @@ class CameraNode(GnssCamNode):
 
     # ------------------------------------------------------------------- callbacks
     def on_image(self, msg: Image) -> None:
-        """Queue a frame for the matcher (cheap: the executor thread never matches)."""
-        self.stats.count('received_images')
+        """Check a frame's header fields and queue it for the matcher (cheap: the executor
+        thread never matches).
+
+        A frame refused for its content (encoding, size) is still answered, empty, at its
+        stamp; one whose stamp is invalid or far from the stream gets no answer (an answer
+        at such a stamp would put camera/matches out of order for every later frame).
+        """
         self._last_receipt = time.monotonic()
+        try:
+            check_image(msg)
+            refused = None
+        except MessageError as err:
+            if err.reason == 'stamp':
+                self.warn_rejected('camera/image_raw', err.reason, str(err))
+                return
+            refused = err
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        if self.admit_stamp('camera/image_raw', stamp_ns) is None:
+            return
+        if refused is not None:
+            self.warn_rejected('camera/image_raw', refused.reason, str(refused))
         with self._cond:
             if len(self._queue) >= self.param('queue_size'):
                 self._queue.popleft()
                 self.stats.count('dropped_frames')
-            self._queue.append(msg)
+            self._queue.append((self._time_base, msg if refused is None else stamp_ns))
             self._cond.notify()
 
+    def on_time_base_changed(self, topic: str, stamp_ns: int) -> None:
+        # Frames of the old time base still waiting are dropped; the matcher forgets the
+        # last answered stamp before it takes the first frame of the new one.
+        with self._cond:
+            self._time_base += 1
+            self.stats.count('dropped_frames', len(self._queue))
+            self._queue.clear()
+
     def _work(self) -> None:
+        try:
+            self._serve()
+        except Exception as err:     # noqa: BLE001 - the matcher must not die unseen
+            if self.context.ok():
+                self.fail(f'camera matcher failed: {type(err).__name__}: {err}')
+
+    def _serve(self) -> None:
         while True:
             with self._cond:
                 while not self._queue and not self._stop:
                     self._cond.wait(timeout=0.5)
                 if self._stop:
                     return
-                msg = self._queue.popleft()
+                time_base, item = self._queue.popleft()
+                current = self._time_base
             if not self.context.ok():
                 return                   # shut down (Ctrl-C): nowhere to publish
+            if time_base != current:
+                continue                 # queued before a new time base (counted there)
+            if time_base != self._worker_time_base:
+                self._worker_time_base = time_base
+                self._last_stamp_ns = None
+            if isinstance(item, int):
+                self._answer_unmatched(item)
+                continue
             try:
-                self.process(msg)
+                self.process(item)
             except Exception as err:     # keep matching: one bad frame must not stop it
                 if not self.context.ok():
                     return               # the context went down while publishing
                 self.warn_rejected('camera/image_raw', 'error', repr(err))
-                self._answer_unmatched(msg)
+                self._answer_unmatched(stamp_to_ns(item.header.stamp))
 
     def process(self, msg: Image) -> CameraMatches | None:
-        """Match one frame and publish its top-k.
+        """Match one frame (header fields checked by :meth:`on_image`) and publish its
+        top-k.
 
         Returns:
             The published matches: empty for a frame without a match or one that cannot
@@ -198,17 +251,17 @@ class CameraNode(GnssCamNode):
             if self.database is None:
                 self.warn_rejected('camera/image_raw', 'no_database',
                                    'no map database loaded (database_path)')
-                return self._answer_unmatched(msg)
+                return self._answer_unmatched(stamp_ns)
             try:
                 image, encoding = image_to_array(msg)
                 found = self.database.query(image, top_k=int(self.param('top_k')),
                                             encoding='rgb8' if encoding == 'rgb8' else 'bgr8')
             except MessageError as err:
                 self.warn_rejected('camera/image_raw', err.reason, str(err))
-                return self._answer_unmatched(msg)
+                return self._answer_unmatched(stamp_ns)
             except VisionError as err:
                 self.warn_rejected('camera/image_raw', 'vision', str(err))
-                return self._answer_unmatched(msg)
+                return self._answer_unmatched(stamp_ns)
             self._last_stamp_ns = stamp_ns
             idx = np.array([m.index for m in found], dtype=np.int64)
             matches = CameraMatches(
@@ -221,10 +274,9 @@ class CameraNode(GnssCamNode):
                 self.stats.count('frames_without_match')
             return matches
 
-    def _answer_unmatched(self, msg: Image) -> CameraMatches | None:
-        """Publish an empty ``camera/matches`` with the frame's stamp (the frame yields no
+    def _answer_unmatched(self, stamp_ns: int) -> CameraMatches | None:
+        """Publish an empty ``camera/matches`` at a frame's stamp (the frame yields no
         match); nothing for a frame older than the last answered one."""
-        stamp_ns = stamp_to_ns(msg.header.stamp)
         if self._last_stamp_ns is not None and stamp_ns < self._last_stamp_ns:
             return None
         self._last_stamp_ns = stamp_ns

@@ -5,7 +5,9 @@ report, QoS profiles, the ready line, and the Jazzy ``main()`` with its exit cod
 Exit codes of the node executables (:func:`run_node`, pipeline_node):
 
 * 0 (:data:`EXIT_OK`): stopped by Ctrl-C (SIGINT), SIGTERM or a ROS shutdown;
-* 1 (:data:`EXIT_FAILED`): the node failed while running (traceback on stderr);
+* 1 (:data:`EXIT_FAILED`): the node failed while running (a traceback on stderr, or a
+  fatal log line when a node's worker failed: :meth:`GnssCamNode.fail`), also when the
+  failure shut the context down as a stop does;
 * 2 (:data:`EXIT_PARAMETER`): a parameter refused at start-up (wrong type, out of range,
   refused by the node's checks), one line on stderr naming it;
 * 3 (:data:`EXIT_INPUT`): an input file named by a parameter cannot be used
@@ -28,14 +30,17 @@ import numpy as np
 import rclpy
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 SetParametersResult)
+from rclpy.event_handler import SubscriptionEventCallbacks, qos_policy_name_from_kind
 from rclpy.exceptions import InvalidParameterTypeException, InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
 
 from diagnostic_msgs.msg import DiagnosticArray
-from msg_adapters import OK, WARN, make_diagnostic_array, make_status
+from msg_adapters import (NEW_BASE, OK, WARN, MessageError, StampGate, make_diagnostic_array,
+                          make_status)
 
 # Float ranges need finite ends; this stands for "no upper limit".
 BIG = 1e12
@@ -157,6 +162,117 @@ class NodeStats:
         return out
 
 
+class SequenceGaps:
+    """Messages of a topic lost before its callback, from the gaps in the publishers'
+    sequence numbers (``publication_sequence_number`` of the message info).
+
+    Fast DDS raises no ``message_lost`` event when a KEEP_LAST subscription queue
+    overwrites a message that the executor did not take in time (checked with rclpy
+    Jazzy), nor for samples a KEEP_LAST writer replaced before delivering them; both show
+    as a gap in the writer's sequence numbers. The message info does not name the
+    publisher, so each message is attributed to the tracked stream whose newest number is
+    the closest below its own; a number below all of them starts a new stream (another
+    publisher, or one restarted). With one publisher per topic, as in the gnsscam_ros
+    graph, the count is exact; with several whose numbers interleave closely it is an
+    estimate. Messages published before the subscription matched are not counted.
+
+    Args:
+        streams: Publishers tracked at once (the least recently seen is forgotten).
+    """
+
+    def __init__(self, streams: int = 8):
+        self._newest: list[int] = []         # per stream, most recently seen last
+        self._streams = int(streams)
+
+    def observe(self, sequence_number) -> int:
+        """Messages lost just before this one (0 when unknown)."""
+        if not sequence_number or sequence_number < 0:
+            return 0                     # not reported by this middleware
+        seq = int(sequence_number)
+        below = [i for i, newest in enumerate(self._newest) if newest < seq]
+        if not below:
+            self._newest.append(seq)
+            del self._newest[:-self._streams]
+            return 0
+        i = max(below, key=self._newest.__getitem__)
+        gap = seq - self._newest.pop(i) - 1
+        self._newest.append(seq)
+        return gap
+
+
+class InputTopic:
+    """One subscribed input topic of a node: decoding, limits before decoding, losses,
+    middleware events and the stamp gate, counted in the node's stats.
+
+    The subscription takes the serialised message (``raw``) and decodes it here: rclpy
+    drops a message that fails to deserialise before any callback (only rcutils noise on
+    stderr), so decoding here is the one way to count it (``rejected_undecodable``); and
+    the sizes in the header fields of images and clouds are checked before the arrays are
+    copied out of the buffer (``check_raw``).
+
+    Counters (``NodeStats``): ``received_<name>`` every message; ``lost_<topic>``
+    messages lost before the callback (:class:`SequenceGaps`: queue overwrites,
+    transport); ``qos_message_lost_<topic>`` what the middleware reports as lost (the
+    ``message_lost`` event; may overlap ``lost_<topic>``); ``qos_incompatible_<topic>``
+    and ``type_incompatible_<topic>``: publishers that cannot be matched;
+    ``time_base_changed``: new time bases adopted by the stamp gate. Rejections by reason.
+    """
+
+    def __init__(self, node: 'GnssCamNode', msg_type, topic: str, callback: Callable,
+                 qos: QoSProfile, received: str, check_raw: Callable | None = None):
+        self.node = node
+        self.msg_type = msg_type
+        self.topic = topic
+        self.callback = callback
+        self.received = received
+        self.check_raw = check_raw
+        self.gate = StampGate(what=topic)
+        self.gaps = SequenceGaps()
+        stats = node.stats
+        events = SubscriptionEventCallbacks(
+            message_lost=lambda e: stats.count(f'qos_message_lost_{topic}',
+                                               int(e.total_count_change)),
+            incompatible_qos=self._incompatible_qos,
+            incompatible_type=self._incompatible_type)
+        self.subscription = node.create_subscription(msg_type, topic, self.on_raw, qos,
+                                                     event_callbacks=events, raw=True)
+
+    def on_raw(self, raw: bytes, info) -> None:
+        """Count, check the sizes, decode, and hand the message to the node."""
+        stats = self.node.stats
+        stats.count(self.received)
+        lost = self.gaps.observe(info.get('publication_sequence_number')
+                                 if isinstance(info, dict) else None)
+        if lost > 0:
+            stats.count(f'lost_{self.topic}', lost)
+        try:
+            if self.check_raw is not None:
+                self.check_raw(raw, self.topic)
+        except MessageError as err:
+            self.node.warn_rejected(self.topic, err.reason, str(err))
+            return
+        try:
+            msg = deserialize_message(raw, self.msg_type)
+        except Exception as err:    # noqa: BLE001 - rclpy raises RMWError and others
+            self.node.warn_rejected(self.topic, 'undecodable',
+                                    f'{len(raw)} bytes: {type(err).__name__}: {err}')
+            return
+        self.callback(msg)
+
+    def _incompatible_qos(self, event) -> None:
+        self.node.stats.count(f'qos_incompatible_{self.topic}')
+        self.node.get_logger().warning(
+            f'{self.topic}: a publisher offers an incompatible QoS (policy '
+            f'{qos_policy_name_from_kind(event.last_policy_kind)}); its messages never arrive',
+            throttle_duration_sec=5.0)
+
+    def _incompatible_type(self, event) -> None:
+        self.node.stats.count(f'type_incompatible_{self.topic}')
+        self.node.get_logger().warning(
+            f'{self.topic}: a publisher of another message type; its messages never arrive',
+            throttle_duration_sec=5.0)
+
+
 class GnssCamNode(Node):
     """Base of the gnsscam_ros nodes.
 
@@ -175,6 +291,9 @@ class GnssCamNode(Node):
     def __init__(self, node_name: str, **kwargs):
         super().__init__(node_name, **kwargs)
         self.stats = NodeStats()
+        self.inputs: dict[str, InputTopic] = {}
+        #: Why the node failed while running (None: it did not); see :meth:`fail`.
+        self.fatal_error: str | None = None
         self._validators: dict[str, Callable] = {}
         self._all_declared = False
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', reliable_qos())
@@ -361,6 +480,56 @@ class GnssCamNode(Node):
         self.get_logger().warning(f'{topic}: rejected ({reason}): {detail}',
                                   throttle_duration_sec=5.0)
 
+    # ---------------------------------------------------------------------- inputs
+    def subscribe_input(self, msg_type, topic: str, callback: Callable, qos: QoSProfile,
+                        received: str, check_raw: Callable | None = None) -> InputTopic:
+        """Subscribe an input topic through :class:`InputTopic` (decoded and counted
+        here; ``callback`` gets the message). ``check_raw(raw, topic)`` may refuse the
+        serialised message before it is decoded (``MessageError``)."""
+        handler = InputTopic(self, msg_type, topic, callback, qos, received, check_raw)
+        self.inputs[topic] = handler
+        return handler
+
+    def admit_stamp(self, topic: str, stamp_ns: int) -> str | None:
+        """Pass a stamp through the topic's :class:`StampGate`.
+
+        Returns:
+            The gate's verdict (``ADVANCE``, ``BEHIND``, ``NEW_BASE``), or None when the
+            message is refused (counted as ``stamp_jump``). On ``NEW_BASE`` the other
+            inputs' gates forget their streams (a replay rewinds every topic together;
+            each would otherwise reset the node once more) and :meth:`on_time_base_changed`
+            resets what the node keeps of the old time base.
+        """
+        gate = self.inputs[topic].gate
+        try:
+            verdict = gate.admit(stamp_ns)
+        except MessageError as err:
+            self.warn_rejected(topic, err.reason, str(err))
+            return None
+        if verdict == NEW_BASE:
+            for other in self.inputs.values():
+                if other.gate is not gate:
+                    other.gate.reset()
+            self.stats.count('time_base_changed')
+            self.get_logger().warning(
+                f'{topic}: new time base adopted at {stamp_ns} ns ({gate.confirm} consistent '
+                f'messages away from the stream before): state of the old one reset')
+            self.on_time_base_changed(topic, stamp_ns)
+        return verdict
+
+    def on_time_base_changed(self, topic: str, stamp_ns: int) -> None:
+        """Forget what the node keeps of the old time base (override)."""
+
+    # ---------------------------------------------------------------------- failure
+    def fail(self, what: str) -> None:
+        """The node cannot go on (a worker thread died, ...): log it, remember it for the
+        exit code (:data:`EXIT_FAILED`) and shut the context down, as an exception in a
+        callback would."""
+        if self.fatal_error is None:
+            self.fatal_error = what
+        self.get_logger().fatal(f'{what}; shutting down')
+        rclpy.try_shutdown(context=self.context)
+
 
 def _type_name(default) -> str:
     if isinstance(default, bool):
@@ -377,10 +546,11 @@ def _type_name(default) -> str:
 
 
 __all__ = ['BIG', 'EXIT_FAILED', 'EXIT_INPUT', 'EXIT_OK', 'EXIT_PARAMETER', 'GnssCamNode',
-           'InputFileError', 'NodeStats', 'OK', 'ParameterError', 'StartupError', 'WARN',
+           'InputFileError', 'InputTopic', 'NodeStats', 'OK', 'ParameterError',
+           'SequenceGaps', 'StartupError', 'WARN',
            'latched_qos', 'reliable_qos', 'run_node', 'sensor_qos',
            'NodeSpinner', 'stop_process', 'wants_help', 'print_node_help', 'spin_node',
-           'start_nodes', 'quietly']
+           'start_nodes', 'quietly', 'failed', 'shut_down', 'quiet_interrupted_rclpy_objects']
 
 
 def wants_help(args=None) -> bool:
@@ -440,8 +610,8 @@ def start_nodes(executable: str, constructors: list[Callable], context=None
     return [], code
 
 
-def spin_node(node) -> None:
-    """Spin ``node`` until Ctrl-C or shutdown.
+def spin_node(node, executor=None) -> None:
+    """Spin ``node`` until Ctrl-C or shutdown (on ``executor``; None: rclpy's global one).
 
     Ctrl-C shuts the context down from rclpy's signal handler, concurrently with the
     executor: when it lands between the executor's ``context.ok()`` check and its next
@@ -450,7 +620,7 @@ def spin_node(node) -> None:
     stop, not a failure; one raised while it is up is a failure and propagates.
     """
     try:
-        rclpy.spin(node)
+        rclpy.spin(node, executor)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:
@@ -458,12 +628,39 @@ def spin_node(node) -> None:
             raise
 
 
+def _quiet_unraisable(unraisable) -> None:
+    """``sys.unraisablehook`` of the node processes: an rclpy object whose constructor a
+    Ctrl-C interrupted (an executor built while rclpy's signal handler shuts the context
+    down fails creating its guard condition) fails again in its ``__del__`` ("Exception
+    ignored in: Executor.__del__ ... AttributeError: ... '_sigint_gc'", 3 stops in 20
+    here): that is the stop, not an error worth a traceback on stderr. Everything else
+    goes to Python's hook."""
+    where = getattr(unraisable.object, '__module__', None) or ''
+    if (where.startswith('rclpy') and isinstance(unraisable.exc_value, AttributeError)
+            and not rclpy.ok()):
+        return
+    sys.__unraisablehook__(unraisable)
+
+
+def quiet_interrupted_rclpy_objects() -> None:
+    """Install :func:`_quiet_unraisable` (node process entry points)."""
+    sys.unraisablehook = _quiet_unraisable
+
+
 def quietly(action) -> None:
-    """Run a clean-up step; a second Ctrl-C during it does not end in a traceback."""
+    """Run a clean-up step of a stopping process: a second Ctrl-C during it, or an error
+    of rclpy about the context that is already shut down (``RCLError: ... context is not
+    valid`` from an executor or a node torn down after it), does not end in a traceback
+    and a non-zero status. Failures while running are judged before the clean-up."""
     try:
         action()
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, Exception):      # noqa: BLE001 - see the docstring
         pass
+
+
+def failed(nodes) -> bool:
+    """True when a node reported a fatal error (:meth:`GnssCamNode.fail`)."""
+    return any(getattr(node, 'fatal_error', None) for node in nodes)
 
 
 def run_node(node_class, args=None) -> int:
@@ -481,20 +678,57 @@ def run_node(node_class, args=None) -> int:
     if wants_help(args):
         print_node_help(name, sys.modules[node_class.__module__].__doc__, (name,))
         return EXIT_OK
+    quiet_interrupted_rclpy_objects()
     nodes: list = []
+    executor = None
     code = EXIT_OK
     try:
-        rclpy.init(args=args)
-        nodes, code = start_nodes(name, [node_class])
-        if nodes:
-            spin_node(nodes[0])
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass                            # Ctrl-C during start-up
-    finally:
-        for node in nodes:
-            quietly(node.destroy_node)
-        quietly(rclpy.try_shutdown)
+        try:
+            rclpy.init(args=args)
+            # Built before the node logs its ready line: a stop right after the line does
+            # not interrupt the executor's construction (see _quiet_unraisable).
+            executor = SingleThreadedExecutor()
+            nodes, code = start_nodes(name, [node_class])
+            if nodes:
+                spin_node(nodes[0], executor)
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass                        # Ctrl-C during start-up
+        except Exception:
+            if rclpy.ok():
+                raise                   # a failure while running: traceback, exit 1
+            # else: an rclpy call failed because Ctrl-C shut the context down under it
+        finally:
+            # A node that failed shut the context down itself: that stop is a failure.
+            if failed(nodes):
+                code = EXIT_FAILED
+            shut_down(nodes, executor=executor)
+    except KeyboardInterrupt:
+        pass                            # a second Ctrl-C between clean-up steps
     return code
+
+
+def shut_down(nodes, spinner: 'NodeSpinner | None' = None, executor=None,
+              context=None) -> None:
+    """Clean-up of a node process: the spinner or executor, the nodes, the context (each
+    step :func:`quietly`). Further Ctrl-C is ignored from here on: the process is stopping, and
+    one landing while Python finalises (which resets SIGINT to its default action) killed
+    the process with -SIGINT instead of exit 0."""
+    _ignore_sigint()
+    if spinner is not None:
+        quietly(spinner.stop)
+    if executor is not None:
+        quietly(executor.shutdown)
+    for node in nodes:
+        quietly(node.destroy_node)
+    quietly(lambda: rclpy.try_shutdown(context=context))
+    _ignore_sigint()                     # rclpy restored its predecessor's handler
+
+
+def _ignore_sigint() -> None:
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:
+        pass                             # not the main thread (a test calling main())
 
 
 class NodeSpinner:
@@ -519,10 +753,13 @@ class NodeSpinner:
     def __init__(self, nodes: list, context=None):
         self.context = context
         self.failed = False              # a node's callback raised while running
+        self._nodes = list(nodes)
         self._stop = threading.Event()
         self._pairs = []
-        for node in nodes:
-            executor = SingleThreadedExecutor(context=context)
+        # Every executor first: when one cannot be built (Ctrl-C shut the context down
+        # meanwhile), no thread is left spinning.
+        executors = [SingleThreadedExecutor(context=context) for _ in nodes]
+        for node, executor in zip(nodes, executors):
             executor.add_node(node)
             thread = threading.Thread(target=self._spin, args=(executor, node), daemon=True,
                                       name=f'spin_{node.get_name()}')
@@ -543,6 +780,12 @@ class NodeSpinner:
                 self.failed = True
                 node.get_logger().fatal(f'{type(err).__name__}: {err}; shutting down')
                 rclpy.try_shutdown(context=self.context)
+
+    @property
+    def any_failed(self) -> bool:
+        """A node's callback raised, or a node reported a fatal error itself
+        (:meth:`GnssCamNode.fail`, e.g. from a worker thread)."""
+        return self.failed or failed(self._nodes)
 
     def running(self) -> bool:
         """True while every thread spins and the context is up."""

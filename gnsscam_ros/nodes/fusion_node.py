@@ -58,7 +58,8 @@ from gnsscam_ros.core.motion import OUT_OF_ORDER, RESET
 from gnsscam_ros.core.particles import SYSTEMATIC
 from gnsscam_ros.core.types import GnssEpoch
 from msg_adapters import (ERROR, OK, STALE, WARN, GeodeticFix, GlobalOdometry,
-                          IntegrityRisk, MessageError, PoseEstimate, fix_to_navsatfix,
+                          IntegrityRisk, MessageError, PoseEstimate, check_serialized_gnss,
+                          check_serialized_matches, check_serialized_size, fix_to_navsatfix,
                           global_odometry_to_msg, integrity_risk_to_msg, make_status,
                           odometry_to_dead_reckoning, particles_to_posearray,
                           pointcloud2_to_gnss_epoch, pointcloud2_to_matches, pose_covariance,
@@ -219,13 +220,18 @@ class FusionNode(GnssCamNode):
         self.pub_fix = self.create_publisher(NavSatFix, 'fix', reliable_qos())
         self.pub_particles = self.create_publisher(PoseArray, 'particles', reliable_qos(2))
         depth = self.param('input_queue_depth')
-        self.sub_gnss = self.create_subscription(PointCloud2, 'gnss/measurements',
-                                                 self.on_gnss, reliable_qos(depth))
-        self.sub_dr = self.create_subscription(
+        # Through InputTopic: decoded and size-checked there, losses (queue overwrites
+        # while an epoch runs) and undecodable messages counted on diagnostics.
+        self.sub_gnss = self.subscribe_input(
+            PointCloud2, 'gnss/measurements', self.on_gnss, reliable_qos(depth),
+            'received_measurements', check_serialized_gnss).subscription
+        self.sub_dr = self.subscribe_input(
             Odometry, 'odometry/dead_reckoning', self.on_dead_reckoning,
-            reliable_qos(self.param('odometry_queue_depth')))
-        self.sub_camera = self.create_subscription(PointCloud2, 'camera/matches',
-                                                   self.on_matches, reliable_qos(depth))
+            reliable_qos(self.param('odometry_queue_depth')),
+            'received_dead_reckoning', check_serialized_size).subscription
+        self.sub_camera = self.subscribe_input(
+            PointCloud2, 'camera/matches', self.on_matches, reliable_qos(depth),
+            'received_matches', check_serialized_matches).subscription
         self._timer = self.create_timer(0.02, self.on_timer)
         if self.filter.frame is not None:
             self.publish_origin(self.now_ns())
@@ -266,11 +272,13 @@ class FusionNode(GnssCamNode):
     # ------------------------------------------------------------------- callbacks
     def on_gnss(self, msg: PointCloud2) -> None:
         """Queue a GNSS epoch and process what is ready."""
-        self.stats.count('received_measurements')
         try:
-            epoch = pointcloud2_to_gnss_epoch(msg, None, 'gnss/measurements')
+            # gnss_node publishes checked satellites only: no NaN or non-positive variance.
+            epoch = pointcloud2_to_gnss_epoch(msg, None, 'gnss/measurements', checked=True)
         except MessageError as err:
             self.warn_rejected('gnss/measurements', err.reason, str(err))
+            return
+        if self.admit_stamp('gnss/measurements', epoch.stamp_ns) is None:
             return
         now = time.monotonic()
         self._last_gnss_receipt = now
@@ -285,11 +293,12 @@ class FusionNode(GnssCamNode):
 
     def on_dead_reckoning(self, msg: Odometry) -> None:
         """Buffer a dead-reckoning state; an epoch waiting for it may now run."""
-        self.stats.count('received_dead_reckoning')
         try:
             state = odometry_to_dead_reckoning(msg)
         except MessageError as err:
             self.warn_rejected('odometry/dead_reckoning', err.reason, str(err))
+            return
+        if self.admit_stamp('odometry/dead_reckoning', state.stamp_ns) is None:
             return
         now = time.monotonic()
         outcome = self.engine.add_dead_reckoning(state, now)
@@ -311,11 +320,12 @@ class FusionNode(GnssCamNode):
 
     def on_matches(self, msg: PointCloud2) -> None:
         """Buffer the best match of a camera image for the next epoch."""
-        self.stats.count('received_matches')
         try:
             matches = pointcloud2_to_matches(msg, None)
         except MessageError as err:
             self.warn_rejected('camera/matches', err.reason, str(err))
+            return
+        if self.admit_stamp('camera/matches', matches.stamp_ns) is None:
             return
         measurement = best_match(matches.stamp_ns, matches.position_m, matches.score,
                                  self._camera_count)
@@ -329,6 +339,18 @@ class FusionNode(GnssCamNode):
             self.stats.count('camera_without_match')
         if self.engine.queue:
             self.process_ready()
+
+    def on_time_base_changed(self, topic: str, stamp_ns: int) -> None:
+        """An input adopted a new time base (a replay started again): what the engine
+        keeps of the old one (queued epochs, motion, camera matches, the filter's last
+        epoch) can never be combined with the new stamps."""
+        reset = getattr(self.engine, 'reset_time_base', None)
+        if reset is not None:
+            reset(f'{topic}: new time base at {stamp_ns} ns')
+            return
+        # TODO(lead): engine reset on a new time base (EpochEngine.reset_time_base(reason)
+        # is not there yet): until then the engine refuses the new stamps as out of order.
+        self.stats.count('time_base_reset_missing')
 
     def on_timer(self) -> None:
         """Run epochs whose wait for their inputs is over; report STALE without GNSS."""

@@ -7,8 +7,10 @@ when too few remain, so that fusion_node can report the epoch as STALE at once) 
 
 Checks (``core.gnss.check_epoch``): non-finite values, non-positive range or variance,
 duplicated satellites, unknown system code, elevation and C/N0 masks, minimum satellite
-count; whole messages with wrong fields or frame, or stamps not after the previous epoch,
-are refused. Everything refused is counted and reported on ``diagnostics``.
+count; whole messages with wrong fields or frame, more satellites or values beyond the
+limits of ``msg_adapters.limits``, invalid stamps, stamps far from the stream
+(``msg_adapters.gate``) or not after the previous epoch, are refused. Everything refused
+is counted and reported on ``diagnostics``.
 
 Exit codes: 0 stopped (Ctrl-C, shutdown), 1 failed while running, 2 a parameter refused at
 start-up (one line on stderr naming it). An integer given for a float parameter is that
@@ -26,8 +28,9 @@ from gnsscam_ros.core.frames import LocalFrame, sagnac_corrected
 from gnsscam_ros.core.gnss import check_epoch
 from gnsscam_ros.core.snapshot import solve_snapshot
 from gnsscam_ros.core.types import GnssEpoch
-from msg_adapters import (OK, WARN, GeodeticFix, MessageError, fix_to_navsatfix,
-                          gnss_epoch_to_pointcloud2, pointcloud2_to_gnss_epoch, service_bits)
+from msg_adapters import (OK, WARN, GeodeticFix, MessageError, check_serialized_gnss,
+                          fix_to_navsatfix, gnss_epoch_to_pointcloud2,
+                          pointcloud2_to_gnss_epoch, service_bits)
 from msg_adapters.wire import KNOWN_SYSTEMS
 
 from .common import BIG, GnssCamNode, reliable_qos, run_node, sensor_qos
@@ -107,8 +110,10 @@ class GnssNode(GnssCamNode):
         self.pub_measurements = self.create_publisher(PointCloud2, 'gnss/measurements',
                                                       reliable_qos())
         self.pub_fix = self.create_publisher(NavSatFix, 'gnss/fix', reliable_qos())
-        self.sub = self.create_subscription(PointCloud2, 'gnss/pseudoranges', self.on_epoch,
-                                            sensor_qos(self.param('input_queue_depth')))
+        self.sub = self.subscribe_input(
+            PointCloud2, 'gnss/pseudoranges', self.on_epoch,
+            sensor_qos(self.param('input_queue_depth')), 'received_pseudoranges',
+            check_serialized_gnss).subscription
         self.parameters_declared()
 
     def ready_settings(self) -> dict:
@@ -118,12 +123,13 @@ class GnssNode(GnssCamNode):
     def on_epoch(self, msg: PointCloud2) -> None:
         """Validate one epoch and publish what passes."""
         with self.stats.timed():
-            self.stats.count('received_pseudoranges')
             self._last_receipt = time.monotonic()
             try:
                 epoch = pointcloud2_to_gnss_epoch(msg, self.param('input_frame_id'))
             except MessageError as err:
                 self.warn_rejected('gnss/pseudoranges', err.reason, str(err))
+                return
+            if self.admit_stamp('gnss/pseudoranges', epoch.stamp_ns) is None:
                 return
             if self._last_stamp_ns is not None and epoch.stamp_ns <= self._last_stamp_ns:
                 self.warn_rejected('gnss/pseudoranges', 'out_of_order',
@@ -147,6 +153,11 @@ class GnssNode(GnssCamNode):
                                           throttle_duration_sec=5.0)
                 return
             self._publish_fix(usable)
+
+    def on_time_base_changed(self, topic: str, stamp_ns: int) -> None:
+        # Epochs of the new time base are ordered among themselves only. The last fix
+        # stays the start of the next solution: it is a position, not a time.
+        self._last_stamp_ns = None
 
     def _publish_fix(self, epoch: GnssEpoch) -> None:
         var_floor = self.param('measurement_var_m2')

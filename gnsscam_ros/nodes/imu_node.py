@@ -11,8 +11,11 @@ else the other source.
 
 A source is *active* while its messages keep arriving (``source_timeout_s``, wall time);
 states are emitted up to the newest stamp every active source has reached, so the output
-does not depend on how the two streams interleave. Messages with non-finite values or
-stamps not after their stream's previous one are refused and counted.
+does not depend on how the two streams interleave. Messages with non-finite values,
+values beyond the limits of ``msg_adapters.limits`` (speeds, rates, accelerations,
+variances), invalid stamps, stamps far from their stream (``msg_adapters.gate``) or not
+after their stream's previous one are refused and counted; a new time base (a replay
+started again) restarts the dead reckoning.
 
 Exit codes: 0 stopped (Ctrl-C, shutdown), 1 failed while running, 2 a parameter refused at
 start-up (``-p yaw_rate_source:=compass``; one line on stderr naming it). An integer given
@@ -29,8 +32,8 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu
 
 from gnsscam_ros.core.motion import IMU, ODOMETRY, DeadReckoner, DeadReckoningConfig
-from msg_adapters import (OK, WARN, MessageError, dead_reckoning_to_odometry, imu_to_sample,
-                          twist_to_sample)
+from msg_adapters import (OK, WARN, MessageError, check_serialized_size,
+                          dead_reckoning_to_odometry, imu_to_sample, twist_to_sample)
 
 from .common import BIG, GnssCamNode, ParameterError, reliable_qos, run_node, sensor_qos
 
@@ -100,9 +103,12 @@ class ImuNode(GnssCamNode):
         self.pub = self.create_publisher(Odometry, 'odometry/dead_reckoning',
                                          reliable_qos(self.param('output_queue_depth')))
         depth = self.param('input_queue_depth')
-        self.sub_imu = self.create_subscription(Imu, 'imu/data', self.on_imu, sensor_qos(depth))
-        self.sub_twist = self.create_subscription(TwistWithCovarianceStamped, 'odom/twist',
-                                                  self.on_twist, sensor_qos(depth))
+        self.sub_imu = self.subscribe_input(Imu, 'imu/data', self.on_imu, sensor_qos(depth),
+                                            'received_imu', check_serialized_size).subscription
+        self.sub_twist = self.subscribe_input(TwistWithCovarianceStamped, 'odom/twist',
+                                              self.on_twist, sensor_qos(depth),
+                                              'received_odom_twist',
+                                              check_serialized_size).subscription
         self.parameters_declared()
 
     def ready_settings(self) -> dict:
@@ -116,14 +122,16 @@ class ImuNode(GnssCamNode):
     def on_imu(self, msg: Imu) -> None:
         """Buffer an IMU sample and publish the states it releases."""
         with self.stats.timed():
-            self.stats.count('received_imu')
             try:
                 sample = imu_to_sample(msg)
-                self.dead_reckoner.add_imu(sample.stamp_ns, sample.accel_mps2[0],
-                                           sample.gyro_rps[2])
             except MessageError as err:
                 self.warn_rejected('imu/data', err.reason, str(err))
                 return
+            if self.admit_stamp('imu/data', sample.stamp_ns) is None:
+                return
+            try:
+                self.dead_reckoner.add_imu(sample.stamp_ns, sample.accel_mps2[0],
+                                           sample.gyro_rps[2])
             except ValueError as err:       # stamp not after the previous one
                 self.warn_rejected('imu/data', 'out_of_order', str(err))
                 return
@@ -133,19 +141,27 @@ class ImuNode(GnssCamNode):
     def on_twist(self, msg: TwistWithCovarianceStamped) -> None:
         """Buffer an odometry sample and publish the states it releases."""
         with self.stats.timed():
-            self.stats.count('received_odom_twist')
             try:
                 s = twist_to_sample(msg)
-                self.dead_reckoner.add_odometry(s.stamp_ns, s.speed_mps, s.yaw_rate_rps,
-                                                s.speed_var, s.yaw_rate_var)
             except MessageError as err:
                 self.warn_rejected('odom/twist', err.reason, str(err))
                 return
-            except ValueError as err:
+            if self.admit_stamp('odom/twist', s.stamp_ns) is None:
+                return
+            try:
+                self.dead_reckoner.add_odometry(s.stamp_ns, s.speed_mps, s.yaw_rate_rps,
+                                                s.speed_var, s.yaw_rate_var)
+            except ValueError as err:       # stamp not after the previous one
                 self.warn_rejected('odom/twist', 'out_of_order', str(err))
                 return
             self._receipt[ODOMETRY] = time.monotonic()
             self._advance()
+
+    def on_time_base_changed(self, topic: str, stamp_ns: int) -> None:
+        # The dead reckoning starts again at its origin on the new time base; fusion_node
+        # sees the restart (a reset of the dead reckoning) and treats the step as unknown
+        # motion, as when imu_node itself restarts.
+        self.dead_reckoner = DeadReckoner(self.dead_reckoner.config)
 
     def active_sources(self) -> set[str]:
         """Sources whose messages arrived within ``source_timeout_s`` (wall time)."""
@@ -155,7 +171,18 @@ class ImuNode(GnssCamNode):
     def _advance(self) -> None:
         odom_frame, base_frame = self.param('odom_frame_id'), self.param('base_frame_id')
         for state in self.dead_reckoner.advance(self.active_sources()):
-            self.pub.publish(dead_reckoning_to_odometry(state, odom_frame, base_frame))
+            try:
+                msg = dead_reckoning_to_odometry(state, odom_frame, base_frame)
+            except MessageError as err:
+                # The inputs are within the limits, so this should not happen; if it does,
+                # a dead reckoning that cannot be published must not stay: start again
+                # (fusion_node sees a restart, as of a restarted imu_node).
+                self.stats.count('dead_reckoning_invalid')
+                self.get_logger().error(f'dead reckoning not publishable ({err}): '
+                                        'restarted at its origin', throttle_duration_sec=5.0)
+                self.dead_reckoner = DeadReckoner(self.dead_reckoner.config)
+                return
+            self.pub.publish(msg)
             self.stats.count('published_dead_reckoning')
 
     def validate_parameters(self, changes: dict) -> str | None:

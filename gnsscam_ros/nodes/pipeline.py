@@ -18,8 +18,8 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 
 from .camera_node import CameraNode
-from .common import (EXIT_FAILED, EXIT_OK, NodeSpinner, print_node_help, quietly,
-                     start_nodes, wants_help)
+from .common import (EXIT_FAILED, EXIT_OK, NodeSpinner, failed, print_node_help,
+                     quiet_interrupted_rclpy_objects, shut_down, start_nodes, wants_help)
 from .fusion_node import FusionNode
 from .gnss_node import GnssNode
 from .imu_node import ImuNode
@@ -38,23 +38,31 @@ def main(args=None) -> int:
         print_node_help('pipeline_node', __doc__,
                         ('gnss_node', 'imu_node', 'camera_node', 'fusion_node'))
         return EXIT_OK
+    quiet_interrupted_rclpy_objects()
     nodes, spinner, code = [], None, EXIT_OK
     try:
-        rclpy.init(args=args)
-        nodes, code = start_nodes('pipeline_node', [GnssNode, CameraNode, ImuNode, FusionNode])
-        if nodes:
-            spinner = NodeSpinner(nodes)
-            spinner.wait()
-            if spinner.failed:
+        try:
+            rclpy.init(args=args)
+            nodes, code = start_nodes('pipeline_node',
+                                      [GnssNode, CameraNode, ImuNode, FusionNode])
+            if nodes:
+                spinner = NodeSpinner(nodes)
+                spinner.wait()
+        except (KeyboardInterrupt, ExternalShutdownException):
+            pass
+        except Exception:
+            if rclpy.ok():
+                raise                   # a failure while running: traceback, exit 1
+            # else: an rclpy call (the executors' construction) failed because Ctrl-C
+            # shut the context down under it: a stop
+        finally:
+            # Judged before the clean-up, and also after Ctrl-C: a node that failed shuts
+            # the context down, which ends the wait as a stop would.
+            if (spinner is not None and spinner.any_failed) or failed(nodes):
                 code = EXIT_FAILED
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if spinner is not None:
-            quietly(spinner.stop)
-        for node in nodes:
-            quietly(node.destroy_node)
-        quietly(rclpy.try_shutdown)
+            shut_down(nodes, spinner)
+    except KeyboardInterrupt:
+        pass                            # a second Ctrl-C between clean-up steps
     return code
 
 

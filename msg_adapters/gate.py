@@ -1,0 +1,102 @@
+"""The stamp gate: one input topic's stamps stay within a window of its recent stream.
+
+A single stamp far from the stream (a glitch: a flipped bit, a clock read wrongly) is
+refused, and the stream goes on as if it had not come: refusing it instead of taking it
+as the newest stamp keeps one bad message from making every later valid one "out of
+order". A deliberate change of the time base (a bag replayed from its start again, a
+clock set anew) shows as a run of messages that agree with each other but not with the
+stream before: after :data:`.limits.NEW_TIME_BASE_MESSAGES` of them the gate adopts the
+new time base and says so, so that the node can reset what it keeps of the old one. The
+gate never blocks for good.
+
+Plain Python, no ROS: the nodes hold one gate per subscribed topic.
+"""
+from __future__ import annotations
+
+from .errors import MessageError
+from .limits import NEW_TIME_BASE_MESSAGES, NS_PER_S, STAMP_WINDOW_NS
+
+#: Verdicts of :meth:`StampGate.admit`.
+ADVANCE = 'advance'        # after the newest accepted stamp, within the window
+BEHIND = 'behind'          # not after it but within the window: the node's order rules
+NEW_BASE = 'new_base'      # the message completes a new time base: reset, then take it
+
+
+class StampGate:
+    """Admits the stamps of one input topic.
+
+    ``newest_ns`` is the newest stamp accepted as the stream's. A stamp
+
+    * after it by at most ``window_ns`` advances it (:data:`ADVANCE`);
+    * not after it, by at most ``window_ns``, is passed on (:data:`BEHIND`): whether such
+      a message is out of order (a duplicate, a late one) is the node's rule, as before;
+    * further away either way is refused (``MessageError``, reason ``'stamp_jump'``).
+
+    Every message that does not advance the stream (behind or refused) is also a
+    candidate of a new time base: ``confirm`` consecutive ones, each after the previous
+    and within ``window_ns`` of it, make the last one the new ``newest_ns``
+    (:data:`NEW_BASE`; the earlier ones stay refused or passed on as they were). A
+    message that advances the stream ends the run. That bookkeeping is the only state
+    a refused message changes.
+
+    Args:
+        window_ns: Largest distance from the newest stamp [ns].
+        confirm: Consecutive consistent messages that make a new time base.
+        what: Topic name for the messages.
+    """
+
+    def __init__(self, window_ns: int = STAMP_WINDOW_NS, confirm: int = NEW_TIME_BASE_MESSAGES,
+                 what: str = 'stamp'):
+        if window_ns <= 0 or confirm < 1:
+            raise ValueError('window_ns must be > 0 and confirm >= 1')
+        self.window_ns = int(window_ns)
+        self.confirm = int(confirm)
+        self.what = what
+        self.newest_ns: int | None = None
+        self.time_base_changes = 0
+        self._run_last_ns: int | None = None
+        self._run_length = 0
+
+    def reset(self) -> None:
+        """Forget the stream: the next stamp is taken as its start."""
+        self.newest_ns = None
+        self._run_last_ns = None
+        self._run_length = 0
+
+    def admit(self, stamp_ns: int) -> str:
+        """Judge one stamp (of a message otherwise valid).
+
+        Returns:
+            :data:`ADVANCE`, :data:`BEHIND` or :data:`NEW_BASE`.
+
+        Raises:
+            MessageError: Too far from the stream, and not (yet) a new time base (reason
+                ``'stamp_jump'``).
+        """
+        stamp_ns = int(stamp_ns)
+        newest = self.newest_ns
+        if newest is None:
+            self.newest_ns = stamp_ns
+            return ADVANCE
+        offset = stamp_ns - newest
+        if 0 < offset <= self.window_ns:
+            self.newest_ns = stamp_ns
+            self._run_last_ns, self._run_length = None, 0
+            return ADVANCE
+        last = self._run_last_ns
+        if last is not None and 0 < stamp_ns - last <= self.window_ns:
+            self._run_length += 1
+        else:
+            self._run_length = 1
+        self._run_last_ns = stamp_ns
+        if self._run_length >= self.confirm:
+            self.newest_ns = stamp_ns
+            self._run_last_ns, self._run_length = None, 0
+            self.time_base_changes += 1
+            return NEW_BASE
+        if offset <= 0 and -offset <= self.window_ns:
+            return BEHIND
+        raise MessageError(
+            f'{self.what}: stamp {stamp_ns} ns is {offset / NS_PER_S:+.3f} s from the '
+            f'newest accepted one (window +-{self.window_ns / NS_PER_S:g} s); a new time '
+            f'base needs {self.confirm} consistent messages', 'stamp_jump')
