@@ -127,7 +127,7 @@ def test_params_files_load_through_ros_args(tmp_path):
 
 
 def test_node_spinner_serves_each_node_and_stops_the_group_when_one_fails():
-    from gnsscam_ros.nodes.common import NodeSpinner
+    from gnsscam_ros.nodes.runtime import NodeSpinner
     ctx = Context()
     rclpy.init(context=ctx, domain_id=ros_domain_id())
     ticks = {'a': 0, 'b': 0}

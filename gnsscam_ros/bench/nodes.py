@@ -36,7 +36,7 @@ from sensor_msgs.msg import Image, Imu, PointCloud2
 
 import msg_adapters as ma
 from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
-from gnsscam_ros.nodes.common import stop_process
+from gnsscam_ros.nodes.runtime import stop_process
 from gnsscam_ros.vision.database import MapDatabase, PositionTable
 from gnsscam_ros.vision.features import OrbExtractor, OrbParams
 from gnsscam_ros.vision.synthetic import perturb_view, synthetic_scene

@@ -14,7 +14,7 @@ import rclpy
 from rclpy.context import Context
 
 from ..bags import schema
-from ..nodes.common import NodeSpinner, stop_process
+from ..nodes.runtime import NodeSpinner, stop_process
 from .launch import (FRESH_PROCESSES_SETTLE_S, LAYOUTS, REPLAY_NODE_PARAMETERS,
                      default_domain_id, make_nodes, merge_parameters, own_cpu_s,
                      private_namespace, process_cpu_s, start_node_processes, use_dds_profile)

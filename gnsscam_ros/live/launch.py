@@ -33,7 +33,7 @@ import yaml
 from rclpy.parameter import Parameter
 
 from ..nodes.camera_node import CameraNode
-from ..nodes.common import stop_process
+from ..nodes.runtime import stop_process
 from ..nodes.fusion_node import FusionNode
 from ..nodes.gnss_node import GnssNode
 from ..nodes.imu_node import ImuNode

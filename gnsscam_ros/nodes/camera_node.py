@@ -46,7 +46,8 @@ from msg_adapters import (ERROR, OK, WARN, CameraMatches, MessageError, check_im
                           check_serialized_image, image_to_array, matches_to_pointcloud2,
                           stamp_to_ns)
 
-from .common import GnssCamNode, InputFileError, reliable_qos, run_node, sensor_qos
+from .common import GnssCamNode, InputFileError, reliable_qos, sensor_qos
+from .runtime import run_node
 
 # Code defaults; config/camera_node.yaml documents the same values (a test checks).
 DEFAULTS = {

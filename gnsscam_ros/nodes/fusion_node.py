@@ -66,7 +66,8 @@ from msg_adapters import (ERROR, OK, STALE, WARN, GeodeticFix, GlobalOdometry,
                           pose_to_msg, service_bits)
 from msg_adapters.geometry import UNESTIMATED_VAR
 
-from .common import BIG, GnssCamNode, ParameterError, latched_qos, reliable_qos, run_node
+from .common import BIG, GnssCamNode, ParameterError, latched_qos, reliable_qos
+from .runtime import run_node
 
 #: Engine verdict levels -> DiagnosticStatus levels of integrity_risk.
 _LEVELS = {V_OK: OK, V_ERROR: ERROR, V_STALE: STALE}

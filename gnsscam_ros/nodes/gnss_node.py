@@ -33,7 +33,8 @@ from msg_adapters import (OK, WARN, GeodeticFix, MessageError, check_serialized_
                           pointcloud2_to_gnss_epoch, service_bits)
 from msg_adapters.wire import KNOWN_SYSTEMS
 
-from .common import BIG, GnssCamNode, reliable_qos, run_node, sensor_qos
+from .common import BIG, GnssCamNode, reliable_qos, sensor_qos
+from .runtime import run_node
 
 # Code defaults; config/gnss_node.yaml documents the same values (a test checks).
 DEFAULTS = {

@@ -35,7 +35,8 @@ from gnsscam_ros.core.motion import IMU, ODOMETRY, DeadReckoner, DeadReckoningCo
 from msg_adapters import (OK, WARN, MessageError, check_serialized_size,
                           dead_reckoning_to_odometry, imu_to_sample, twist_to_sample)
 
-from .common import BIG, GnssCamNode, ParameterError, reliable_qos, run_node, sensor_qos
+from .common import BIG, GnssCamNode, ParameterError, reliable_qos, sensor_qos
+from .runtime import run_node
 
 _DR = DeadReckoningConfig()
 # Code defaults; config/imu_node.yaml documents the same values (a test checks). The

@@ -1,7 +1,7 @@
 """pipeline_node: gnss_node, camera_node, imu_node and fusion_node in one process.
 
 For single-machine use: each of the four nodes spins its own single-threaded executor on
-its own thread (``common.NodeSpinner``; each keeps its own name, parameters and topics,
+its own thread (``runtime.NodeSpinner``; each keeps its own name, parameters and topics,
 so ``--params-file`` files written for the separate executables apply unchanged). They
 share one GIL: the filter epoch holds it for most of its run, so separate processes
 (``ros2 run`` each node) use more cores and replay a bag faster.
@@ -18,11 +18,12 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 
 from .camera_node import CameraNode
-from .common import (EXIT_FAILED, EXIT_OK, NodeSpinner, failed, print_node_help,
-                     quiet_interrupted_rclpy_objects, shut_down, start_nodes, wants_help)
+from .common import EXIT_FAILED, EXIT_OK
 from .fusion_node import FusionNode
 from .gnss_node import GnssNode
 from .imu_node import ImuNode
+from .runtime import (NodeSpinner, failed, print_node_help, quiet_interrupted_rclpy_objects,
+                      shut_down, start_nodes, wants_help)
 
 
 def make_nodes(**kwargs) -> list:
