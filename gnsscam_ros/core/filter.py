@@ -33,8 +33,8 @@ from .types import GnssEpoch
 # (``core.config``), the likelihoods (``core.gnss``) and the bias models (``core.bias``).
 __all__ = ['BIAS_CN0', 'BIAS_MODELS', 'BIAS_NONE', 'HEADING_LOST_RAD', 'INVALID',
            'LIKELIHOODS', 'MAX_ORIGIN_DISTANCE_M', 'MAX_STATE_COORDINATE', 'PARTICLE_RAIM',
-           'PROPAGATED', 'REJECTED', 'ROBUST', 'UPDATED', 'WAITING', 'EpochResult',
-           'FilterConfig', 'ParticleFilter']
+           'PROPAGATED', 'REINITIALISING', 'REJECTED', 'ROBUST', 'UPDATED', 'WAITING',
+           'EpochResult', 'FilterConfig', 'ParticleFilter']
 
 # Epoch outcomes.
 UPDATED = 'updated'            # GNSS update applied; integrity computed
@@ -44,6 +44,8 @@ WAITING = 'waiting'            # no initial fix yet
 # The epoch left the state non-finite or absurd: it was discarded and the next usable fix
 # initialises the filter again.
 INVALID = 'invalid'
+#: How the results and verdicts of a discarded state end.
+REINITIALISING = 're-initialising from the next fix'
 #: Largest magnitude of a particle coordinate in the map frame [m] and of its (unwrapped)
 #: heading [rad]. The frame is only valid within MAX_ORIGIN_DISTANCE_M of its origin; a
 #: particle 10,000 km away comes from arithmetic gone wrong (or days of unknown motion),
@@ -264,8 +266,7 @@ class ParticleFilter:
         # Not the bad epoch's time: a far-future stamp must not block every later epoch.
         self.last_stamp_ns = last_good_ns
         return EpochResult(stamp_ns=int(epoch.stamp_ns), status=INVALID,
-                           reason=f'filter state invalid ({problem}): re-initialising from '
-                                  f'the next fix')
+                           reason=f'filter state invalid ({problem}): {REINITIALISING}')
 
     def _step(self, epoch: GnssEpoch, motion: MotionIncrement | None,
               camera: list[CameraMeasurement] | None) -> EpochResult:
