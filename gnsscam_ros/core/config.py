@@ -200,7 +200,11 @@ def _part(cls):
 class ParticleSetConfig(_Part):
     """The particle sets: sizes, initialisation, heading acquisition and resampling."""
 
-    n_particles: int = parameter(1000, 'Particles per posterior N.', low=2, high=10_000_000)
+    n_particles: int = parameter(
+        1000, 'Particles per posterior N. The sizes together (this, acquisition_particles, '
+        'n_posteriors, n_motion_samples) must fit the 2 GiB memory budget of an epoch '
+        '(core.config.epoch_memory_bytes; large ones use fewer satellites, too large ones '
+        'are refused).', low=2, high=10_000_000)
     n_posteriors: int = parameter(
         200, 'Posteriors M behind the risk bound and the protection level. With the exact '
         'inverse Bernoulli the bound can never fall below '
