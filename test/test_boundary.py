@@ -451,8 +451,8 @@ def _run_graph(drive, with_garbage: bool):
             'camera_node': g.add(CameraNode(context=g.ctx)),
             'fusion_node': g.add(FusionNode(context=g.ctx, parameter_overrides=_overrides(
                 n_particles=200, seed=7, use_map_origin=True,
-                map_origin_llh=list(drive.origin_llh), gnss_timeout_s=1e6,
-                odometry_wait_s=1e6, odometry_timeout_s=1e6)))}
+                map_origin_llh=list(drive.origin_llh), gnss_timeout_s=60.0,
+                odometry_wait_s=10.0, odometry_timeout_s=60.0)))}
         fusion = nodes['fusion_node']
         types = {'gnss/pseudoranges': PointCloud2, 'gnss/measurements': PointCloud2,
                  'odom/twist': TwistWithCovarianceStamped, 'imu/data': Imu,
@@ -530,13 +530,19 @@ def test_single_malformed_messages_are_refused_counted_and_change_no_output(shor
         values = diagnostics[node]
         for reason, n in reasons.items():
             assert int(values[f'rejected_{reason}']) == n + clean_rejected[node].get(reason, 0)
-    # Every later output is the clean run's: same poses, same integrity verdicts.
-    assert clean['pose'].keys() == dirty['pose'].keys() and clean['pose']
-    for stamp, pose in clean['pose'].items():
+    # Every later output is the clean run's: same poses, same integrity verdicts (the last
+    # epoch's pose is published after its verdict, which is what the run waits for: it may
+    # not have arrived when the outputs are taken).
+    last = short_drive.gnss[-1].stamp_ns
+    common = clean['pose'].keys() & dirty['pose'].keys()
+    assert (clean['pose'].keys() ^ dirty['pose'].keys()) <= {last} and len(common) >= 5
+    for stamp in common:
+        pose = clean['pose'][stamp]
         np.testing.assert_array_equal(dirty['pose'][stamp].position_m, pose.position_m)
         np.testing.assert_array_equal(dirty['pose'][stamp].covariance, pose.covariance)
-    assert clean['risk'].keys() == dirty['risk'].keys()
-    for stamp, (level, bound) in clean['risk'].items():
+    assert (clean['risk'].keys() ^ dirty['risk'].keys()) <= {last}
+    for stamp in clean['risk'].keys() & dirty['risk'].keys():
+        level, bound = clean['risk'][stamp]
         other_level, other_bound = dirty['risk'][stamp]
         assert other_level == level
         assert other_bound == bound or (math.isnan(bound) and math.isnan(other_bound))
@@ -593,9 +599,8 @@ def test_fusion_resets_its_engine_on_a_new_time_base(graph, short_drive):
     play(epochs)
     play(epochs)
     assert fusion.stats.get('time_base_changed') == 1
-    if not hasattr(fusion.engine, 'reset_time_base'):
-        # The engine's reset is not there yet: the call site counts that it is missing.
-        assert fusion.stats.get('time_base_reset_missing') == 1
+    # The engine dropped what it held of the old time base and waits for a new fix.
+    assert fusion.engine.counts.get('time_base_resets') == 1
     calls = []
     fusion.engine.reset_time_base = calls.append
     play(epochs)

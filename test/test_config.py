@@ -110,7 +110,15 @@ def test_ranges_refuse_what_lies_outside_and_take_the_bounds_they_include(spec):
     r = spec.range
     for bound, is_open in ((r.low, r.low_open), (r.high, r.high_open)):
         if bound is not None and not is_open:
-            assert getattr(FilterConfig(**{spec.name: bound}), spec.name) == bound
+            # The part takes it; the whole configuration too unless the sizes together
+            # exceed the memory budget (then that is the only reason given).
+            assert getattr(part_cls(**{spec.name: bound}), spec.name) == bound
+            try:
+                assert getattr(FilterConfig(**{spec.name: bound}), spec.name) == bound
+            except ValueError as err:
+                assert 'budget' in str(err) and f'{spec.name} must be' not in str(err)
+                assert spec.name in ('n_particles', 'acquisition_particles', 'n_posteriors',
+                                     'n_motion_samples')
 
 
 def test_choices_and_every_problem_in_one_message():
@@ -177,3 +185,66 @@ def test_part_docstrings_list_their_parameters():
     for _, cls in PARTS:
         for spec in (s for s in SPECS if dict(PARTS)[s.part] is cls):
             assert f'        {spec.name}: ' in cls.__doc__, spec.name
+
+
+# ===================================================================== memory budget
+def test_sizes_admissible_one_by_one_are_refused_together_beyond_the_memory_budget():
+    """n_particles up to 10,000,000 and n_posteriors up to 10,000 are each in range; what
+    an epoch of them would allocate is not: refused with the estimate, before anything
+    is allocated."""
+    budget = cfgmod.EPOCH_MEMORY_BUDGET_BYTES
+    assert budget == 2 * 2 ** 30
+    assert FilterConfig().epoch_memory_bytes() < budget / 4          # the defaults
+    for values, figure in (({'n_particles': 10_000_000, 'n_posteriors': 10_000}, '6,729.4'),
+                           ({'n_particles': 10_000_000}, '158.0'),
+                           ({'n_posteriors': 10_000, 'bias_model': 'none'}, '83.5')):
+        with pytest.raises(ValueError) as info:
+            FilterConfig(**values)
+        text = str(info.value)
+        assert text.startswith('invalid filter configuration: an epoch would need an '
+                               f'estimated {figure} GiB of memory') and '\n' not in text
+        assert text.endswith('16 satellites), more than the 2.0 GiB budget'), text
+    # A change goes through the same check (dataclasses.replace validates): refused.
+    config = FilterConfig(n_particles=2000)
+    with pytest.raises(ValueError, match='budget'):
+        dataclasses.replace(config, n_particles=5_000_000)
+    assert config.n_particles == 2000
+
+
+def test_large_sizes_use_fewer_satellites_instead_of_more_memory():
+    """Up to 64 satellites per epoch; sizes that would exceed the budget with 64 use the
+    strongest that fit (the largest sizes this repository benchmarks and documents), so
+    that no epoch can exceed it whatever a message holds."""
+    default = FilterConfig()
+    assert default.satellite_limit == 64 == cfgmod.MAX_SATELLITES
+    for values, limit in (({'n_particles': 100_000, 'acquisition_particles': 0}, 50),
+                          ({'bias_model': 'none'}, 23),
+                          ({'bias_model': 'none', 'n_posteriors': 30}, 64)):
+        config = FilterConfig(**values)
+        assert config.satellite_limit == limit, values
+        assert config.epoch_memory_bytes() <= cfgmod.EPOCH_MEMORY_BUDGET_BYTES
+        assert config.epoch_memory_bytes(limit + 1) > cfgmod.EPOCH_MEMORY_BUDGET_BYTES \
+            or limit == 64
+    # Derived, not a parameter: equality, hashing and copies see the parameters only.
+    assert dataclasses.replace(default) == default and 'satellite_limit' not in \
+        default.as_flat()
+    assert pickle.loads(pickle.dumps(default)).satellite_limit == 64
+    # A minimum above what fits is refused as well (every epoch would be unusable).
+    with pytest.raises(ValueError, match='30 satellites'):
+        FilterConfig(bias_model='none', min_satellites=30)
+
+
+def test_memory_estimate_grows_with_each_size_and_covers_heading_acquisition():
+    est = cfgmod.epoch_memory_bytes
+    base = est(1000, 0, 200, 10)
+    assert est(2000, 0, 200, 10) > base and est(1000, 0, 400, 10) > base
+    assert est(1000, 0, 200, 20) > base and est(1000, 0, 200, 10, satellites=12) < base
+    # During heading acquisition the sets hold acquisition_particles; the bound sees them
+    # thinned to about n_particles (every 10th of 10,000 here).
+    assert est(1000, 10_000, 2000, 10, satellites=8) == (
+        est(10_000, 0, 2000, 10, satellites=8) - 72 * 2000 * 9000)
+    # The formula: S N (128 + 8 k) + max(32 S N k, 40 K S N, 72 M N_int) + 8 (256 + 64) M
+    # + 16 MiB.
+    assert est(100, 0, 10, 2, satellites=8, camera_images=4) == (
+        16 * 2 ** 20 + 200 * (128 + 64) + max(32 * 200 * 8, 40 * 4 * 200, 72 * 10 * 100)
+        + 8 * 320 * 10)

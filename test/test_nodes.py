@@ -450,8 +450,8 @@ def _integrity_status(reports):
 def test_odometry_global_map_origin_and_integrity_on_diagnostics(graph, drive):
     g = graph
     fusion = g.add(FusionNode(context=g.ctx, parameter_overrides=overrides(
-        n_particles=100, seed=3, gnss_timeout_s=1e6, odometry_wait_s=1e6,
-        odometry_timeout_s=1e6, diagnostics_period_s=3600.0)))
+        n_particles=100, seed=3, gnss_timeout_s=60.0, odometry_wait_s=10.0,
+        odometry_timeout_s=60.0, diagnostics_period_s=3600.0)))
     pub_gnss = g.publisher(PointCloud2, 'gnss/measurements')
     pub_dr = g.publisher(Odometry, 'odometry/dead_reckoning')
     risks = g.collect(DiagnosticArray, 'integrity_risk')

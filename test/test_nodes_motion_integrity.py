@@ -68,8 +68,8 @@ def fusion_params(drive, **extra):
     return overrides(
         n_particles=300, acquisition_particles=3000, seed=11, use_map_origin=True,
         map_origin_llh=[float(v) for v in drive.origin_llh], alert_limit_m=25.0,
-        integrity_settling_s=10.0, max_published_particles=10, gnss_timeout_s=1e6,
-        odometry_wait_s=1e6, odometry_timeout_s=0.5, **extra)
+        integrity_settling_s=10.0, max_published_particles=10, gnss_timeout_s=60.0,
+        odometry_wait_s=10.0, odometry_timeout_s=0.5, **extra)
 
 
 class DriveRun:

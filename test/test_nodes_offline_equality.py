@@ -50,8 +50,8 @@ class Pipeline:
             database_path=str(db_path), top_k=3)))
         self.fusion = g.add(FusionNode(context=g.ctx, parameter_overrides=overrides(
             n_particles=N_PARTICLES, seed=SEED, use_map_origin=True, map_origin_llh=origin,
-            max_published_particles=0, gnss_timeout_s=1e6, odometry_wait_s=1e6,
-            odometry_timeout_s=1e6)))
+            max_published_particles=0, gnss_timeout_s=60.0, odometry_wait_s=10.0,
+            odometry_timeout_s=60.0)))
         self.pub_gnss = g.publisher(PointCloud2, 'gnss/pseudoranges')
         self.pub_imu = g.publisher(Imu, 'imu/data')
         self.pub_odo = g.publisher(TwistWithCovarianceStamped, 'odom/twist')

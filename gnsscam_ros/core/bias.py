@@ -39,6 +39,10 @@ BIAS_MODELS = (BIAS_CN0, BIAS_NONE)
 COV_FLOOR_M2 = 1e-4
 #: A satellite unseen for this many correlation times has forgotten its bias.
 FORGET_AFTER_TAU = 5.0
+#: Most satellites whose biases are remembered (each holds M values): four times the
+#: satellites one epoch may use (``gnss.MAX_SATELLITES``), so that the sky turning over
+#: keeps its history while a stream of made-up satellite numbers cannot grow the table.
+MAX_TRACKED_SATELLITES = 256
 
 
 @dataclass(frozen=True)
@@ -140,6 +144,11 @@ class BiasHypotheses:
         horizon = stamp_ns - int(FORGET_AFTER_TAU * tau * 1e9)
         for key in [k for k, (t, _) in self._biases.items() if t < horizon]:
             del self._biases[key]
+        excess = len(self._biases) - MAX_TRACKED_SATELLITES
+        if excess > 0:
+            # The satellites seen longest ago go first (those in view now are the newest).
+            for key in sorted(self._biases, key=lambda k: self._biases[k][0])[:excess]:
+                del self._biases[key]
         return out
 
     def observe_residuals(self, stamp_ns: int, residual_m: np.ndarray, inlier: np.ndarray,

@@ -14,6 +14,15 @@ that the file is current).
 parameters, ``FilterConfig(alert_limit_m=25.0)``, ``config.n_particles`` and
 ``dataclasses.replace(config, alert_limit_m=16.0)`` all use them.
 
+Besides each parameter's own range, :class:`FilterConfig` checks what the sizes cost
+together: the estimated peak memory of one epoch (:func:`epoch_memory_bytes`) must be
+within ``EPOCH_MEMORY_BUDGET_BYTES``. The satellites an epoch uses are part of that cost:
+a configuration uses up to ``gnss.MAX_SATELLITES`` of them, fewer (the strongest) when its
+sizes would exceed the budget with that many (``FilterConfig.satellite_limit``), and is
+refused when not even ``MIN_SATELLITE_LIMIT`` fit. So a node refuses such a configuration
+at start-up (or a change to it while running) instead of dying in the middle of an epoch,
+and no message can make an epoch exceed the budget.
+
 Run as ``python -m gnsscam_ros.core.config config/fusion_node.yaml`` to rewrite the
 generated block of that file after changing a parameter here.
 """
@@ -21,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import operator
 import sys
 import textwrap
@@ -29,8 +39,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .bias import BIAS_CN0, BIAS_MODELS, BIAS_NONE, BiasModel
-from .gnss import LIKELIHOODS, ROBUST
+from .bias import BIAS_CN0, BIAS_MODELS, BIAS_NONE, MAX_TRACKED_SATELLITES, BiasModel
+from .fusion import MAX_CAMERA_MATCHES
+from .gnss import LIKELIHOODS, MAX_SATELLITES, ROBUST
 from .integrity import EXACT, INVERSE_METHODS
 
 #: Key of the field metadata that holds a parameter's description.
@@ -189,7 +200,11 @@ def _part(cls):
 class ParticleSetConfig(_Part):
     """The particle sets: sizes, initialisation, heading acquisition and resampling."""
 
-    n_particles: int = parameter(1000, 'Particles per posterior N.', low=2, high=10_000_000)
+    n_particles: int = parameter(
+        1000, 'Particles per posterior N. The sizes together (this, acquisition_particles, '
+        'n_posteriors, n_motion_samples) must fit the 2 GiB memory budget of an epoch '
+        '(core.config.epoch_memory_bytes; large ones use fewer satellites, too large ones '
+        'are refused).', low=2, high=10_000_000)
     n_posteriors: int = parameter(
         200, 'Posteriors M behind the risk bound and the protection level. With the exact '
         'inverse Bernoulli the bound can never fall below '
@@ -250,7 +265,8 @@ class GnssConfig(_Part):
     """GNSS measurements: satellite checks, variances, receiver clock and likelihood."""
 
     min_satellites: int = parameter(
-        4, 'Fewest satellites for an update (position and clock need 4).', low=4, high=1000)
+        4, 'Fewest satellites for an update (position and clock need 4); at most the '
+        'satellites an epoch uses (``gnss.MAX_SATELLITES``).', low=4, high=MAX_SATELLITES)
     elevation_mask_deg: float = parameter(
         0.0, 'Satellites below this elevation are dropped.', 'deg', low=-90.0, high=90.0)
     cn0_mask_dbhz: float = parameter(
@@ -362,6 +378,79 @@ class IntegrityConfig(_Part):
         return np.array([self.alert_limit_m, *extra], dtype=float)
 
 
+# ------------------------------------------------------------------------ memory
+#: Largest estimated peak memory of one epoch (:func:`epoch_memory_bytes`) a
+#: configuration may need [bytes]: a quarter of an 8 GB vehicle computer, which leaves
+#: the rest of the graph (camera_node's database, the DDS buffers) room. Every size this
+#: repository documents and benchmarks fits (``gnsscam_bench``: 100,000 particles x 10
+#: motion samples, with up to 50 satellites; bias_model 'none' with the default 200
+#: posteriors: 23), the sizes that die do not (n_particles = 10,000,000: 158 GiB at 16
+#: satellites; bias_model 'none' with n_posteriors = 10,000: 84 GiB).
+EPOCH_MEMORY_BUDGET_BYTES = 2 * 2 ** 30
+#: Fewest satellites per epoch a configuration must afford within the budget: one
+#: constellation in view (up to ~12) and some of a second; fewer would discard usable
+#: geometry in every epoch.
+MIN_SATELLITE_LIMIT = 16
+
+# Bytes per array element an epoch holds at its peak (README "Memory per epoch"), measured
+# with tracemalloc on the filter (numpy registers its buffers there) and rounded up to
+# what the code allocates at worst. S motion samples, N particles (the heading acquisition
+# set while it lasts), k satellites, K camera images, M posteriors of N_int particles:
+#: Per sample x particle: the propagated sets of this and the previous epoch (S, N, 4),
+#: the process noise, the joint and posterior log-weights.
+_BYTES_PER_SAMPLE_PARTICLE = 128
+#: Per sample x particle x satellite, held through the whole update: the normalised
+#: residuals z (S, N, k).
+_BYTES_RESIDUALS = 8
+#: ... and the likelihood's temporaries on top of them (particle_raim's E-step, 25 B
+#: measured; robust 8 B).
+_BYTES_LIKELIHOOD = 32
+#: Per image x sample x particle: the camera distributions and their mixture (33 B).
+_BYTES_CAMERA = 40
+#: Per posterior x particle: distances, weights, the protection level's tail partition
+#: and sort (41-64 B measured; 72 when the tail widens to the whole set).
+_BYTES_POSTERIOR_PARTICLE = 72
+#: Per posterior: the remembered bias of each tracked satellite and of the epoch's.
+_BYTES_POSTERIOR = 8 * (MAX_TRACKED_SATELLITES + MAX_SATELLITES)
+#: Fixed part (interpreter and small arrays).
+_BYTES_FIXED = 16 * 2 ** 20
+
+
+def epoch_memory_bytes(n_particles: int, acquisition_particles: int, n_posteriors: int,
+                       motion_samples: int, satellites: int = MAX_SATELLITES,
+                       camera_images: int = MAX_CAMERA_MATCHES) -> int:
+    """Estimated peak memory of one filter epoch [bytes], an upper bound of the measured
+    peaks (README "Memory per epoch": 37-88 % of it).
+
+    The residuals live through the update; the likelihood, the camera fusion and the
+    integrity bound come one after the other, so the largest of the three counts::
+
+        S N (128 + 8 k) + max(32 S N k, 40 K S N, 72 M N_int) + 8 (256 + 64) M + 16 MiB
+
+    with N the heading acquisition set (the larger of the two sizes) and N_int the evenly
+    thinned set the bound sees during acquisition (``SystematicResampler.thin``).
+
+    Args:
+        n_particles: N.
+        acquisition_particles: Set size during heading acquisition.
+        n_posteriors: M.
+        motion_samples: S (``FilterConfig.motion_sample_count``).
+        satellites: k (default: the most an epoch uses).
+        camera_images: K (default: the most an epoch fuses).
+    """
+    n = max(n_particles, acquisition_particles)
+    n_int = math.ceil(n / max(n // n_particles, 1))
+    sn = motion_samples * n
+    return int(_BYTES_FIXED + sn * (_BYTES_PER_SAMPLE_PARTICLE + _BYTES_RESIDUALS * satellites)
+               + max(_BYTES_LIKELIHOOD * sn * satellites, _BYTES_CAMERA * camera_images * sn,
+                     _BYTES_POSTERIOR_PARTICLE * n_posteriors * n_int)
+               + _BYTES_POSTERIOR * n_posteriors)
+
+
+def _gib(n_bytes: float) -> str:
+    return f'{n_bytes / 2 ** 30:,.1f} GiB'
+
+
 # -------------------------------------------------------------------------- composition
 @dataclass(frozen=True, init=False)
 class FilterConfig:
@@ -377,7 +466,10 @@ class FilterConfig:
     flat name.
 
     Raises:
-        ValueError: An inadmissible value; the message names every one.
+        ValueError: An inadmissible value; the message names every one. Sizes that are
+            admissible one by one but together need more than
+            ``EPOCH_MEMORY_BUDGET_BYTES`` per epoch even with ``MIN_SATELLITE_LIMIT``
+            satellites are refused with the estimate.
         TypeError: An unknown name, or a part of the wrong class.
     """
 
@@ -407,6 +499,26 @@ class FilterConfig:
             raise _invalid(problems)
         for name, (cls, own) in merged.items():
             object.__setattr__(self, name, cls(**own))
+        # Not a field: derived from the sizes (equality, hashing and replace() see the
+        # parameters only).
+        object.__setattr__(self, '_satellite_limit', self._fitting_satellites())
+        if self._satellite_limit is None:
+            fewest = max(MIN_SATELLITE_LIMIT, self.min_satellites)
+            raise _invalid([
+                f'an epoch would need an estimated {_gib(self.epoch_memory_bytes(fewest))} '
+                f'of memory (n_particles {self.n_particles}, acquisition_particles '
+                f'{self.acquisition_particles}, n_posteriors {self.n_posteriors}, '
+                f'{self.motion_sample_count} motion samples, {fewest} satellites), more '
+                f'than the {_gib(EPOCH_MEMORY_BUDGET_BYTES)} budget'])
+
+    def _fitting_satellites(self) -> int | None:
+        """The most satellites (up to MAX_SATELLITES) whose epoch fits the budget, or None
+        when not even the fewest this configuration needs do."""
+        fewest = max(MIN_SATELLITE_LIMIT, self.min_satellites)
+        for k in range(MAX_SATELLITES, fewest - 1, -1):
+            if self.epoch_memory_bytes(k) <= EPOCH_MEMORY_BUDGET_BYTES:
+                return k
+        return None
 
     @classmethod
     def from_flat(cls, values: dict) -> 'FilterConfig':
@@ -438,6 +550,21 @@ class FilterConfig:
         if self.bias_model == BIAS_NONE:
             return self.n_posteriors
         return min(self.n_motion_samples, self.n_posteriors)
+
+    @property
+    def satellite_limit(self) -> int:
+        """Most satellites an epoch uses (the strongest by C/N0): ``gnss.MAX_SATELLITES``,
+        or fewer when these sizes would need more than ``EPOCH_MEMORY_BUDGET_BYTES`` with
+        that many (never fewer than ``MIN_SATELLITE_LIMIT``: such sizes are refused)."""
+        return self._satellite_limit
+
+    def epoch_memory_bytes(self, satellites: int | None = None) -> int:
+        """Estimated peak memory of one epoch with these sizes [bytes]
+        (:func:`epoch_memory_bytes`) with ``satellites`` (default: ``satellite_limit``)
+        and the most camera images an epoch fuses."""
+        k = self.satellite_limit if satellites is None else satellites
+        return epoch_memory_bytes(self.n_particles, self.acquisition_particles,
+                                  self.n_posteriors, self.motion_sample_count, k)
 
     @property
     def bias(self) -> BiasModel:

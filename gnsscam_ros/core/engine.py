@@ -18,6 +18,22 @@ reproduce the offline run" holds by construction instead of by copies:
 Which inputs an epoch uses never depends on when the later ones arrive: the motion and
 the camera matches of an interval only use inputs stamped at or before its end (as long as
 no stream runs more than its buffer, 60 s by default, ahead of the GNSS).
+
+Never a lie, never a crash, whatever a caller feeds in (the nodes check messages where
+they enter; this is the defence behind that, for every caller, offline ones included):
+
+* inputs the engine cannot use are refused (``REFUSED``, counted ``refused_<input>``,
+  the reason in :attr:`EpochEngine.last_refusal`) and change no state: dead-reckoning
+  states and camera matches with non-finite or absurd values
+  (:func:`dead_reckoning_problem`, :func:`camera_problem`), malformed GNSS epochs;
+* what one epoch costs is bounded: at most ``FilterConfig.satellite_limit`` satellites
+  and ``MAX_CAMERA_MATCHES`` camera images per epoch, at most ``MAX_CAMERA_BUFFER``
+  buffered matches and ``MAX_MOTION_STATES`` dead-reckoning states;
+* a filter whose state became invalid anyway (``ParticleFilter.step`` returns
+  ``INVALID``) starts again from the next usable fix; until then every verdict is STALE
+  and says why (:attr:`EpochEngine.reinitialising`), counted ``filter_resets``. A new
+  time base of the inputs (:meth:`EpochEngine.reset_time_base`) does the same after
+  dropping everything buffered.
 """
 from __future__ import annotations
 
@@ -28,9 +44,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .filter import PROPAGATED, UPDATED, EpochResult, FilterConfig, ParticleFilter
+from .filter import (INVALID, MAX_STATE_COORDINATE, PROPAGATED, REINITIALISING, UPDATED,
+                     EpochResult, FilterConfig, ParticleFilter)
 from .frames import LocalFrame
-from .fusion import CameraMeasurement, measurements_at_epoch
+from .fusion import MAX_CAMERA_MATCHES, CameraMeasurement, measurements_at_epoch
+from .gnss import epoch_problem
 from .motion import OUT_OF_ORDER, DeadReckoningState, MotionAccumulator
 from .particles import MotionIncrement
 from .types import GnssEpoch
@@ -38,10 +56,88 @@ from .types import GnssEpoch
 #: Integrity levels of a verdict (``integrity_risk``: DiagnosticStatus OK / ERROR / STALE).
 OK, ERROR, STALE = 'OK', 'ERROR', 'STALE'
 
-#: Outcomes of the ``add_*`` methods besides ``motion.ADDED``/``OUT_OF_ORDER``/``RESET``.
-QUEUED, DROPPED_OLDEST, NO_MATCH = 'queued', 'dropped_oldest', 'no_match'
+#: Outcomes of the ``add_*`` methods besides ``motion.ADDED``/``OUT_OF_ORDER``/``RESET``;
+#: ``REFUSED``: the input failed the engine's checks and changed nothing.
+QUEUED, DROPPED_OLDEST, NO_MATCH, REFUSED = 'queued', 'dropped_oldest', 'no_match', 'refused'
 #: What a queued epoch waits for (:meth:`EpochEngine.waiting_for`).
 DEAD_RECKONING, CAMERA = 'dead_reckoning', 'camera'
+
+# Limits of the inputs the engine takes (beyond them a value comes from a fault, and
+# its arithmetic would overflow or swamp the filter's).
+#: Largest odom-frame coordinate of a dead-reckoning state [m] and unwrapped heading
+#: [rad]: the frame starts where the dead reckoner started, so it grows with the distance
+#: driven; 1e9 m is 290 days at 40 m/s and still resolves 0.1 um.
+MAX_ODOM_COORDINATE = 1e9
+#: Fastest forward speed of a dead-reckoning state [m/s] (either direction; 360 km/h).
+MAX_SPEED_MPS = 100.0
+#: Fastest yaw rate [rad/s] (a road vehicle stays below ~1.5; a spin, 10).
+MAX_YAW_RATE_RPS = 10.0
+#: Largest variance of a dead-reckoning state (rates and accumulated) [SI units squared].
+MAX_DR_VARIANCE = 1e12
+#: Most camera matches buffered (the oldest dropped first, counted ``camera_dropped``):
+#: the buffer's age limit is stamp time, and a 30 Hz camera fills 1,024 in 34 s.
+MAX_CAMERA_BUFFER = 1024
+
+#: Upper bounds of the waits and buffers of :class:`InputTiming` (and of fusion_node's
+#: parameters that set them): a wait delays every verdict, so longer than 10 s is no
+#: longer a wait for a late message; a silence of 60 s is a stopped stream; 10 minutes of
+#: history is more than any epoch uses.
+MAX_WAIT_S = 10.0
+MAX_TIMEOUT_S = 60.0
+MAX_BUFFER_S = 600.0
+MAX_GNSS_QUEUE = 10_000
+
+
+def _finite_within(values, bound: float) -> bool:
+    return bool(np.all(np.isfinite(values)) and np.all(np.abs(values) <= bound))
+
+
+def _within(value: float, bound: float) -> bool:
+    return math.isfinite(value) and abs(value) <= bound
+
+
+def dead_reckoning_problem(state: DeadReckoningState) -> str | None:
+    """Why the engine refuses a dead-reckoning state (None: it takes it): a non-integer
+    stamp, or values non-finite or beyond the limits (``MAX_ODOM_COORDINATE``,
+    ``MAX_SPEED_MPS``, ``MAX_YAW_RATE_RPS``, variances in [0, ``MAX_DR_VARIANCE``])."""
+    if not isinstance(state.stamp_ns, (int, np.integer)) or isinstance(state.stamp_ns, bool):
+        return f'stamp must be an integer number of nanoseconds, got {state.stamp_ns!r}'
+    try:
+        # Plain floats: one state per dead-reckoning message, numpy would cost 20 times more.
+        x, y, yaw = float(state.x_m), float(state.y_m), float(state.yaw_rad)
+        speed, rate = float(state.speed_mps), float(state.yaw_rate_rps)
+        var = [float(state.speed_var), float(state.yaw_rate_var),
+               float(state.distance_var_m2), float(state.yaw_var_rad2)]
+    except (TypeError, ValueError):
+        return 'values must be numbers'
+    if not all(_within(v, MAX_ODOM_COORDINATE) for v in (x, y, yaw)):
+        return (f'position or heading non-finite or beyond {MAX_ODOM_COORDINATE:g}: '
+                f'({x:g}, {y:g}, {yaw:g})')
+    if not _within(speed, MAX_SPEED_MPS):
+        return f'speed {speed:g} m/s non-finite or beyond {MAX_SPEED_MPS:g} m/s'
+    if not _within(rate, MAX_YAW_RATE_RPS):
+        return f'yaw rate {rate:g} rad/s non-finite or beyond {MAX_YAW_RATE_RPS:g} rad/s'
+    if not all(_within(v, MAX_DR_VARIANCE) and v >= 0.0 for v in var):
+        return f'variances must be finite and in [0, {MAX_DR_VARIANCE:g}]: {var}'
+    return None
+
+
+def camera_problem(stamp_ns: int, measurement: CameraMeasurement | None) -> str | None:
+    """Why the engine refuses a camera match (None: it takes it): a non-integer stamp, or
+    a matched position that is not three finite map coordinates within
+    ``filter.MAX_STATE_COORDINATE`` (the score is diagnostics only)."""
+    if not isinstance(stamp_ns, (int, np.integer)) or isinstance(stamp_ns, bool):
+        return f'stamp must be an integer number of nanoseconds, got {stamp_ns!r}'
+    if measurement is None:
+        return None
+    try:
+        position = np.asarray(measurement.position_enu_m, dtype=float)
+    except (TypeError, ValueError):
+        return 'the matched position must be numbers'
+    if position.shape != (3,) or not _finite_within(position, MAX_STATE_COORDINATE):
+        return (f'the matched position must be 3 finite map coordinates within '
+                f'{MAX_STATE_COORDINATE:g} m, got {np.array2string(position, threshold=6)}')
+    return None
 
 
 @dataclass(frozen=True)
@@ -77,6 +173,27 @@ class InputTiming:
     odometry_timeout_s: float = 1.0
     camera_wait_s: float = 0.2
     camera_timeout_s: float = 2.0
+
+    #: Admissible values of each field (closed ranges): the bounds keep every wait and
+    #: timeout a wait (MAX_WAIT_S, MAX_TIMEOUT_S) and the buffers bounded (MAX_BUFFER_S).
+    LIMITS = {'dead_reckoning_buffer_s': (0.0, MAX_BUFFER_S),
+              'camera_buffer_s': (0.0, MAX_BUFFER_S),
+              'gnss_queue_size': (1, MAX_GNSS_QUEUE),
+              'odometry_wait_s': (0.0, MAX_WAIT_S),
+              'odometry_timeout_s': (0.0, MAX_TIMEOUT_S),
+              'camera_wait_s': (0.0, MAX_WAIT_S),
+              'camera_timeout_s': (0.0, MAX_TIMEOUT_S)}
+
+    def __post_init__(self):
+        problems = []
+        for name, (low, high) in self.LIMITS.items():
+            value = getattr(self, name)
+            if name == 'gnss_queue_size' and value is None:
+                continue                    # unbounded: an offline run feeds every epoch
+            if not (isinstance(value, (int, float)) and low <= value <= high):
+                problems.append(f'{name} must be in [{low:g}, {high:g}], got {value!r}')
+        if problems:
+            raise ValueError('invalid input timing: ' + '; '.join(problems))
 
 
 @dataclass(frozen=True)
@@ -169,14 +286,23 @@ class EpochEngine:
         self.camera: list[CameraMeasurement] = []
         self.queue: deque = deque()          # (epoch, queued at [wall s] or None)
         self.counts: dict[str, int] = {}
+        #: Why the filter waits for a fix to start again (None: it does not); every
+        #: verdict says so until a fix has initialised it.
+        self.reinitialising: str | None = None
+        #: Why the last refused input was refused ('' before any).
+        self.last_refusal = ''
         self._camera_stamps: deque = deque(maxlen=16)   # every image, matched or not
         self._first_gnss_s: float | None = None
         self._last_dr_s: float | None = None
 
     # ------------------------------------------------------------------ inputs
     def add_dead_reckoning(self, state: DeadReckoningState, now_s: float | None = None) -> str:
-        """Buffer a dead-reckoning state: ``ADDED``, ``OUT_OF_ORDER`` (ignored) or
-        ``RESET`` (a restarted dead reckoner; the interval across it is unknown motion)."""
+        """Buffer a dead-reckoning state: ``ADDED``, ``OUT_OF_ORDER`` (ignored), ``RESET``
+        (a restarted dead reckoner; the interval across it is unknown motion) or
+        ``REFUSED`` (:func:`dead_reckoning_problem`; nothing changed)."""
+        problem = dead_reckoning_problem(state)
+        if problem:
+            return self._refuse('dead_reckoning', problem)
         outcome = self.motion.add(state)
         if outcome != OUT_OF_ORDER:
             self._last_dr_s = now_s
@@ -187,9 +313,14 @@ class EpochEngine:
         """Buffer one image's best match (None: the image matched nothing).
 
         Returns:
-            ``ADDED``, ``NO_MATCH`` (the image still counts as seen) or ``OUT_OF_ORDER``
-            (older than the previous image: ignored).
+            ``ADDED``, ``NO_MATCH`` (the image still counts as seen), ``OUT_OF_ORDER``
+            (older than the previous image: ignored) or ``REFUSED``
+            (:func:`camera_problem`; nothing changed). Beyond ``MAX_CAMERA_BUFFER``
+            buffered matches the oldest is dropped (counted ``camera_dropped``).
         """
+        problem = camera_problem(stamp_ns, measurement)
+        if problem:
+            return self._refuse('camera', problem)
         if self._camera_stamps and stamp_ns < self._camera_stamps[-1]:
             return OUT_OF_ORDER
         self._camera_stamps.append(int(stamp_ns))
@@ -198,11 +329,20 @@ class EpochEngine:
         self.camera.append(measurement)
         horizon = stamp_ns - int(self.timing.camera_buffer_s * 1e9)
         self.camera = [m for m in self.camera if m.stamp_ns >= horizon]
+        excess = len(self.camera) - MAX_CAMERA_BUFFER
+        if excess > 0:
+            del self.camera[:excess]
+            self._count('camera_dropped', excess)
         return 'added'
 
     def add_gnss(self, epoch: GnssEpoch, now_s: float | None = None) -> str:
-        """Queue a GNSS epoch: ``QUEUED``, ``DROPPED_OLDEST`` (queued; the queue was full)
-        or ``OUT_OF_ORDER`` (not after the newest queued epoch: ignored)."""
+        """Queue a GNSS epoch: ``QUEUED``, ``DROPPED_OLDEST`` (queued; the queue was full),
+        ``OUT_OF_ORDER`` (not after the newest queued epoch: ignored) or ``REFUSED``
+        (malformed: ``gnss.epoch_problem``; nothing changed). Satellites are checked one
+        by one when the epoch runs."""
+        problem = epoch_problem(epoch)
+        if problem:
+            return self._refuse('gnss', problem)
         if self.queue and epoch.stamp_ns <= self.queue[-1][0].stamp_ns:
             return OUT_OF_ORDER
         if self._first_gnss_s is None:
@@ -304,7 +444,12 @@ class EpochEngine:
         return self.filter.initialised and self._camera_due(stamp_ns)
 
     def step(self, epoch: GnssEpoch, late: tuple = ()) -> EpochReport:
-        """Run the filter on one epoch with the buffered motion and camera matches."""
+        """Run the filter on one epoch with the buffered motion and camera matches.
+
+        An ``INVALID`` result (the filter discarded a broken state) counts
+        ``filter_resets`` and makes every verdict STALE until a fix has initialised the
+        filter again (:attr:`reinitialising`).
+        """
         filt = self.filter
         t0 = filt.last_stamp_ns
         motion = self.motion_between(t0, epoch.stamp_ns)
@@ -314,7 +459,33 @@ class EpochEngine:
             # Later intervals start after the filter's last epoch: older matches are spent.
             self.camera = [m for m in self.camera if m.stamp_ns > filt.last_stamp_ns]
         self._count(f'epochs_{result.status}')
+        if result.status == INVALID:
+            self._count('filter_resets')
+            self.reinitialising = result.reason
+        elif result.status == UPDATED:
+            self.reinitialising = None
         return EpochReport(epoch, result, self.verdict_of(result), late)
+
+    def reset_time_base(self, reason: str) -> None:
+        """The inputs adopt a new time base (a deliberate jump of their stamps): drop the
+        queued epochs, the dead-reckoning states, the camera matches and the filter's
+        state and time, so that nothing measured before the jump meets anything after it.
+        The next usable fix initialises the filter (map frame kept); until then every
+        verdict is STALE and says so. Counted ``time_base_resets``.
+
+        Args:
+            reason: What happened (it is part of the verdicts' message).
+        """
+        self.queue.clear()
+        self.motion.clear()
+        self.camera = []
+        self._camera_stamps.clear()
+        self._first_gnss_s = None
+        self._last_dr_s = None
+        self.filter.reset()
+        self.filter.last_stamp_ns = None
+        self._count('time_base_resets')
+        self.reinitialising = f'time base reset ({reason}): {REINITIALISING}'
 
     def motion_between(self, t0_ns: int | None, t1_ns: int) -> MotionIncrement | None:
         """The motion argument of ``ParticleFilter.step`` (None: no dead reckoning yet,
@@ -330,8 +501,13 @@ class EpochEngine:
         if (not self.camera or t0_ns is None or t1_ns <= t0_ns or last is None
                 or not np.isfinite(last.yaw_rad)):
             return None
+        inside = [m for m in self.camera if t0_ns < m.stamp_ns <= t1_ns]
+        if len(inside) > MAX_CAMERA_MATCHES:
+            # What one epoch fuses is bounded; the newest images move least to the epoch.
+            self._count('camera_over_limit', len(inside) - MAX_CAMERA_MATCHES)
+            inside = inside[-MAX_CAMERA_MATCHES:]
         odometry = self.motion.odometry_series(t0_ns, t1_ns) if self.motion.states else None
-        return measurements_at_epoch(self.camera, odometry, t0_ns, t1_ns, last.yaw_rad) or None
+        return measurements_at_epoch(inside, odometry, t0_ns, t1_ns, last.yaw_rad) or None
 
     def twist_at(self, stamp_ns: int) -> tuple[float, float, float, float] | None:
         """``(speed, yaw rate, their variances)`` of the newest dead-reckoning state at or
@@ -354,8 +530,10 @@ class EpochEngine:
         """
         cfg = self.filter.config
         if result.status != UPDATED or result.risk is None:
-            return self.stale_verdict(result.stamp_ns, f'no valid solution ({result.status}): '
-                                      f'{result.reason}', result)
+            message = f'no valid solution ({result.status}): {result.reason}'
+            if self.reinitialising and result.status != INVALID:
+                message += f'; {self.reinitialising}'
+            return self.stale_verdict(result.stamp_ns, message, result)
         risk = result.risk
         bound = float(risk.risk_bound[0])
         level = float(result.protection_level_m)
@@ -399,8 +577,13 @@ class EpochEngine:
             epoch_stamp_ns=None if epoch is None else int(epoch),
             epoch_status=result.status if result is not None else None)
 
-    def _count(self, key: str) -> None:
-        self.counts[key] = self.counts.get(key, 0) + 1
+    def _count(self, key: str, n: int = 1) -> None:
+        self.counts[key] = self.counts.get(key, 0) + n
+
+    def _refuse(self, what: str, problem: str) -> str:
+        self._count(f'refused_{what}')
+        self.last_refusal = f'{what}: {problem}'
+        return REFUSED
 
 
 #: Filter statuses with an estimate to publish.

@@ -21,7 +21,7 @@ from scipy.special import logsumexp
 from . import gnss, integrity
 from .bias import BIAS_CN0, BIAS_MODELS, BIAS_NONE, BiasHypotheses
 from .config import FilterConfig
-from .fusion import CameraMeasurement, camera_log_q, fuse_camera
+from .fusion import MAX_CAMERA_MATCHES, CameraMeasurement, camera_log_q, fuse_camera
 from .frames import LocalFrame
 from .gnss import LIKELIHOODS, PARTICLE_RAIM, ROBUST
 from .particles import (POS, SYSTEMATIC, YAW, MotionIncrement, effective_sample_size,
@@ -31,15 +31,29 @@ from .types import GnssEpoch
 
 # Importable from here as before: the parameter names and values of the configuration
 # (``core.config``), the likelihoods (``core.gnss``) and the bias models (``core.bias``).
-__all__ = ['BIAS_CN0', 'BIAS_MODELS', 'BIAS_NONE', 'HEADING_LOST_RAD', 'LIKELIHOODS',
-           'MAX_ORIGIN_DISTANCE_M', 'PARTICLE_RAIM', 'PROPAGATED', 'REJECTED', 'ROBUST',
-           'UPDATED', 'WAITING', 'EpochResult', 'FilterConfig', 'ParticleFilter']
+__all__ = ['BIAS_CN0', 'BIAS_MODELS', 'BIAS_NONE', 'HEADING_LOST_RAD', 'INVALID',
+           'LIKELIHOODS', 'MAX_ORIGIN_DISTANCE_M', 'MAX_STATE_COORDINATE', 'PARTICLE_RAIM',
+           'PROPAGATED', 'REINITIALISING', 'REJECTED', 'ROBUST', 'UPDATED', 'WAITING',
+           'EpochResult', 'FilterConfig', 'ParticleFilter']
 
 # Epoch outcomes.
 UPDATED = 'updated'            # GNSS update applied; integrity computed
 PROPAGATED = 'propagated'      # epoch unusable: motion only, integrity not available
 REJECTED = 'rejected'          # epoch refused (time going backwards): state unchanged
 WAITING = 'waiting'            # no initial fix yet
+# The epoch left the state non-finite or absurd: it was discarded and the next usable fix
+# initialises the filter again.
+INVALID = 'invalid'
+#: How the results and verdicts of a discarded state end.
+REINITIALISING = 're-initialising from the next fix'
+#: Largest magnitude of a particle coordinate in the map frame [m] and of its (unwrapped)
+#: heading [rad]. The frame is only valid within MAX_ORIGIN_DISTANCE_M of its origin; a
+#: particle 10,000 km away comes from arithmetic gone wrong (or days of unknown motion),
+#: and its squares in the range arithmetic must stay far from overflow.
+MAX_STATE_COORDINATE = 1e7
+#: What a step may raise on input that slipped through the checks (overflow into NaN,
+#: a singular matrix, an allocation that failed): the state is then discarded.
+_NUMERICAL_FAILURES = (ArithmeticError, ValueError, MemoryError)
 #: Farthest a given map frame origin may be from the first fix [m]. The filter moves
 #: particles in the frame's east-north plane and treats its up axis as vertical; 100 km
 #: away they are ~1 degree off the local ones, 6,000 km away (an origin left at 0, 0)
@@ -56,7 +70,9 @@ class EpochResult:
 
     Attributes:
         stamp_ns: Epoch time [ns].
-        status: 'updated', 'propagated', 'rejected' or 'waiting'.
+        status: 'updated', 'propagated', 'rejected', 'waiting' or 'invalid' (the step left
+            the state non-finite or absurd; nothing of it is reported and the filter
+            starts again from the next usable fix).
         reason: Why the epoch was not used for an update ('' when it was).
         position_enu_m: (3,) estimate in the map frame [m] (None while waiting).
         covariance_m2: (3, 3) covariance of the chosen posterior [m^2].
@@ -151,6 +167,56 @@ class ParticleFilter:
     def initialised(self) -> bool:
         return self.particles is not None
 
+    def reset(self) -> None:
+        """Forget the particle state: the next usable fix initialises the filter as the
+        first one did. The configuration, the map frame (its origin may have been
+        published) and the time of the last epoch stay; the bias hypotheses start afresh.
+        """
+        self.particles = self.log_w = None
+        self.posteriors = self.posterior_log_w = None
+        self.posterior_set = None
+        self.bias = BiasHypotheses(self.config.bias_hypotheses.model, self.config.n_posteriors,
+                                   self.rng)
+        self.distance_since_init_m = 0.0
+        self.acquired_stamp_ns = None
+        self._motion_unknown_s = 0.0
+        self.last_result = None
+
+    def state_problem(self, result: EpochResult | None = None) -> str | None:
+        """Why the state (and ``result``, the epoch just run) cannot be trusted, or None.
+
+        Checked: particles finite and within ``MAX_STATE_COORDINATE``, weights a
+        distribution (no NaN, no +inf, some finite), bias offsets finite; of the result,
+        estimate, covariance and heading finite, risk bound in [0, 1], protection level not
+        NaN (inf means none within reach). A few passes over the N particles.
+        """
+        if self.particles is None:
+            return None
+        with np.errstate(invalid='ignore'):
+            if not np.isfinite(self.particles).all():
+                return 'non-finite particles'
+            if np.abs(self.particles).max() > MAX_STATE_COORDINATE:
+                return f'particles beyond {MAX_STATE_COORDINATE:g} m of the map origin'
+            log_w = self.log_w
+            if (log_w is None or log_w.shape != self.particles.shape[:1]
+                    or np.isnan(log_w).any() or not np.isfinite(log_w.max())):
+                return 'particle weights are not a distribution'
+            if not np.isfinite(self.bias.offsets_m).all():
+                return 'non-finite bias offsets'
+            if result is None or result.position_enu_m is None:
+                return None
+            if not (np.isfinite(result.position_enu_m).all()
+                    and np.isfinite(result.covariance_m2).all()
+                    and np.isfinite(result.yaw_rad)):
+                return 'non-finite estimate'
+            if result.risk is not None:
+                bound = np.asarray(result.risk.risk_bound, dtype=float)
+                if not ((bound >= 0.0) & (bound <= 1.0)).all():
+                    return 'risk bound outside [0, 1]'
+            if result.protection_level_m is not None and np.isnan(result.protection_level_m):
+                return 'protection level is NaN'
+        return None
+
     def set_parameters(self, **changes) -> None:
         """Change parameters between epochs (validated; the old ones stay on error)."""
         new = replace(self.config, **changes)
@@ -173,18 +239,44 @@ class ParticleFilter:
             motion: Motion since the previous epoch; None: no dead reckoning at all, the
                 motion is unknown (see ``MotionIncrement.unknown_s``).
             camera: Camera matches of the images since the previous epoch, moved to this
-                epoch (``fusion.match_at_epoch``); None or empty for GNSS only.
+                epoch (``fusion.match_at_epoch``), oldest first; None or empty for GNSS
+                only. Only the newest ``MAX_CAMERA_MATCHES`` are fused.
 
         Returns:
-            The epoch's result; bad input never raises, it is reported in the result.
+            The epoch's result; bad input never raises, it is reported in the result. A
+            step that fails numerically or leaves the state invalid (:meth:`state_problem`)
+            returns ``INVALID``: the state is discarded (:meth:`reset`; the last epoch's
+            time stays that of the last good one) and the next usable fix initialises the
+            filter again, so no estimate of the broken state is ever returned or kept.
         """
+        problem = gnss.epoch_problem(epoch)
+        if problem:
+            stamp = epoch.stamp_ns if isinstance(epoch.stamp_ns, (int, np.integer)) else -1
+            return EpochResult(stamp_ns=stamp, status=REJECTED, reason=problem)
+        last_good_ns = self.last_stamp_ns
+        try:
+            result = self._step(epoch, motion, camera)
+        except _NUMERICAL_FAILURES as err:
+            problem = f'{type(err).__name__}: {err}'
+        else:
+            problem = None if result.status == REJECTED else self.state_problem(result)
+            if problem is None:
+                return result
+        self.reset()
+        # Not the bad epoch's time: a far-future stamp must not block every later epoch.
+        self.last_stamp_ns = last_good_ns
+        return EpochResult(stamp_ns=int(epoch.stamp_ns), status=INVALID,
+                           reason=f'filter state invalid ({problem}): {REINITIALISING}')
+
+    def _step(self, epoch: GnssEpoch, motion: MotionIncrement | None,
+              camera: list[CameraMeasurement] | None) -> EpochResult:
         cfg = self.config
         if self.last_stamp_ns is not None and epoch.stamp_ns <= self.last_stamp_ns:
             return EpochResult(stamp_ns=epoch.stamp_ns, status=REJECTED,
                                reason=f'time went backwards or repeated: {epoch.stamp_ns} '
                                       f'<= {self.last_stamp_ns} ns')
         check = gnss.check_epoch(epoch, cfg.min_satellites, cfg.elevation_mask_deg,
-                                 cfg.cn0_mask_dbhz)
+                                 cfg.cn0_mask_dbhz, cfg.satellite_limit)
         if not self.initialised:
             return self._initialise(epoch, check)
         dt_s = (epoch.stamp_ns - self.last_stamp_ns) * 1e-9
@@ -306,6 +398,8 @@ class ParticleFilter:
         joint = self.log_w[None, :] + log_lik
         fusion = None
         if camera and cfg.use_camera:
+            # The cost is images x samples x particles: a bounded number of images.
+            camera = camera[-MAX_CAMERA_MATCHES:]
             # Camera and GNSS distributions share the domain: the particles of each set.
             log_p = joint - logsumexp(joint, axis=1, keepdims=True)
             log_q = camera_log_q(priors[..., POS],

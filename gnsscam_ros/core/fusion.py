@@ -32,6 +32,12 @@ from scipy.special import logsumexp
 from .camera import propagate_match_state
 from .types import OdometrySeries
 
+#: Most camera images one epoch fuses (the newest of its interval). The fusion holds
+#: images x motion samples x particles arrays, so this bounds what an epoch costs (the
+#: memory budget of ``core.config`` assumes it): a 10 Hz camera between 1 Hz GNSS epochs
+#: fits; of a faster one the newest images, whose move to the epoch is the shortest.
+MAX_CAMERA_MATCHES = 16
+
 
 @dataclass(frozen=True)
 class CameraMeasurement:

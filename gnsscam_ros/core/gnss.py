@@ -29,6 +29,46 @@ PARTICLE_RAIM = 'particle_raim'    # the paper's mixture over satellites, weight
 ROBUST = 'robust'                  # Gaussian with a uniform outlier floor per satellite
 
 
+#: Most satellites one epoch uses. The update's arrays are particles x motion samples x
+#: satellites, so the satellite count sets what one epoch costs (memory and time; a
+#: configuration whose sizes would exceed the memory budget of ``core.config`` with this
+#: many uses fewer, ``FilterConfig.satellite_limit``); an epoch with more usable
+#: satellites keeps the strongest by C/N0 (unknown C/N0 last, then the order received).
+#: A receiver tracking GPS, GLONASS, Galileo, BeiDou and QZSS sees 40-60 satellites under
+#: open sky (one row each: rows of the same satellite are duplicates), so 64 drops nothing
+#: real, and 64 well-spread satellites fix the position as well as more would.
+MAX_SATELLITES = 64
+#: Farthest a satellite may be from the Earth's centre [m]: GNSS orbits reach 42,164 km
+#: (geostationary); beyond twice that a position is corrupt, and its square (in the range
+#: arithmetic) must stay far from overflow.
+MAX_SATELLITE_RADIUS_M = 1e8
+#: Longest pseudorange taken [m]: geometric ranges are below 4e7 m, receiver clock offsets
+#: are steered within a millisecond (3e5 m).
+MAX_PSEUDORANGE_M = 1e8
+#: Largest pseudorange variance taken [m^2] (a standard deviation of 1,000 km carries no
+#: position information, and its inverse must not underflow in the update weights).
+MAX_VARIANCE_M2 = 1e12
+
+
+def epoch_problem(epoch: GnssEpoch) -> str | None:
+    """Why an epoch cannot be checked at all (None when its arrays fit together): an
+    integer stamp and one row per satellite in every array. Values are checked per
+    satellite by :func:`check_epoch`."""
+    if not isinstance(epoch.stamp_ns, (int, np.integer)) or isinstance(epoch.stamp_ns, bool):
+        return f'stamp must be an integer number of nanoseconds, got {epoch.stamp_ns!r}'
+    try:
+        k = int(np.shape(epoch.pr_m)[0]) if np.ndim(epoch.pr_m) == 1 else -1
+        shapes_ok = (k >= 0 and np.shape(epoch.sv_pos_ecef_m) == (k, 3)
+                     and all(np.shape(getattr(epoch, name)) == (k,)
+                             for name in ('var_m2', 'sv_id', 'system', 'elevation_deg',
+                                          'cn0_dbhz')))
+    except TypeError:
+        shapes_ok = False
+    if not shapes_ok:
+        return 'the arrays of the epoch do not hold one row per satellite'
+    return None
+
+
 @dataclass(frozen=True)
 class GnssCheck:
     """Outcome of validating one epoch.
@@ -47,11 +87,16 @@ class GnssCheck:
 
 
 def check_epoch(epoch: GnssEpoch, min_satellites: int = 4, elevation_mask_deg: float = 0.0,
-                cn0_mask_dbhz: float = 0.0) -> GnssCheck:
-    """Validate an epoch: non-finite values, duplicates, masks, satellite count.
+                cn0_mask_dbhz: float = 0.0, max_satellites: int = MAX_SATELLITES) -> GnssCheck:
+    """Validate an epoch: non-finite or implausible values, duplicates, masks, satellite
+    count.
 
     Satellites with a NaN elevation or C/N0 are kept (unknown is not below the mask).
     Duplicated (system, sv_id) pairs are all dropped: there is no telling which is right.
+    Positions, pseudoranges and variances beyond ``MAX_SATELLITE_RADIUS_M``,
+    ``MAX_PSEUDORANGE_M`` and ``MAX_VARIANCE_M2`` are dropped ('out_of_range'); of more
+    than ``max_satellites`` (at most ``MAX_SATELLITES``) remaining, the strongest by C/N0
+    are kept ('satellite_limit').
     """
     k = epoch.n_sv
     keep = np.ones(k, dtype=bool)
@@ -68,6 +113,10 @@ def check_epoch(epoch: GnssEpoch, min_satellites: int = 4, elevation_mask_deg: f
               & np.isfinite(epoch.var_m2))
     drop(~finite, 'non_finite')
     drop(finite & ((epoch.pr_m <= 0.0) | (epoch.var_m2 <= 0.0)), 'non_positive')
+    with np.errstate(over='ignore', invalid='ignore'):
+        radius = np.sqrt(np.einsum('ij,ij->i', epoch.sv_pos_ecef_m, epoch.sv_pos_ecef_m))
+        drop(finite & ((radius > MAX_SATELLITE_RADIUS_M) | (epoch.pr_m > MAX_PSEUDORANGE_M)
+                       | (epoch.var_m2 > MAX_VARIANCE_M2)), 'out_of_range')
     key = epoch.system.astype(np.int64) * 100000 + epoch.sv_id.astype(np.int64)
     _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     drop(counts[inverse] > 1, 'duplicate')
@@ -75,6 +124,16 @@ def check_epoch(epoch: GnssEpoch, min_satellites: int = 4, elevation_mask_deg: f
         drop(epoch.elevation_deg < elevation_mask_deg, 'elevation_mask')
         drop(epoch.cn0_dbhz < cn0_mask_dbhz, 'cn0_mask')
     n_keep = int(keep.sum())
+    limit = min(int(max_satellites), MAX_SATELLITES)
+    if n_keep > limit:
+        # Strongest first; unknown (NaN) or absurd (infinite) C/N0 sorts last, equal ones
+        # keep their order.
+        cn0 = np.where(np.isfinite(epoch.cn0_dbhz), epoch.cn0_dbhz, -np.inf)
+        order = np.flatnonzero(keep)[np.argsort(-cn0[keep], kind='stable')]
+        over = np.zeros(k, dtype=bool)
+        over[order[limit:]] = True
+        drop(over, 'satellite_limit')
+        n_keep = limit
     if n_keep < min_satellites:
         return GnssCheck(keep, rejected, False,
                          f'{n_keep} usable satellites, at least {min_satellites} needed')

@@ -350,6 +350,11 @@ def motion_between(s0: DeadReckoningState, s1: DeadReckoningState) -> MotionIncr
 ADDED, OUT_OF_ORDER, RESET = 'added', 'out_of_order', 'reset'
 #: Slack on the accumulated variances before a decrease counts as a restart [m^2, rad^2].
 RESET_VARIANCE_SLACK = 1e-9
+#: Most dead-reckoning states a MotionAccumulator keeps (oldest dropped first): its age
+#: limit is stamp time, so a stream of states nanoseconds apart would otherwise grow it
+#: without bound, and every epoch's motion sums over it. 60 s at imu_node's 10 Hz is 600;
+#: at 100 Hz (``output_period_s`` 0) 6,000.
+MAX_MOTION_STATES = 20_000
 
 
 class MotionAccumulator:
@@ -370,14 +375,17 @@ class MotionAccumulator:
         max_age_s: States older than this behind the newest are dropped [s].
         max_speed_mps: A step between consecutive states faster than this is a reset [m/s].
         max_gap_s: Longest interval between consecutive states taken as measured motion [s].
+        max_states: Most states kept (the oldest are dropped first).
     """
 
     def __init__(self, max_age_s: float = 60.0, max_speed_mps: float = 40.0,
-                 max_gap_s: float = 1.0):
+                 max_gap_s: float = 1.0, max_states: int = MAX_MOTION_STATES):
         self.max_age_s = float(max_age_s)
         self.max_speed_mps = float(max_speed_mps)
         self.max_gap_s = float(max_gap_s)
+        self.max_states = max(int(max_states), 2)
         self.gaps = 0
+        self.dropped = 0                # states dropped by max_states before their age
         self.states: list[DeadReckoningState] = []
         self.resets = 0
         # One segment per pair of consecutive states of one run of the dead reckoner:
@@ -388,6 +396,12 @@ class MotionAccumulator:
     def newest_stamp_ns(self) -> int | None:
         """Stamp of the newest state (None when empty)."""
         return self.states[-1].stamp_ns if self.states else None
+
+    def clear(self) -> None:
+        """Forget every state (a new time base: nothing before it relates to what comes);
+        the counters stay."""
+        self.states = []
+        self._segments = []
 
     def is_reset(self, prev: DeadReckoningState, state: DeadReckoningState) -> bool:
         """Whether ``state`` starts a new run of the dead reckoner rather than follow
@@ -426,6 +440,10 @@ class MotionAccumulator:
         k = 0
         while k + 1 < len(self.states) and self.states[k + 1].stamp_ns <= horizon:
             k += 1
+        excess = len(self.states) - k - self.max_states
+        if excess > 0:
+            self.dropped += excess
+            k += excess
         if k:
             first = self.states[k].stamp_ns
             del self.states[:k]

@@ -47,11 +47,12 @@ LAYOUTS = ('threads', 'processes', 'pipeline')
 FRESH_PROCESSES_SETTLE_S = 3.5
 
 #: Node parameters for a replay whose time is not wall time (see module doc). The waits stay
-#: finite so that an epoch after the last odometry sample is still processed at the end.
+#: finite so that an epoch after the last odometry sample is still processed at the end;
+#: fusion_node's are at most its upper bounds (odometry_wait_s 10 s, gnss_timeout_s 60 s).
 REPLAY_NODE_PARAMETERS: dict[str, dict] = {
     'imu_node': {'source_timeout_s': 3600.0},
     'fusion_node': {'odometry_wait_s': 10.0, 'odometry_timeout_s': 10.0,
-                    'gnss_timeout_s': 3600.0, 'input_queue_depth': 200},
+                    'gnss_timeout_s': 60.0, 'input_queue_depth': 200},
 }
 
 _runs = itertools.count()

@@ -15,8 +15,17 @@ ERROR = alarm, STALE = no valid solution), ``pose`` (PoseWithCovarianceStamped, 
 ``odometry/global`` (nav_msgs/Odometry, ``map_frame_id`` -> ``base_frame_id``: the same
 pose and covariance, and the forward speed and yaw rate of the newest dead-reckoning state
 at or before the epoch, for robot_localization / Nav2), ``fix`` (NavSatFix, WGS84) and
-``particles`` (PoseArray, map). Without GNSS for ``gnss_timeout_s`` it publishes
-``integrity_risk`` STALE every ``stale_report_period_s``: a consumer never sees a stale OK.
+``particles`` (PoseArray, map). Without GNSS for ``gnss_timeout_s`` (at most 60 s), or
+without any epoch processed for that long (every message refused, or waiting), it
+publishes ``integrity_risk`` STALE every ``stale_report_period_s`` (at most 10 s): a
+consumer never sees a stale OK.
+
+A filter state that became invalid (non-finite or absurd: ``ParticleFilter.step`` returns
+'invalid') is discarded: that epoch publishes ``integrity_risk`` STALE ('filter state
+invalid (...): re-initialising from the next fix') and no pose, odometry, fix or
+particles, every later verdict is STALE and says so until a fix has initialised the
+filter again, and ``diagnostics`` counts ``filter_resets`` (WARN while re-initialising).
+:meth:`FusionNode.reset_time_base` does the same when the inputs adopt a new time base.
 
 ``map/origin`` (NavSatFix, transient local: a late subscriber still gets it) carries the
 geodetic origin of the ``map`` frame once it exists (``map_origin_llh`` at start-up, else
@@ -29,8 +38,11 @@ protection level and alert limit) for diagnostic_aggregator and rqt_robot_monito
 Every FilterConfig parameter (``FilterConfig.parameter_specs()``; all but
 ``extra_alert_limits_m``) is a node parameter of the same name;
 all of them can be changed while running (validated as a whole FilterConfig; a refused
-update keeps the old values), e.g. ``alert_limit_m`` and ``target_risk``. An integer given
-for a float parameter (``-p alert_limit_m:=16``) is that float.
+update keeps the old values), e.g. ``alert_limit_m`` and ``target_risk``. Sizes
+(``n_particles``, ``n_posteriors``, ...) whose epoch would need more than the memory
+budget (``core.config.EPOCH_MEMORY_BUDGET_BYTES``, 2 GiB) are refused with the estimate,
+at start-up and while running. An integer given for a float parameter
+(``-p alert_limit_m:=16``) is that float.
 
 Exit codes: 0 stopped (Ctrl-C, shutdown), 1 failed while running, 2 a parameter refused at
 start-up (``-p likelihood:=gauss``; one line on stderr naming it).
@@ -49,10 +61,11 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import NavSatFix, NavSatStatus, PointCloud2
 
 from gnsscam_ros.core.engine import (CAMERA, DEAD_RECKONING, DROPPED_OLDEST, ERROR as V_ERROR,
-                                     ESTIMATE_STATUSES, NO_MATCH, OK as V_OK,
+                                     ESTIMATE_STATUSES, MAX_BUFFER_S, MAX_GNSS_QUEUE,
+                                     MAX_TIMEOUT_S, MAX_WAIT_S, NO_MATCH, OK as V_OK,
                                      STALE as V_STALE, EpochEngine, EpochReport, InputTiming,
                                      IntegrityVerdict, best_match)
-from gnsscam_ros.core.filter import REJECTED, UPDATED, EpochResult, FilterConfig
+from gnsscam_ros.core.filter import INVALID, REJECTED, UPDATED, EpochResult, FilterConfig
 from gnsscam_ros.core.frames import LocalFrame
 from gnsscam_ros.core.motion import OUT_OF_ORDER, RESET
 from gnsscam_ros.core.particles import SYSTEMATIC
@@ -71,6 +84,16 @@ from .runtime import run_node
 
 #: Engine verdict levels -> DiagnosticStatus levels of integrity_risk.
 _LEVELS = {V_OK: OK, V_ERROR: ERROR, V_STALE: STALE}
+#: Longest silence of GNSS (or of processed epochs) before integrity_risk is STALE [s]: a
+#: larger value would let a consumer take the last verdict as current for longer than a
+#: minute (1e12 disabled STALE altogether).
+MAX_GNSS_TIMEOUT_S = 60.0
+#: Longest period of the STALE reports while stale [s].
+MAX_STALE_REPORT_PERIOD_S = 10.0
+#: Engine counters shown on diagnostics (besides the node's own): resets of the filter and
+#: of the time base, inputs the engine refused, camera matches beyond its bounds.
+ENGINE_COUNTS = ('filter_resets', 'time_base_resets', 'refused_gnss', 'refused_dead_reckoning',
+                 'refused_camera', 'camera_over_limit', 'camera_dropped')
 #: Node parameters that are fields of the engine's InputTiming (same meaning).
 TIMING_PARAMETERS = {'odometry_buffer_s': 'dead_reckoning_buffer_s',
                      'camera_buffer_s': 'camera_buffer_s', 'gnss_queue_size': 'gnss_queue_size',
@@ -159,34 +182,38 @@ class FusionNode(GnssCamNode):
         self.declare('fix_frame_id', DEFAULTS['fix_frame_id'], 'Frame of fix.')
         self.declare('base_frame_id', DEFAULTS['base_frame_id'],
                      'Child frame of odometry/global (the vehicle; its twist is in it).')
+        # Upper bounds (core.engine MAX_*): a longer wait or timeout would hide a stopped
+        # input behind the last verdict; a longer buffer only costs memory.
         self.declare('gnss_timeout_s', DEFAULTS['gnss_timeout_s'],
-                     'No GNSS epoch for this long: integrity_risk STALE [s].', (0.01, BIG))
+                     'No GNSS epoch (or none processed) for this long: integrity_risk STALE '
+                     '[s].', (0.01, MAX_GNSS_TIMEOUT_S))
         self.declare('stale_report_period_s', DEFAULTS['stale_report_period_s'],
                      'Period of the STALE integrity_risk reports while stale [s].',
-                     (0.01, BIG))
+                     (0.01, MAX_STALE_REPORT_PERIOD_S))
         self.declare('odometry_wait_s', DEFAULTS['odometry_wait_s'],
                      'Longest wait for the dead reckoning to reach a GNSS epoch [s] '
-                     '(wall time).', (0.0, BIG))
+                     '(wall time).', (0.0, MAX_WAIT_S))
         self.declare('odometry_timeout_s', DEFAULTS['odometry_timeout_s'],
                      'Dead reckoning silent this long is not waited for [s] (wall time).',
-                     (0.0, BIG))
+                     (0.0, MAX_TIMEOUT_S))
         self.declare('camera_wait_s', DEFAULTS['camera_wait_s'],
                      'Longest wait for the camera images due before a GNSS epoch [s] (wall '
-                     'time).', (0.0, BIG))
+                     'time).', (0.0, MAX_WAIT_S))
         self.declare('camera_timeout_s', DEFAULTS['camera_timeout_s'],
                      'A camera whose newest image is this far behind the other inputs has '
-                     'stopped and is not waited for [s] (stamp time).', (0.0, BIG))
+                     'stopped and is not waited for [s] (stamp time).', (0.0, MAX_TIMEOUT_S))
         self.declare('odometry_buffer_s', DEFAULTS['odometry_buffer_s'],
-                     'Dead-reckoning history kept [s] (stamp time).', (1.0, BIG),
+                     'Dead-reckoning history kept [s] (stamp time).', (1.0, MAX_BUFFER_S),
                      read_only=True)
         self.declare('camera_buffer_s', DEFAULTS['camera_buffer_s'],
-                     'Camera matches kept behind the newest [s] (stamp time).', (0.0, BIG))
+                     'Camera matches kept behind the newest [s] (stamp time).',
+                     (0.0, MAX_BUFFER_S))
         self.declare('max_published_particles', DEFAULTS['max_published_particles'],
                      'Particles published on particles (weighted subsample); 0 = all.',
                      (0, 100_000_000))
         self.declare('gnss_queue_size', DEFAULTS['gnss_queue_size'],
                      'GNSS epochs waiting for the dead reckoning; when full the oldest is '
-                     'dropped.', (1, 10000), read_only=True)
+                     'dropped.', (1, MAX_GNSS_QUEUE), read_only=True)
         self.declare('odometry_queue_depth', DEFAULTS['odometry_queue_depth'],
                      'Subscription queue depth of odometry/dead_reckoning [messages] (covers '
                      'a filter epoch at the IMU rate).', (1, 1_000_000), read_only=True)
@@ -207,6 +234,7 @@ class FusionNode(GnssCamNode):
         self._camera_count = 0
         self._started = time.monotonic()
         self._last_gnss_receipt: float | None = None
+        self._last_verdict: float | None = None         # of an epoch [wall s]
         self._last_dr_receipt: float | None = None
         self._last_stale_report = -math.inf
         self.last_result: EpochResult | None = None
@@ -244,7 +272,17 @@ class FusionNode(GnssCamNode):
                   if self.param('use_map_origin') else 'first robust fix')
         return {'n_particles': cfg.n_particles, 'likelihood': cfg.likelihood,
                 'alert_limit_m': cfg.alert_limit_m, 'target_risk': cfg.target_risk,
-                'map_origin': origin, 'seed': self.param('seed')}
+                'satellite_limit': cfg.satellite_limit, 'map_origin': origin,
+                'seed': self.param('seed')}
+
+    def reset_time_base(self, reason: str) -> None:
+        """The inputs adopt a new time base (their stamps jumped on purpose): drop what is
+        buffered and start the filter again from the next fix (``EpochEngine.
+        reset_time_base``); integrity_risk is STALE until then. Counted on diagnostics
+        (``time_base_resets``)."""
+        self.engine.reset_time_base(reason)
+        self.get_logger().warning(f'time base reset ({reason}): inputs buffered before it '
+                                  'dropped, the filter re-initialises from the next fix')
 
     # ------------------------------------------------------------------ parameters
     def _filter_config(self, changes: dict) -> FilterConfig:
@@ -345,13 +383,7 @@ class FusionNode(GnssCamNode):
         """An input adopted a new time base (a replay started again): what the engine
         keeps of the old one (queued epochs, motion, camera matches, the filter's last
         epoch) can never be combined with the new stamps."""
-        reset = getattr(self.engine, 'reset_time_base', None)
-        if reset is not None:
-            reset(f'{topic}: new time base at {stamp_ns} ns')
-            return
-        # TODO(lead): engine reset on a new time base (EpochEngine.reset_time_base(reason)
-        # is not there yet): until then the engine refuses the new stamps as out of order.
-        self.stats.count('time_base_reset_missing')
+        self.reset_time_base(f'{topic}: new time base at {stamp_ns} ns')
 
     def on_timer(self) -> None:
         """Run epochs whose wait for their inputs is over; report STALE without GNSS."""
@@ -361,12 +393,18 @@ class FusionNode(GnssCamNode):
             self.process_ready()
         now = time.monotonic()
         since = now - (self._last_gnss_receipt or self._started)
-        if (since > self.param('gnss_timeout_s')
+        # GNSS arriving is not enough: if none of it makes an epoch (refused, or waiting),
+        # the last verdict must not stand as current either.
+        since_verdict = now - (self._last_verdict or self._started)
+        timeout = self.param('gnss_timeout_s')
+        if (max(since, since_verdict) > timeout
                 and now - self._last_stale_report >= self.param('stale_report_period_s')):
             self._last_stale_report = now
             self.stats.count('stale_reports')
+            why = (f'no GNSS measurements for {since:.1f} s' if since > timeout else
+                   f'no epoch processed for {since_verdict:.1f} s')
             self.publish_integrity(self.integrity_risk(self.engine.stale_verdict(
-                self.now_ns(), f'stale: no GNSS measurements for {since:.1f} s')))
+                self.now_ns(), f'stale: {why}')))
 
     # --------------------------------------------------------------------- epochs
     def process_ready(self) -> None:
@@ -389,12 +427,24 @@ class FusionNode(GnssCamNode):
             self.warn_rejected('gnss/measurements', 'filter_rejected', result.reason)
             self.stats.add_time(time.perf_counter() - start)
             return
+        if result.status == INVALID:
+            # Nothing of the broken state is published; the verdict (STALE) says why.
+            self.get_logger().error(f'epoch {result.stamp_ns} ns: {result.reason}',
+                                    throttle_duration_sec=5.0)
         if not self.origin_published and self.filter.frame is not None:
             self.publish_origin(epoch.stamp_ns, service_bits(epoch.system))
         self.publish_integrity(self.integrity_risk(report.verdict))
+        self._last_verdict = time.monotonic()
         self.stats.add_time(time.perf_counter() - start)
         if result.status in ESTIMATE_STATUSES:
-            self._publish_estimate(result, epoch)
+            try:
+                self._publish_estimate(result, epoch)
+            except MessageError as err:
+                # The filter checks its state after every epoch; should an estimate still
+                # not encode, it is dropped and counted rather than ending the node.
+                self.stats.count('estimates_not_published')
+                self.get_logger().error(f'epoch {result.stamp_ns} ns: estimate not '
+                                        f'published: {err}', throttle_duration_sec=5.0)
 
     @staticmethod
     def integrity_risk(verdict: IntegrityVerdict) -> IntegrityRisk:
@@ -483,6 +533,8 @@ class FusionNode(GnssCamNode):
                   'alert_limit_m': self.filter.config.alert_limit_m,
                   'target_risk': self.filter.config.target_risk}
         values['dead_reckoning_resets'] = self.engine.motion.resets
+        values['satellite_limit'] = self.filter.config.satellite_limit
+        values.update({key: self.engine.counts.get(key, 0) for key in ENGINE_COUNTS})
         if self.last_result is not None:
             values['last_status'] = self.last_result.status
             values['protection_level_m'] = (math.nan if self.last_result.protection_level_m
@@ -490,6 +542,8 @@ class FusionNode(GnssCamNode):
             values['motion_unknown_s'] = self.last_result.motion_unknown_s
         if since_gnss > self.param('gnss_timeout_s'):
             return WARN, f'stale input: no GNSS for {since_gnss:.1f} s', values
+        if self.engine.reinitialising:
+            return WARN, self.engine.reinitialising, values
         if since_dr > self.param('odometry_timeout_s'):
             return WARN, ('no dead reckoning: motion unknown, the protection level grows '
                           'and integrity is ERROR'), values
