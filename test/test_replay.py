@@ -323,13 +323,18 @@ def test_clis_stop_cleanly_on_sigint(emulated_bag, tmp_path):
                                str(tmp_path / 'rec'), 'imu/data:sensor_msgs/msg/Imu'],
                               env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                               text=True)
+    # The recorder listens before anything is played (the probe is the other subscriber).
+    graph.spin_until(lambda: graph.probe.count_subscribers('/imu/data') >= 2
+                     or record.poll() is not None, 120.0, 'the recorder subscribing')
+    assert record.poll() is None, record.communicate()[1]
     replay = subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.live.replay',
                                str(emulated_bag), '--rate', '1', '--wait', '0'],
                               env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                               text=True)
     try:
-        # Interrupted while it plays: after the first hundred IMU samples of the 40 s bag.
-        graph.spin_until(lambda: len(imu) >= 100 or replay.poll() is not None, 120.0,
+        # Interrupted while it plays: after 10 s of the 40 s bag's IMU samples (the
+        # recorder, another process, discovers the replay's publishers meanwhile).
+        graph.spin_until(lambda: len(imu) >= 1000 or replay.poll() is not None, 120.0,
                          'the replay publishing')
         assert replay.poll() is None, replay.communicate()[1]
         replay.send_signal(signal.SIGINT)
