@@ -318,6 +318,7 @@ def test_emulated_drive_with_rendered_camera(tmp_path):
         np.testing.assert_array_equal(img, src.camera.image(k))
 
 
+@pytest.mark.slow
 def test_cli_smartloc_excerpt_round_trip(tmp_path, capsys, smartloc_excerpt):
     out = tmp_path / 'smartloc'
     assert convert_main(['smartloc', str(SMARTLOC_EXCERPT), '--out', str(out), '--quiet',

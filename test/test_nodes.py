@@ -192,6 +192,7 @@ def _bad_cloud(epoch):
     return msg
 
 
+@pytest.mark.slow
 def test_malformed_messages_are_refused_and_counted(graph, drive):
     g = graph
     images = [synthetic_scene(i, seed=9) for i in range(3)]
@@ -409,6 +410,7 @@ def test_camera_without_database_answers_every_frame_with_empty_matches(graph):
     assert not fusion.stats.rejected and fusion.engine.camera == []
 
 
+@pytest.mark.slow
 def test_camera_drops_the_oldest_frames_and_counts_them(graph):
     g = graph
     images = [synthetic_scene(i, seed=4) for i in range(4)]

@@ -81,6 +81,7 @@ def test_protection_level_is_the_crossing_of_a_monotone_bound():
     assert integrity.upper_risk(cloud.hazard_mass(centre, [below]), eps)[0] > 0.1
 
 
+@pytest.mark.slow
 @settings(max_examples=60, deadline=None)
 @given(st.integers(1, 50), st.floats(0.001, 0.3), st.integers(0, 10_000))
 def test_protection_level_matches_a_full_sort(n_samples, q_max, seed):
@@ -224,6 +225,7 @@ def small_config(**kw):
     return FilterConfig(**base)
 
 
+@pytest.mark.slow
 def test_a_tight_consistent_cloud_is_certified_with_the_defaults():
     filt = ParticleFilter(small_config(), frame=FRAME, rng=np.random.default_rng(0))
     results = run_static(filt, 30, lambda i: MotionIncrement.stationary(1.0))

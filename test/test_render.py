@@ -88,6 +88,7 @@ def test_frames_have_texture(stream):
     assert min(counts) >= 200, counts
 
 
+@pytest.mark.slow
 def test_texture_cache_is_only_a_speed_up(scenario, stream):
     # Speed comes from the cached lit facade textures (timing: bench.emulation); a renderer
     # that keeps almost nothing must draw the same frames.

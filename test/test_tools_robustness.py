@@ -60,6 +60,7 @@ def _field_cases():
                 yield tag, index, value, line_with(fields, index, value, time=time_s)
 
 
+@pytest.mark.slow
 def test_librsf_bad_numbers_refused_with_file_and_line(tmp_path, capsys, monkeypatch):
     """360 lines with NaN, inf, 1e308, 1e400, garbage in each field of each record: exit
     3 at load, file:line named, with and without --json, no JSON written."""
@@ -89,6 +90,7 @@ def test_librsf_bad_numbers_refused_with_file_and_line(tmp_path, capsys, monkeyp
     assert tried == 360
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('case', librsf_cases(), ids=lambda c: c[0])
 def test_librsf_malformed_files(tmp_path, capsys, case):
     name, text, truth, expected = case
@@ -305,6 +307,7 @@ def mapdb_set(tmp_path_factory):
     return root, images, csv, db
 
 
+@pytest.mark.slow
 def test_mapdb_query_refuses_each_unusable_image(mapdb_set, tmp_path, capsys):
     _, images, _, db = mapdb_set
     reasons = image_cases(tmp_path)

@@ -168,6 +168,7 @@ def corrupt_bags(bags: Path, folder: Path) -> dict[str, str]:
     return out
 
 
+@pytest.mark.slow
 def test_replay_refuses_corrupt_bags_and_wrong_types(bags, tmp_path, capfd):
     cases = corrupt_bags(bags, tmp_path)
     for name, why in cases.items():
@@ -201,6 +202,7 @@ GARBLED = [(topic, how) for topic in ('gnss/pseudoranges', 'camera/image_raw', '
            for how in ('length', 'short', 'stub')]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('topic,how', [
     pytest.param(t, h, marks=() if (t, h) in {('imu/data', 'length'),
                                               ('dataset/info', 'stub')}
