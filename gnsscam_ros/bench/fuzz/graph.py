@@ -164,6 +164,7 @@ class Verdict:
     epoch_status: str | None
     protection_level_m: float | None
     message: str
+    motion_unknown_s: float = 0.0
 
 
 class Counters:
@@ -311,9 +312,13 @@ class Probe:
         except ma.MessageError:
             self.bad_outputs += 1
             return
+        try:
+            unknown = float(risk.extra.get('motion_unknown_s', 0.0))
+        except ValueError:
+            unknown = math.nan
         self.verdicts.append(Verdict(time.monotonic(), risk.level, risk.epoch_stamp_ns,
                                      risk.epoch_status, risk.protection_level_m,
-                                     risk.message))
+                                     risk.message, unknown))
 
     def _on_fix(self, msg) -> None:
         self.fixes[ma.stamp_to_ns(msg.header.stamp)] = (msg.latitude, msg.longitude,
