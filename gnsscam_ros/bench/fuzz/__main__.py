@@ -54,9 +54,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help='no negative stamps before the first valid message')
     m.add_argument('--no-clean-pass', action='store_true',
                    help='skip the clean pass (no RSS or recovery baseline)')
+    m.add_argument('--memory-limit-mb', type=float, default=4096.0,
+                   help='resident memory at which the kit kills pipeline_node (a crash of '
+                   'the kind that caused it; protects a shared machine) [MB]')
     m.add_argument('--hang-s', type=float, default=10.0,
                    help='no integrity_risk for this long is a hang (default %(default)s)')
     m.add_argument('--burst', type=int, default=10, help='most messages per burst')
+    m.add_argument('--only', nargs='+', metavar='TEXT',
+                   help='play only the structured cases whose kind (topic:name) contains '
+                   'one of these (to reproduce one), e.g. satellites_1000')
     m.add_argument('--gnss-rate-hz', type=float, default=1.0,
                    help='GNSS epochs per second of the drive (more epochs: more slots, '
                    'fewer kinds share one)')
@@ -124,9 +130,12 @@ def print_messages(result: dict, out=sys.stdout) -> list[Target]:
         if len(bad) > 40:
             print(f'... and {len(bad) - 40} more (--json has all)', file=out)
     issue = [k for k in result['kinds'].values() if k['issue']]
-    print("\nthe issue's single-message cases:", file=out)
-    print(table(['kind', 'sent', 'outcome'],
-                [[k['kind'], k['sent'], k['outcome']] for k in issue]), file=out)
+    print("\nthe issue's single-message cases (refusals as the nodes counted them):",
+          file=out)
+    print(table(['kind', 'sent', 'outcome', 'refused as'],
+                [[k['kind'], k['sent'], k['outcome'],
+                  ', '.join(f'{r} {n}' for r, n in k['reasons'].items())[:60]]
+                 for k in issue]), file=out)
     for crash in result['crashes'][:20]:
         print(f"crash after {crash['kind']} ({crash['during']}, exit {crash['exit_code']}): "
               f"{crash['cause']}", file=out)

@@ -42,6 +42,8 @@ class BurstResult:
     synced: bool = True
     seconds: float = 0.0
     epoch: int = -1
+    reasons: dict = field(default_factory=dict)
+    t_wall: float = 0.0
 
     @property
     def lost(self) -> int:
@@ -81,8 +83,10 @@ class KindStats:
     silently_accepted: int = 0
     crashes: int = 0
     blocks: int = 0
+    hangs: int = 0
     max_burst_s: float = 0.0
     crash_causes: list[str] = field(default_factory=list)
+    reasons: dict = field(default_factory=dict)
 
     def add(self, b: BurstResult) -> None:
         self.bursts += 1
@@ -94,6 +98,8 @@ class KindStats:
         self.sanitised_bursts += int(b.satellites > 0)
         self.silently_accepted += b.silently_accepted
         self.max_burst_s = max(self.max_burst_s, b.seconds)
+        for reason, n in b.reasons.items():
+            self.reasons[reason] = self.reasons.get(reason, 0) + n
 
     @property
     def uncounted(self) -> int:
@@ -107,6 +113,8 @@ class KindStats:
             bad.append(f'crash x{self.crashes}')
         if self.blocks:
             bad.append(f'block x{self.blocks}')
+        if self.hangs:
+            bad.append(f'hang x{self.hangs}')
         if self.uncounted_loss:
             bad.append(f'{self.uncounted_loss} lost uncounted')
         if self.silently_accepted:

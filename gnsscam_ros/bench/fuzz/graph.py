@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import resource
 import signal
 import subprocess
 import sys
@@ -87,33 +88,66 @@ def node_env(domain: int, log_dir: Path) -> dict:
 class NodeProcess:
     """A node executable (``module`` of ``gnsscam_ros.nodes``) as a child process.
 
+    The machine is shared: a fault that makes a node allocate without bound must not take
+    it down. The child's address space is capped (``RLIMIT_AS``: ``memory_limit_mb`` plus
+    the ~2 GB a node reserves without using), so a huge allocation fails inside it, and a
+    watchdog thread kills it (SIGKILL) when its resident memory passes
+    ``memory_limit_mb``; both end as a crash of the node, the second one marked
+    :attr:`killed_for_memory`. The watchdog also keeps the peak RSS.
+
     Args:
         module: ``pipeline``, ``gnss_node``, ``imu_node``, ``camera_node``, ``fusion_node``.
         params_file: Its ``--params-file``.
         domain: ROS domain id.
         log_dir: Folder for its stderr (``<module>-<n>.stderr.txt``) and ROS logs.
+        memory_limit_mb: Resident memory at which the kit kills it [MB].
     """
 
-    def __init__(self, module: str, params_file: Path, domain: int, log_dir: Path):
+    def __init__(self, module: str, params_file: Path, domain: int, log_dir: Path,
+                 memory_limit_mb: float = 4096.0):
         self.module = module
         self.log_dir = Path(log_dir)
         self.params_file = params_file
         self.domain = domain
+        self.memory_limit_mb = float(memory_limit_mb)
         self.starts = 0
         self.proc: subprocess.Popen | None = None
         self.stderr_path: Path | None = None
         self.started_at = math.nan
+        self.peak_rss_mb = 0.0
+        self.killed_for_memory = False
+        self._watch_stop = threading.Event()
+
+    def _limit(self) -> None:
+        cap = int((self.memory_limit_mb + 2560.0) * 2**20)
+        resource.setrlimit(resource.RLIMIT_AS, (cap, cap))
+
+    def _watch(self, proc: subprocess.Popen, stop: threading.Event) -> None:
+        while not stop.is_set() and proc.poll() is None:
+            rss = rss_mb(proc.pid)
+            if math.isfinite(rss):
+                self.peak_rss_mb = max(self.peak_rss_mb, rss)
+                if rss > self.memory_limit_mb:
+                    self.killed_for_memory = True
+                    proc.send_signal(signal.SIGKILL)
+                    return
+            stop.wait(0.05)
 
     def start(self) -> 'NodeProcess':
         self.starts += 1
+        self.killed_for_memory = False
         self.stderr_path = self.log_dir / f'{self.module}-{self.starts}.stderr.txt'
         with self.stderr_path.open('w') as err:
             self.proc = subprocess.Popen(
                 [sys.executable, '-m', f'gnsscam_ros.nodes.{self.module}', '--ros-args',
                  '--params-file', str(self.params_file)],
                 env=node_env(self.domain, self.log_dir), stdout=subprocess.DEVNULL,
-                stderr=err)
+                stderr=err, preexec_fn=self._limit)
         self.started_at = time.monotonic()
+        self._watch_stop.set()
+        self._watch_stop = threading.Event()
+        threading.Thread(target=self._watch, args=(self.proc, self._watch_stop),
+                         daemon=True, name=f'watch_{self.module}').start()
         return self
 
     @property
@@ -140,6 +174,9 @@ class NodeProcess:
 
     def failure(self, lines: int = 3) -> str:
         """The last error lines of its stderr (the cause of a crash)."""
+        if self.killed_for_memory:
+            return (f'killed by the fault-injection kit: resident memory above '
+                    f'{self.memory_limit_mb:.0f} MB (peak {self.peak_rss_mb:.0f} MB)')
         try:
             text = self.stderr_path.read_text(errors='replace').splitlines()
         except OSError:

@@ -54,6 +54,7 @@ class MessagesConfig:
     prestart: bool = True
     clean_pass: bool = True
     topics: tuple[str, ...] = INPUT_TOPICS
+    only: list | None = None
     burst: int = 10
     gnss_rate_hz: float = 1.0
     particles: int | None = None
@@ -61,6 +62,7 @@ class MessagesConfig:
     hang_s: float = 10.0
     block_epochs: int = 5
     max_crashes_per_kind: int = 1
+    memory_limit_mb: float = 4096.0
     alert_limit_m: float = 25.0
     recovery_rel: float = 0.10
     recovery_abs_m: float = 3.0
@@ -148,7 +150,8 @@ class FaultPass:
         for b in plan:
             self.by_slot.setdefault(b.slot, []).append(b)
         params = write_params(self.work / 'params.yaml', node_parameters(cfg, stream))
-        self.pipeline = NodeProcess('pipeline', params, domain, self.work)
+        self.pipeline = NodeProcess('pipeline', params, domain, self.work,
+                                    cfg.memory_limit_mb)
         self.result = PassResult(label)
         self.rng = np.random.default_rng([cfg.seed, 2])
         self.last_stamp: dict[str, int] = {}
@@ -189,11 +192,14 @@ class FaultPass:
 
         ok = self.probe.spin_until(settled, self.cfg.hang_s)
         if not ok:
+            # A node busy for hang_s (one long callback): what it has not taken yet may
+            # still come; only a node that has taken everything decides what was lost.
             self.result.sync_timeouts += 1
-        for t in LINKS:
-            short = self._expected(t, c) - c.received(t)
-            if short > 0:
-                self.known_lost[t] += short
+        elif self.pipeline.alive():
+            for t in LINKS:
+                short = self._expected(t, c) - c.received(t)
+                if short > 0:
+                    self.known_lost[t] += short
         return c.snapshot(), ok and self.pipeline.alive()
 
     # ------------------------------------------------------------------ process
@@ -230,7 +236,8 @@ class FaultPass:
         kind = self.last_kind or 'valid input'
         self.result.crashes.append({
             'kind': kind, 'during': during, 'epoch': k,
-            'exit_code': self.pipeline.exit_code(), 'cause': self.pipeline.failure()})
+            'exit_code': self.pipeline.exit_code(), 'cause': self.pipeline.failure(),
+            'peak_rss_mb': self.pipeline.peak_rss_mb})
         self.crashed_kinds[kind] = self.crashed_kinds.get(kind, 0) + 1
         self.log(f'[{self.label}] pipeline_node exited ({self.pipeline.exit_code()}) after '
                  f'{kind} ({during}): {self.pipeline.failure(1)}; restarting')
@@ -300,6 +307,8 @@ class FaultPass:
         for _ in range(burst.n):
             serial[0] += 1
             stamp = base + 1000 * serial[0]
+            if getattr(fault, 'reuse_stamp', False):
+                stamp = self._last_stamp(topic) or stamp
             if fault.family == fault_cases.STRUCTURED:
                 out.append(fault_cases.build(fault, templates[topic], stamp, self.rng))
             else:
@@ -320,7 +329,7 @@ class FaultPass:
                    for m in msgs)
         t0 = time.monotonic()
         res = accounting.BurstResult(fault.kind, fault.topic, fault.family, fault.expect,
-                                     sent=0, epoch=slot)
+                                     sent=0, epoch=slot, t_wall=t0)
         self.last_kind = fault.kind
         for msg in msgs:
             if self.probe.publish(fault.topic, msg):
@@ -329,15 +338,21 @@ class FaultPass:
             else:
                 res.unsendable += 1
         del msgs
-        after, res.synced = self.sync(settle_s=0.05 + size / 50e6)
+        after, res.synced = self.sync(settle_s=0.05 + size / 20e6)
         res.seconds = time.monotonic() - t0
-        if not self.pipeline.alive():
+        if not self.pipeline.alive():      # a crash: booked as such, not as a loss
+            res.delivered, res.synced = res.sent, False
             self.result.bursts.append(res)
             return
         res.delivered = int(after['received'][fault.topic] - before['received'][fault.topic])
+        if not res.synced:            # still being processed: delivery not known yet
+            res.delivered = max(res.delivered, res.sent)
         res.counted_loss = int(after['losses'] - before['losses'])
         res.rejected = int(after['rejected'] - before['rejected'])
         res.satellites = int(after['satellites'] - before['satellites'])
+        res.reasons = {k: int(v - before['by_reason'].get(k, 0.0))
+                       for k, v in after['by_reason'].items()
+                       if v > before['by_reason'].get(k, 0.0)}
         self.last_rejected = after['rejected']
         self.result.bursts.append(res)
 
@@ -375,7 +390,8 @@ class FaultPass:
             else:
                 streak.append(k)
             if self._check_alive(k, f'epoch {k}'):
-                res.rss.append((stream.seconds(stamp), self.pipeline.rss_mb()))
+                res.rss.append((stream.seconds(stamp), self.pipeline.rss_mb(),
+                                self.pipeline.peak_rss_mb))
                 self._blocked(k, streak)
             else:
                 streak.clear()
@@ -404,7 +420,9 @@ def run_messages(cfg: MessagesConfig, log=print) -> dict:
                                       gnss_rate_hz=cfg.gnss_rate_hz, camera=cfg.camera),
                          work)
     topics = tuple(t for t in cfg.topics if t != wire.IMAGE or cfg.camera)
-    cases = fault_cases.all_cases(lambda t: None, topics, heavy=cfg.heavy)
+    cases = fault_cases.all_cases(topics, heavy=cfg.heavy)
+    if cfg.only:
+        cases = [c for c in cases if any(o in c.kind for o in cfg.only)]
     slots = [k for k, s in enumerate(stream.gnss_stamps)
              if cfg.warmup_s <= stream.seconds(s) <= cfg.duration_s - cfg.tail_s]
     plan = schedule.plan(cases, topics, cfg.structured, cfg.mutations, slots,
@@ -437,30 +455,36 @@ def _errors(stream: ValidStream, res: PassResult) -> dict[int, float]:
             if s in valid}
 
 
+def silences(res: PassResult) -> list[tuple[float, float]]:
+    """Intervals between consecutive verdicts (wall time), but those that span a restart
+    (a crash or a block, counted as such)."""
+    times = sorted(v.received_s for v in res.verdicts)
+    return [(a, b) for a, b in zip(times, times[1:])
+            if not any(a <= r1 and b >= r0 for r0, r1 in res.restarts)]
+
+
 def pass_figures(cfg: MessagesConfig, stream: ValidStream, res: PassResult) -> dict:
     """The figures of one pass."""
     errors = _errors(stream, res)
     valid = set(stream.gnss_stamps)
-    times = sorted(v.received_s for v in res.verdicts)
-    # Silences between verdicts; one that spans a restart is the crash, not a hang.
-    gaps = np.array([b - a for a, b in zip(times, times[1:])
-                     if not any(a <= r1 and b >= r0 for r0, r1 in res.restarts)])
+    gaps = silences(res)
     ok = [v for v in res.verdicts if v.level == OK_LEVEL and v.epoch_stamp_ns is not None]
     misleading = [v for v in ok if v.epoch_stamp_ns in valid
                   and errors.get(v.epoch_stamp_ns, math.inf) > cfg.alert_limit_m]
     n_tail = min(cfg.block_epochs, len(stream.gnss_stamps))
     permanent = set(stream.gnss_stamps[-n_tail:]) <= set(res.unanswered)
-    rss = [r for _, r in res.rss if math.isfinite(r)]
+    rss = [r for _, r, _ in res.rss if math.isfinite(r)]
+    peaks = [p for _, _, p in res.rss] + [c.get('peak_rss_mb', 0.0) for c in res.crashes]
     return {
         'epochs': res.epochs, 'answered': len(res.answered & valid),
         'unanswered': len(res.unanswered), 'permanent_block': bool(permanent),
         'blocks': len(res.blocks) + int(permanent),
-        'longest_silence_s': float(gaps.max()) if gaps.size else 0.0,
-        'hangs': int(np.sum(gaps > cfg.hang_s)) if gaps.size else 0,
+        'longest_silence_s': max((b - a for a, b in gaps), default=0.0),
+        'hangs': sum(1 for a, b in gaps if b - a > cfg.hang_s),
         'crashes': len(res.crashes), 'restarts': len(res.restarts),
         'sync_timeouts': res.sync_timeouts, 'exit_code_at_stop': res.exit_code,
         'rss_start_mb': rss[0] if rss else math.nan,
-        'rss_peak_mb': max(rss) if rss else math.nan,
+        'rss_peak_mb': max(peaks) if peaks else math.nan,
         'rss_end_mb': rss[-1] if rss else math.nan,
         'rejections_of_valid_input': res.collateral_rejections,
         'ok_verdicts': len(ok), 'misleading_ok': len(misleading),
@@ -484,6 +508,10 @@ def summarize(cfg: MessagesConfig, stream: ValidStream, passes: dict, meta: dict
         for kind in block['kinds']:
             if kind in kinds:
                 kinds[kind].blocks += 1
+    for a, b in silences(faults):
+        before = [x for x in faults.bursts if x.t_wall < b]
+        if b - a > cfg.hang_s and before:
+            kinds[before[-1].kind].hangs += 1
     figures = {label: pass_figures(cfg, stream, res) for label, res in passes.items()}
     structured = sum(k.sent for k in kinds.values() if k.family == 'structured')
     mutated = sum(k.sent for k in kinds.values() if k.family != 'structured')

@@ -2,9 +2,10 @@
 
 The four nodes run as separate child processes (as ``ros2 run`` starts them) in a ROS
 domain of their own; the probe plays the valid stream paced at ``rate`` times real time
-(the nodes' wall-time timeouts keep their meaning). At evenly spaced instants each chosen
-node is killed with SIGKILL, stays down for ``down_s`` of stamp time while the stream goes
-on, and is started again. Measured per kill:
+(the nodes' wall-time timeouts keep their meaning). One after the other (the first after
+``warmup_s``, each next one ``gap_s`` after the previous one recovered), each chosen node
+is killed with SIGKILL, stays down for ``down_s`` of stamp time while the stream goes on,
+and is started again. Measured per kill:
 
 * **recovery**: wall seconds from the restart to the graph working again: the first
   updated epoch verdict (gnss_node, fusion_node: any epoch verdict of the new filter;
@@ -54,6 +55,8 @@ class ProcessesConfig:
     nodes: list | None = None
     camera: bool = True
     warmup_s: float = 20.0
+    gap_s: float = 8.0
+    recover_timeout_s: float = 60.0
     alert_limit_m: float = 50.0
     integrity_settling_s: float = 5.0
     particles: int | None = None
@@ -94,12 +97,11 @@ class Campaign:
         if unknown:
             raise ValueError(f'no such node in this run: {sorted(unknown)}')
         stamps = self.stream.gnss_stamps
-        first, last = self.stream.seconds(stamps[0]), self.stream.seconds(stamps[-1])
-        span = (last - cfg.warmup_s) / len(victims)
-        self.kills = [{'node': n, 'kill_at_s': cfg.warmup_s + i * span}
-                      for i, n in enumerate(victims)]
-        if first + cfg.warmup_s >= last:
+        if self.stream.seconds(stamps[-1]) <= cfg.warmup_s:
             raise ValueError('the drive is shorter than the warm-up')
+        # One node at a time: the next is killed gap_s after the previous one recovered.
+        self.kills = [{'node': n} for n in victims]
+        self.next_kill_s = cfg.warmup_s
         self.probe: Probe | None = None
         self.collateral: list[dict] = []
 
@@ -121,28 +123,39 @@ class Campaign:
 
     # ---------------------------------------------------------------- the replay
     def _step_kills(self, now_s: float, stamp_s: float) -> None:
-        """Kill, restart and watch the nodes as the stream reaches their instants."""
+        """Kill, restart and watch the nodes, one after the other, as the stream goes."""
         c = self.probe.counters
-        for k in self.kills:
-            node, proc = k['node'], self.procs[k['node']]
-            if 'killed_wall' not in k and stamp_s >= k['kill_at_s']:
-                k['exit_status'] = proc.kill()
-                k['killed_wall'], k['kill_stamp_s'] = now_s, stamp_s
-                c.reset([node])
-                self.log(f'processes: SIGKILL {node} at {stamp_s:.1f} s')
-            elif ('killed_wall' in k and 'restart_wall' not in k
-                  and stamp_s >= k['kill_stamp_s'] + self.cfg.down_s):
-                proc.start()
-                k['restart_wall'], k['restart_stamp_s'] = now_s, stamp_s
-                self.log(f'processes: restarted {node} at {stamp_s:.1f} s')
-            elif 'restart_wall' in k and 'ready_wall' not in k and node in c.values:
-                k['ready_wall'], k['ready_stamp_s'] = now_s, stamp_s
-            if ('ready_wall' in k and node == 'camera_node' and 'matched_wall' not in k
-                    and c.get(node, 'published_matches') > 0):
-                k['matched_wall'] = now_s
+        current = next((k for k in self.kills if 'done' not in k), None)
+        if current is not None:
+            node, proc = current['node'], self.procs[current['node']]
+            if 'killed_wall' not in current:
+                if stamp_s >= self.next_kill_s:
+                    current['exit_status'] = proc.kill()
+                    current['killed_wall'], current['kill_stamp_s'] = now_s, stamp_s
+                    current['kill_at_s'] = stamp_s
+                    c.reset([node])
+                    self.log(f'processes: SIGKILL {node} at {stamp_s:.1f} s')
+            elif 'restart_wall' not in current:
+                if stamp_s >= current['kill_stamp_s'] + self.cfg.down_s:
+                    proc.start()
+                    current['restart_wall'], current['restart_stamp_s'] = now_s, stamp_s
+                    self.log(f'processes: restarted {node} at {stamp_s:.1f} s')
+            else:
+                if 'ready_wall' not in current and node in c.values:
+                    current['ready_wall'], current['ready_stamp_s'] = now_s, stamp_s
+                if (node == 'camera_node' and 'ready_wall' in current
+                        and 'matched_wall' not in current
+                        and c.get(node, 'published_matches') > 0):
+                    current['matched_wall'] = now_s
+                back = self._recovered_at(node, current, self.probe.verdicts)
+                if back is not None or now_s - current['restart_wall'] > \
+                        self.cfg.recover_timeout_s:
+                    current['done'] = True
+                    current['recovered_stamp_s'] = stamp_s
+                    self.next_kill_s = stamp_s + self.cfg.gap_s
         for name, proc in self.procs.items():
-            down = any(k['node'] == name and 'killed_wall' in k and 'restart_wall' not in k
-                       for k in self.kills)
+            down = current is not None and current['node'] == name and \
+                'killed_wall' in current and 'restart_wall' not in current
             if not down and not proc.alive() and not any(
                     d['node'] == name and d['start'] == proc.starts for d in self.collateral):
                 self.collateral.append({'node': name, 'start': proc.starts,
@@ -166,6 +179,9 @@ class Campaign:
         while time.monotonic() < end:          # the last epochs, a late ready
             self._step_kills(time.monotonic(), stream.seconds(stream.events[-1].stamp_ns))
             time.sleep(0.02)
+        for k in self.kills:
+            if 'killed_wall' not in k:
+                k['not_killed'] = 'the drive ended first (lengthen it)'
 
     # ---------------------------------------------------------------- figures
     def figures(self) -> dict:
@@ -175,7 +191,8 @@ class Campaign:
         period_s = (stream.gnss_stamps[1] - stream.gnss_stamps[0]) / 1e9
         windows, rows = [], []
         for k in self.kills:
-            row = {key: k.get(key) for key in ('node', 'kill_at_s', 'exit_status')}
+            row = {key: k.get(key) for key in ('node', 'kill_at_s', 'exit_status',
+                                               'not_killed')}
             if 'restart_wall' not in k:
                 rows.append(dict(row, recovered=False, recovery_s=math.inf))
                 continue
@@ -205,11 +222,17 @@ class Campaign:
                 'verdicts': len(verdicts)}
 
     def _recovered_at(self, node: str, k: dict, verdicts: list) -> float | None:
+        """When the graph worked again after the restart of ``k``: the first verdict of an
+        epoch stamped after the restart (a late verdict of an older epoch does not
+        count) that is an update (fusion_node: any epoch verdict of the new filter;
+        imu_node: with the motion known again); camera_node: its first match."""
         t_r = k['restart_wall']
         if node == 'camera_node':
             return k.get('matched_wall')
+        after_ns = self.stream.gnss_stamps[0] + int(k['restart_stamp_s'] * 1e9)
         for v in verdicts:
-            if v.received_s <= t_r or v.epoch_status is None:
+            if (v.received_s <= t_r or v.epoch_status is None or v.epoch_stamp_ns is None
+                    or v.epoch_stamp_ns < after_ns):
                 continue
             if node == 'fusion_node':
                 return v.received_s
@@ -230,8 +253,7 @@ def run_processes(cfg: ProcessesConfig, log=print) -> dict:
     try:
         campaign.start_all()
         log(f'processes: {len(campaign.procs)} nodes up in {time.monotonic() - t0:.1f} s; '
-            f'kills at ' + ', '.join(f"{k['node']} {k['kill_at_s']:.0f} s"
-                                     for k in campaign.kills))
+            'killing ' + ', '.join(k['node'] for k in campaign.kills))
         campaign.replay()
         fig = campaign.figures()
     finally:
@@ -263,6 +285,9 @@ def print_processes(result: dict) -> list[Target]:
              r.get('violations')] for r in result['kills']]
     print(table(['node', 'killed at s', 'kill status', 'start-up s', 'graph s',
                  'recovery s', 'OK in window', 'ERROR', 'STALE', 'violations'], rows))
+    for r in result['kills']:
+        if r.get('not_killed'):
+            print(f"{r['node']} not killed: {r['not_killed']}")
     for c in result['collateral']:
         print(f"{c['node']} exited ({c['exit_code']}) meanwhile: {c['cause']}")
     print(f"\n{result['verdicts']} epoch verdicts, {result['ok_outside_windows']} OK outside "

@@ -44,8 +44,7 @@ def prestart_cases() -> list:
     """A negative stamp on each stamped topic, before anything valid arrived."""
     out = []
     for topic in PRESTART_TOPICS:
-        case = next(c for c in fault_cases.stamp_cases(topic, lambda t: None)
-                    if c.name == 'stamp_negative')
+        case = next(c for c in fault_cases.stamp_cases(topic) if c.name == 'stamp_negative')
         out.append(fault_cases.Case(topic, 'stamp_negative_first', case.build, issue=True,
                                     burst=1))
     return out
