@@ -81,6 +81,9 @@ def test_plan_reaches_the_counts_and_spreads_the_bursts():
     heavy = [b for b in plan if getattr(b.fault, 'heavy', False)]
     assert len(heavy) == len({b.kind for b in heavy}) and all(b.n == 1 for b in heavy)
     assert sum(b.slot == -1 for b in plan) == len(schedule.PRESTART_TOPICS)
+    assert {b.fault.topic for b in plan if b.fault.family == 'flood'} == set(INPUT_TOPICS)
+    played = {b.kind for b in plan}
+    assert all(c.kind in played for c in all_cases)          # every case at least once
     slots = [b.slot for b in plan if b.slot >= 0]
     assert min(slots) >= 10 and max(slots) < 200
 

@@ -50,6 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
                    'image)')
     m.add_argument('--no-camera', action='store_true',
                    help='no camera frames (and no faults on camera/image_raw)')
+    m.add_argument('--no-floods', action='store_true',
+                   help='no floods (three times a subscription depth of valid messages)')
     m.add_argument('--no-prestart', action='store_true',
                    help='no negative stamps before the first valid message')
     m.add_argument('--no-clean-pass', action='store_true',
@@ -114,12 +116,14 @@ def print_messages(result: dict, out=sys.stdout) -> list[Target]:
           file=out)
     m = result['messages']
     print(f"\nmalformed messages: {m['total']} ({m['structured']} structured, "
-          f"{m['mutations']} mutations; {m['unsendable']} not serialisable here)", file=out)
-    rows = [[t, r['structured'], r['mutations'], r['delivered'], r['refused'],
+          f"{m['mutations']} mutations; {m['unsendable']} not serialisable here); "
+          f"{m['floods']} valid messages in floods", file=out)
+    rows = [[t, r['structured'], r['mutations'], r['floods'], r['delivered'], r['refused'],
              r['uncounted_loss'], r['silently_accepted'], r['crashes']]
             for t, r in result['by_topic'].items()]
-    print(table(['topic', 'structured', 'mutations', 'delivered', 'refused (counted)',
-                 'lost uncounted', 'accepted silently', 'crashes'], rows), file=out)
+    print(table(['topic', 'structured', 'mutations', 'flood', 'delivered',
+                 'refused (counted)', 'lost uncounted', 'accepted silently', 'crashes'],
+                rows), file=out)
     bad = [k for k in result['kinds'].values() if k['outcome'] not in ('ok', 'not tried')]
     bad.sort(key=lambda k: (-k['crashes'], -k['blocks'], -k['uncounted'], k['kind']))
     if bad:
@@ -137,8 +141,10 @@ def print_messages(result: dict, out=sys.stdout) -> list[Target]:
                   ', '.join(f'{r} {n}' for r, n in k['reasons'].items())[:60]]
                  for k in issue]), file=out)
     for crash in result['crashes'][:20]:
-        print(f"crash after {crash['kind']} ({crash['during']}, exit {crash['exit_code']}): "
-              f"{crash['cause']}", file=out)
+        also = (f"; earlier faults on the failed node's inputs: "
+                f"{', '.join(crash['suspects'][:3])}" if crash.get('suspects') else '')
+        print(f"crash after {crash['kind']} ({crash['during']}, exit {crash['exit_code']}"
+              f"{also}): {crash['cause']}", file=out)
     for block in result['blocks'][:20]:
         print(f"block from epoch {block['epoch']} ({block['epochs_unanswered']} epochs "
               f"without a verdict) after {', '.join(block['kinds']) or 'valid input'}",
@@ -164,7 +170,7 @@ def main(argv=None) -> int:
             from .messages import MessagesConfig, run_messages
             cfg = _config(MessagesConfig, args, heavy=not args.light,
                           camera=not args.no_camera, clean_pass=not args.no_clean_pass,
-                          prestart=not args.no_prestart)
+                          prestart=not args.no_prestart, floods=not args.no_floods)
             result = run_messages(cfg, log)
             targets = print_messages(result)
         elif args.command == 'processes':

@@ -146,10 +146,11 @@ def by_topic(kinds: dict[str, KindStats]) -> dict[str, dict]:
     crashes."""
     out: dict[str, dict] = {}
     for k in kinds.values():
-        row = out.setdefault(k.topic, dict(structured=0, mutations=0, delivered=0,
-                                           refused=0, uncounted_loss=0,
+        row = out.setdefault(k.topic, dict(structured=0, mutations=0, floods=0,
+                                           delivered=0, refused=0, uncounted_loss=0,
                                            silently_accepted=0, crashes=0))
-        row['structured' if k.family == 'structured' else 'mutations'] += k.sent
+        row[{'structured': 'structured', 'mutation': 'mutations'}.get(k.family,
+                                                                      'floods')] += k.sent
         for key in ('delivered', 'refused', 'uncounted_loss', 'silently_accepted',
                     'crashes'):
             row[key] += getattr(k, key)

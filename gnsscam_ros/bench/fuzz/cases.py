@@ -29,8 +29,16 @@ import msg_adapters as ma
 from msg_adapters import wire
 
 REJECT, ANY = 'reject', 'any'
-STRUCTURED = 'structured'
+STRUCTURED, FLOOD = 'structured', 'flood'
 TEN_YEARS_NS = 10 * 365 * 86400 * 10**9
+#: Most messages of one burst per topic: within the default subscription depth of the node
+#: that takes it (gnss_node 10, camera_node 5, imu_node 100, fusion_node 10), so that a
+#: loss in a burst is the message's doing, not the queue's (floods test the queues).
+TOPIC_BURST = {wire.GNSS: 8, wire.GNSS_MEASUREMENTS: 5, wire.IMU: 10, wire.TWIST: 10,
+               wire.IMAGE: 4, wire.DEAD_RECKONING: 5, wire.MATCHES: 5}
+#: Default subscription depth of each input (the floods send three times as many).
+TOPIC_DEPTH = {wire.GNSS: 10, wire.GNSS_MEASUREMENTS: 10, wire.IMU: 100, wire.TWIST: 100,
+               wire.IMAGE: 5, wire.DEAD_RECKONING: 1000, wire.MATCHES: 10}
 
 
 @dataclass(frozen=True)
@@ -62,7 +70,14 @@ class Case:
     def kind(self) -> str:
         return f'{self.topic}:{self.name}'
 
-    family = STRUCTURED
+    @property
+    def family(self) -> str:
+        return FLOOD if self.name == 'flood' else STRUCTURED
+
+    @property
+    def size(self) -> int:
+        """Messages of one burst of this case."""
+        return self.burst if self.name == 'flood' else min(self.burst, TOPIC_BURST[self.topic])
 
 
 # ------------------------------------------------------------------- helpers
@@ -511,14 +526,23 @@ def dead_reckoning_cases() -> list[Case]:
     ]
 
 
-def all_cases(topics=None, heavy: bool = True) -> list[Case]:
+def flood_case(topic: str) -> Case:
+    """Three times the subscription depth of valid copies at once: a queue that overflows
+    must say so (``dropped``/``lost`` counters), the graph must go on."""
+    return Case(topic, 'flood', lambda msg, stamp_ns, rng: stamped(msg, stamp_ns),
+                expect=ANY, burst=3 * TOPIC_DEPTH[topic])
+
+
+def all_cases(topics=None, heavy: bool = True, floods: bool = True) -> list[Case]:
     """Every structured case of the input topics (``topics``: a subset; ``heavy=False``
-    leaves out the heavy ones)."""
+    leaves out the heavy ones, ``floods=False`` the floods of valid messages)."""
     cases = [*gnss_cases(wire.GNSS), *gnss_cases(wire.GNSS_MEASUREMENTS), *imu_cases(),
              *twist_cases(), *image_cases(), *matches_cases(), *dead_reckoning_cases()]
     from .stream import INPUT_TOPICS
     for topic in INPUT_TOPICS:
         cases += stamp_cases(topic)
+        if floods:
+            cases.append(flood_case(topic))
     if topics is not None:
         cases = [c for c in cases if c.topic in topics]
     if not heavy:

@@ -1,8 +1,10 @@
 """Which faults go where: the seeded plan of bursts over the epochs of the drive.
 
 Structured cases are played in shuffled rounds (every case once per round, heavy cases in
-the first round only) until the asked number of messages is reached; random mutations come
-in bursts of one operator on one topic. All bursts are shuffled together and spread evenly
+the first round only) until the asked number of messages is reached; the first round plays
+every case, with fewer copies each when the count is small. Each topic also gets one flood
+(three times its subscription depth of valid messages at once). Random mutations come in
+bursts of one operator on one topic. All bursts are shuffled together and spread evenly
 over the epochs between the warm-up and the clean tail. With ``prestart``, a negative stamp
 is sent on each stamped sensor topic and link before the first valid message (the issue's
 "negative stamp on the first epoch").
@@ -67,7 +69,12 @@ def plan(cases: list, topics: tuple[str, ...], structured: int, mutations: int,
         prestart: Add the negative stamps before the first valid message.
     """
     bursts: list[tuple[object, int]] = []
+    floods = [c for c in cases if c.family == 'flood']
+    cases = [c for c in cases if c.family != 'flood']
+    # The first round plays every case (fewer copies each when the count is small), the
+    # next ones full bursts until the count is reached.
     left, first = structured, True
+    share = max(1, structured // max(len(cases), 1))
     while left > 0 and cases:
         for i in rng.permutation(len(cases)):
             case = cases[int(i)]
@@ -75,12 +82,13 @@ def plan(cases: list, topics: tuple[str, ...], structured: int, mutations: int,
                 break
             if case.heavy and not first:
                 continue
-            n = 1 if case.heavy else min(case.burst, burst, left)
+            n = 1 if case.heavy else min(case.size, burst, share if first else left)
             bursts.append((case, n))
             left -= n
         first = False
         if all(c.heavy for c in cases):
             break
+    bursts += [(c, c.size) for c in floods if structured > 0]
     names = list(OPERATOR_WEIGHTS)
     weights = np.array([OPERATOR_WEIGHTS[o] for o in names], dtype=float)
     assert set(names) == set(OPERATORS)
@@ -88,7 +96,7 @@ def plan(cases: list, topics: tuple[str, ...], structured: int, mutations: int,
     while left > 0 and topics:
         topic = topics[int(rng.integers(len(topics)))]
         operator = names[int(rng.choice(len(names), p=weights / weights.sum()))]
-        n = min(MUTATION_BURST, burst, left)
+        n = min(MUTATION_BURST, burst, left, fault_cases.TOPIC_BURST[topic])
         bursts.append((MutationKind(topic, operator), n))
         left -= n
     order = rng.permutation(len(bursts))
@@ -105,6 +113,6 @@ def plan(cases: list, topics: tuple[str, ...], structured: int, mutations: int,
 
 
 def meta(faults) -> dict[str, dict]:
-    """kind -> topic, family, expect, issue of every fault kind of a plan."""
+    """kind -> topic, family, expect, issue of every fault kind (of a plan, or all cases)."""
     return {f.kind: {'topic': f.topic, 'family': f.family, 'expect': f.expect,
                      'issue': f.issue} for f in faults}
