@@ -17,6 +17,9 @@ from pathlib import Path
 from gnsscam_ros.io.atomic import OutputExistsError, write_json_atomic
 
 from .report import Target, fmt, table, targets_table, verdict_line
+from .files import FilesConfig, print_files, run_files
+from .messages import MessagesConfig, run_messages
+from .processes import ProcessesConfig, print_processes, run_processes
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 
@@ -167,19 +170,16 @@ def main(argv=None) -> int:
                                                                  flush=True))
     try:
         if args.command == 'messages':
-            from .messages import MessagesConfig, run_messages
             cfg = _config(MessagesConfig, args, heavy=not args.light,
                           camera=not args.no_camera, clean_pass=not args.no_clean_pass,
                           prestart=not args.no_prestart, floods=not args.no_floods)
             result = run_messages(cfg, log)
             targets = print_messages(result)
         elif args.command == 'processes':
-            from .processes import ProcessesConfig, print_processes, run_processes
             cfg = _config(ProcessesConfig, args, camera=not args.no_camera)
             result = run_processes(cfg, log)
             targets = print_processes(result)
         else:
-            from .files import FilesConfig, print_files, run_files
             cfg = _config(FilesConfig, args)
             result = run_files(cfg, log)
             targets = print_files(result)

@@ -27,6 +27,7 @@ from sensor_msgs.msg import PointField
 
 import msg_adapters as ma
 from msg_adapters import wire
+from .stream import INPUT_TOPICS
 
 REJECT, ANY = 'reject', 'any'
 STRUCTURED, FLOOD = 'structured', 'flood'
@@ -538,7 +539,6 @@ def all_cases(topics=None, heavy: bool = True, floods: bool = True) -> list[Case
     leaves out the heavy ones, ``floods=False`` the floods of valid messages)."""
     cases = [*gnss_cases(wire.GNSS), *gnss_cases(wire.GNSS_MEASUREMENTS), *imu_cases(),
              *twist_cases(), *image_cases(), *matches_cases(), *dead_reckoning_cases()]
-    from .stream import INPUT_TOPICS
     for topic in INPUT_TOPICS:
         cases += stamp_cases(topic)
         if floods:

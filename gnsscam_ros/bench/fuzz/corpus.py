@@ -20,6 +20,8 @@ from gnsscam_ros.bags import schema
 from gnsscam_ros.bags.convert import convert_drive
 
 from .stream import emulated_drive
+from gnsscam_ros.vision.database import MapDatabase
+from gnsscam_ros.vision.synthetic import synthetic_scene
 
 N_IMAGES = 6
 
@@ -92,7 +94,6 @@ def write_wrong_type_bag(good: Path, path: Path) -> None:
 
 def write_images(folder: Path, seed: int) -> Path:
     """Synthetic geotagged JPEG images and their positions CSV; the CSV path."""
-    from gnsscam_ros.vision.synthetic import synthetic_scene
     folder.mkdir(parents=True, exist_ok=True)
     rows = ['filename,east_m,north_m,up_m']
     for i in range(N_IMAGES):
@@ -107,7 +108,6 @@ def write_images(folder: Path, seed: int) -> Path:
 
 def build_corpus(root: Path, seed: int) -> Corpus:
     """Every valid input, under ``root/base``."""
-    from gnsscam_ros.vision.database import MapDatabase
     base = Path(root) / 'base'
     if base.exists():
         shutil.rmtree(base)

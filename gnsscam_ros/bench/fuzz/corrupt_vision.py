@@ -23,6 +23,7 @@ import numpy as np
 
 from .corpus import Corpus
 from .filecase import UNWRITABLE, FileCase, named
+from gnsscam_ros.vision.database import MapDatabase
 
 IMAGE_VARIANTS = ('truncated', 'zero_bytes', 'garbage', 'one_pixel', 'two_by_two', 'text',
                   'directory', 'missing', 'huge_dimensions', 'symlink_outside',
@@ -81,7 +82,6 @@ def _image_set(corpus: Corpus, folder: Path) -> tuple[Path, Path, list[str]]:
 
 def _finite_database(bound_m: float = 1e7):
     def check(outcome, out: Path) -> str | None:
-        from gnsscam_ros.vision.database import MapDatabase
         if not out.exists():
             return None
         db = MapDatabase.load(out)

@@ -31,6 +31,7 @@ from .corpus import build_corpus
 from .filecase import FileCase, read_only
 from .report import Target, at_least, at_most, table
 from .tools import TOOLS, fingerprint, listing, run_in_process, run_subprocess
+from .messages import fresh_domain
 
 GENERATORS = {
     'replay': corrupt_data.replay_case,
@@ -107,7 +108,6 @@ class CaseResult:
 def _env(cfg: FilesConfig, tool: str, folder: Path) -> dict:
     env = {'ROS_LOG_DIR': str(folder.parent / 'ros_log'), 'OPENBLAS_NUM_THREADS': '1'}
     if tool in ROS_TOOLS:
-        from .messages import fresh_domain
         env.update(ROS_DOMAIN_ID=str(cfg.domain if cfg.domain is not None
                                      else fresh_domain()),
                    ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')

@@ -35,7 +35,7 @@ from sensor_msgs.msg import Image, Imu, NavSatFix, PointCloud2
 
 import msg_adapters as ma
 from gnsscam_ros.live.launch import write_params_file
-from gnsscam_ros.nodes.common import stop_process
+from gnsscam_ros.nodes.runtime import stop_process
 from msg_adapters import wire
 
 NODE_NAMES = ('gnss_node', 'imu_node', 'camera_node', 'fusion_node')

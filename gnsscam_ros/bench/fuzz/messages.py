@@ -35,6 +35,7 @@ from . import accounting, cases as fault_cases, schedule
 from .graph import LINKS, NODE_NAMES, NodeProcess, Probe, write_params
 from .mutate import mutate
 from .stream import INPUT_TOPICS, StreamConfig, ValidStream
+from .report import at_least, at_most, Target
 
 OK_LEVEL = 0
 _runs = itertools.count()
@@ -509,7 +510,6 @@ def summarize(cfg: MessagesConfig, stream: ValidStream, passes: dict, meta: dict
               issue_kinds: set[str] = frozenset()) -> dict:
     """The run's figures and targets (``issue_kinds``: every single-message case of the
     issue, played or not)."""
-    from .report import at_least, at_most, Target
     faults = passes['faults']
     kinds = accounting.by_kind(faults.bursts, meta)
     for crash in faults.crashes:

@@ -24,6 +24,10 @@ from gnsscam_ros.core.frames import LocalFrame
 from gnsscam_ros.core.motion import DeadReckoningState
 from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
 from msg_adapters import wire
+from gnsscam_ros.vision.synthetic import synthetic_scene
+from gnsscam_ros.vision.synthetic import perturb_view
+from gnsscam_ros.vision.features import OrbExtractor, OrbParams
+from gnsscam_ros.vision.database import MapDatabase, PositionTable
 
 #: The input topics of the graph: the four the sensors feed and the three links between
 #: the nodes (a second publisher on them is a fault the nodes must survive too).
@@ -117,19 +121,15 @@ class ValidStream:
 
     def scene(self, k: int) -> np.ndarray:
         """The database view of camera frame ``k`` (BGR)."""
-        from gnsscam_ros.vision.synthetic import synthetic_scene
         return synthetic_scene(k, seed=1000 + self.config.seed,
                                shape=tuple(self.config.image_shape))
 
     def camera_frame(self, k: int) -> np.ndarray:
         """Camera frame ``k``: another view of its database scene (BGR)."""
-        from gnsscam_ros.vision.synthetic import perturb_view
         rng = np.random.default_rng([self.config.seed, 77, k])
         return perturb_view(self.scene(k), rng)
 
     def _build_database(self, path: Path) -> Path:
-        from gnsscam_ros.vision.database import MapDatabase, PositionTable
-        from gnsscam_ros.vision.features import OrbExtractor, OrbParams
         n = len(self.camera_stamps)
         extractor = OrbExtractor(OrbParams())
         descriptors = [extractor.descriptors(self.scene(k)) for k in range(n)]
