@@ -119,7 +119,7 @@ def test_verdict_line():
 def test_in_process_run_reports_a_traceback_and_the_exit_code(tmp_path):
     missing = tmp_path / 'nothing.npz'
     out = run_in_process('mapdb_query', ['--db', str(missing), str(tmp_path / 'q.jpg')])
-    assert out.code == 1 and not out.traceback and str(missing) in out.stderr
+    assert out.code == 3 and not out.traceback and str(missing) in out.stderr
     bad = run_in_process('eval_smartloc', ['--particles', 'many'])
     assert bad.code == 2
     f = tmp_path / 'f.txt'

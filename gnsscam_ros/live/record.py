@@ -334,7 +334,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--duration', type=float, default=None, metavar='SECONDS',
                         help='stop after this long (default: until Ctrl-C)')
     args = parser.parse_args(args_all[:ros_at])
-    if args.out.exists() or args.out.is_symlink():
+    try:
+        exists = args.out.exists() or args.out.is_symlink()
+    except OSError as err:              # a name the file system refuses (too long, ...)
+        print(f'gnsscam_record: cannot write {args.out}: {err.strerror}', file=sys.stderr)
+        return EXIT_OUTPUT
+    if exists:
         print(f'gnsscam_record: {args.out} exists; not overwriting', file=sys.stderr)
         return EXIT_OUTPUT
     if args.duration is not None and not (args.duration >= 0 and math.isfinite(args.duration)):

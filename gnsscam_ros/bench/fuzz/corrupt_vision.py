@@ -1,9 +1,9 @@
 """Corrupt images, positions CSVs and map databases for ``gnsscam_mapdb build`` and
 ``query``, and output paths for ``gnsscam_record``.
 
-Documented: ``gnsscam_mapdb`` exits 0 on success, 1 on an error (message naming the file),
-2 on bad usage; a build skips (and names) rows whose image is missing, unreadable or
-featureless; it never overwrites without ``--force``. The issue adds: skip unusable images
+Documented: ``gnsscam_mapdb`` exits 0 on success, 3 on unusable input and 4 on an output
+it cannot or must not write (messages naming the file), 2 on bad usage; a build skips
+(and names) rows whose image is missing, unreadable or featureless; it never overwrites without ``--force``. The issue adds: skip unusable images
 by name, bound what is loaded, refuse positions out of range and paths outside
 ``--images``, never overwrite (``query --json`` included). ``gnsscam_record``: 4 when the
 output exists or cannot be written, 2 bad usage; leftovers of a killed run are removed or
@@ -124,9 +124,9 @@ def mapdb_build_case(i: int, rng, corpus: Corpus, folder: Path) -> FileCase:
     if group == 1:
         kind = CSV_VARIANTS[(i // 3) % len(CSV_VARIANTS)]
         line = _corrupt_csv(kind, rng, csv, folder)
-        expect = (0,) if kind in CSV_BENIGN else (0, 1) if kind in (
+        expect = (0,) if kind in CSV_BENIGN else (0, 3) if kind in (
             'position_1e300', 'latitude_1e300', 'outside_relative', 'outside_absolute') \
-            else (1,)
+            else (3,)
         return FileCase('mapdb_build', f'csv_{kind}', argv, expect,
                         names=[] if kind in CSV_BENIGN else named(csv), line=line,
                         protect=[] if kind == 'missing' else protect, watch=watch,
@@ -142,7 +142,8 @@ def mapdb_build_case(i: int, rng, corpus: Corpus, folder: Path) -> FileCase:
     else:
         shutil.rmtree(images)
     argv = ['--images', str(images), '--positions', str(csv), '--out', str(out), *opts]
-    return FileCase('mapdb_build', f'output_{kind}', argv, (1,),
+    return FileCase('mapdb_build', f'output_{kind}', argv,
+                    (3,) if kind == 'images_missing' else (4,),
                     names=named(images if kind == 'images_missing' else out),
                     protect=protect, watch=watch)
 
@@ -274,7 +275,7 @@ def mapdb_query_case(i: int, rng, corpus: Corpus, folder: Path) -> FileCase:
             kind = DB_VARIANTS[(i // 3) % len(DB_VARIANTS)]
             write_database(kind, rng, corpus.database, db)
             return FileCase('mapdb_query', f'database_{kind}',
-                            ['--db', str(db), str(query)], (1,), names=named(db),
+                            ['--db', str(db), str(query)], (3,), names=named(db),
                             watch=[folder])
         shutil.copy(corpus.database, db)
         kind = IMAGE_VARIANTS[(i // 3) % len(IMAGE_VARIANTS)]
@@ -283,7 +284,7 @@ def mapdb_query_case(i: int, rng, corpus: Corpus, folder: Path) -> FileCase:
         benign = kind in IMAGE_BENIGN or kind in ('grey_featureless', 'one_pixel',
                                                   'two_by_two')
         return FileCase('mapdb_query', f'image_{kind}', ['--db', str(db), str(query)],
-                        (0,) if kind in IMAGE_BENIGN else (0, 1) if benign else (1,),
+                        (0,) if kind in IMAGE_BENIGN else (0, 3) if benign else (3,),
                         names=[] if kind in IMAGE_BENIGN else named(query), watch=[folder])
     shutil.copy(corpus.database, db)
     kind = QUERY_OUTPUT_VARIANTS[i % len(QUERY_OUTPUT_VARIANTS)]
@@ -297,7 +298,7 @@ def mapdb_query_case(i: int, rng, corpus: Corpus, folder: Path) -> FileCase:
     else:
         out.mkdir()
     return FileCase('mapdb_query', f'output_{kind}',
-                    ['--db', str(db), str(query), '--json', str(out)], (1, 2),
+                    ['--db', str(db), str(query), '--json', str(out)], (4,),
                     names=named(out), protect=protect, watch=[folder])
 
 
