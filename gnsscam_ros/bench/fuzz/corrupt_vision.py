@@ -1,13 +1,13 @@
 """Corrupt images, positions CSVs and map databases for ``gnsscam_mapdb build`` and
 ``query``, and output paths for ``gnsscam_record``.
 
-Documented: ``gnsscam_mapdb`` exits 0 on success, 3 on unusable input and 4 on an output
-it cannot or must not write (messages naming the file), 2 on bad usage; a build skips
-(and names) rows whose image is missing, unreadable or featureless; it never overwrites without ``--force``. The issue adds: skip unusable images
-by name, bound what is loaded, refuse positions out of range and paths outside
-``--images``, never overwrite (``query --json`` included). ``gnsscam_record``: 4 when the
-output exists or cannot be written, 2 bad usage; leftovers of a killed run are removed or
-reported on the next run.
+Documented: ``gnsscam_mapdb`` exits 0 on success, 3 on unusable input and 4 on an output it
+cannot or must not write (messages naming the file), 2 on bad usage; a build skips (and
+names) rows whose image is missing, unreadable or featureless; it never overwrites without
+``--force``. The issue adds: skip unusable images by name, bound what is loaded, refuse
+positions out of range and paths outside ``--images``, never overwrite (``query --json``
+included). ``gnsscam_record``: 4 when the output exists or cannot be written, 2 bad usage;
+leftovers of a killed run are removed or reported on the next run.
 """
 from __future__ import annotations
 
