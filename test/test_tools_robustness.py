@@ -435,7 +435,15 @@ def test_mapdb_bad_positions_csv(mapdb_set, tmp_path, capsys):
         'binary.csv': rng.integers(0, 256, 4000, dtype=np.uint8).tobytes(),
         'nul.csv': b'filename,east_m,north_m\n\x00\x00\x00,1,2\n',
         'all_bad_rows.csv': b'filename,east_m,north_m\ngood_a.png,nan,0\ngood_b.png,1e300,0\n',
+        # Faults further down, CRLF and bare CR line ends: the line is still the right one.
+        'late_latin1.csv': b'filename,east_m,north_m\r\n' + b'a.png,1,2\r\n' * 3
+        + 'b\xe9.png,1,2\r\n'.encode('latin-1'),
+        'late_huge_field.csv': b'filename,east_m,north_m\r' + b'a.png,1,2\r' * 4
+        + b'b.png,' + b'1' * 1_000_000 + b',2\r',
     }
+    #: The line an error must name (``PATH:LINE``) where the fault has one.
+    lines = {'no_filename.csv': 1, 'no_positions.csv': 1, 'latin1.csv': 2,
+             'huge_field.csv': 2, 'late_latin1.csv': 5, 'late_huge_field.csv': 6}
     for name, data in cases.items():
         (tmp_path / name).write_bytes(data)
     (tmp_path / 'a_folder.csv').mkdir()
@@ -451,6 +459,8 @@ def test_mapdb_bad_positions_csv(mapdb_set, tmp_path, capsys):
         assert code == 3 and 'Traceback' not in err, (path, err)
         last = err.strip().splitlines()[-1]
         assert last.startswith('gnsscam_mapdb: error: ') and str(path) in last, (path, err)
+        if path.name in lines:
+            assert f'{path}:{lines[path.name]}: ' in last, (path, err)
         assert not out.exists() and not hidden_leftovers(tmp_path)
     code, _, err = run(mapdb_cli.main, ['build', '--images', tmp_path / 'nope', '--positions',
                                         paths[0], '--out', tmp_path / 'y.npz'], capsys)

@@ -132,6 +132,7 @@ def read_positions_csv(path: str | os.PathLike
         MapDatabaseError: naming the file when it is missing, unreadable or lacks columns.
     """
     path = os.fspath(path)
+    reader = None
     try:
         info = os.stat(path)
         if not stat.S_ISREG(info.st_mode):
@@ -144,22 +145,28 @@ def read_positions_csv(path: str | os.PathLike
             header = next(reader, None)
             if header is None:
                 raise MapDatabaseError(f'{path}: empty positions CSV (no header)')
+            header_line = reader.line_num
             lines = [(reader.line_num, r) for r in reader]
     except FileNotFoundError as err:
         raise MapDatabaseError(f'{path}: no such positions CSV') from err
     except UnicodeDecodeError as err:
-        raise MapDatabaseError(f'{path}: cannot read positions CSV (not UTF-8 text: '
-                               f'{err.reason})') from err
-    except (OSError, csv.Error, ValueError) as err:
+        # The text layer decodes ahead of the csv reader: the line is found in the bytes.
+        raise MapDatabaseError(f'{_at(path, _undecodable_line(path))}: cannot read positions '
+                               f'CSV (not UTF-8 text: {err.reason})') from err
+    except csv.Error as err:
+        # line_num: the physical lines read, the one at fault included.
+        raise MapDatabaseError(f'{_at(path, reader.line_num if reader else None)}: cannot '
+                               f'read positions CSV ({err})') from err
+    except (OSError, ValueError) as err:
         raise MapDatabaseError(f'{path}: cannot read positions CSV ({err})') from err
     key = {h.strip().lower(): i for i, h in enumerate(header)}
     if 'filename' not in key:
-        raise MapDatabaseError(f'{path}: positions CSV needs a "filename" column; header is '
-                               f'{header}')
+        raise MapDatabaseError(f'{path}:{header_line}: positions CSV needs a "filename" '
+                               f'column; header is {header}')
     wanted = [c for c in WGS84_COLUMNS + LOCAL_COLUMNS if c in key]
     if not ({'lat', 'lon'} <= set(wanted) or {'east_m', 'north_m'} <= set(wanted)):
-        raise MapDatabaseError(f'{path}: positions CSV needs lat,lon[,alt_m] or '
-                               f'east_m,north_m[,up_m] columns; header is {header}')
+        raise MapDatabaseError(f'{path}:{header_line}: positions CSV needs lat,lon[,alt_m] '
+                               f'or east_m,north_m[,up_m] columns; header is {header}')
     idx = sorted(key[c] for c in wanted)          # CSV order
     names = tuple(header[i].strip() for i in idx)
     rows, skipped, seen = [], [], set()
@@ -193,6 +200,30 @@ def read_positions_csv(path: str | os.PathLike
         seen.add(name)
         rows.append((line, name, vals))
     return rows, names, skipped
+
+
+def _at(path: str, line: int | None) -> str:
+    """``PATH:LINE``, or ``PATH`` when the line is unknown (0 or None: nothing read yet)."""
+    return f'{path}:{line}' if line else path
+
+
+def _undecodable_line(path: str) -> int | None:
+    """Number of the first line of ``path`` that is not UTF-8, counted as the csv reader
+    counts them (``\\n``, ``\\r\\n`` or ``\\r`` ends a line); None if none is found.
+
+    Lines are split on the bytes (latin-1 maps every byte to one character, and no UTF-8
+    sequence holds a line-break byte), then each is decoded on its own.
+    """
+    try:
+        with open(path, encoding='latin-1', newline='') as f:
+            for number, text in enumerate(f, start=1):
+                try:
+                    text.encode('latin-1').decode('utf-8-sig' if number == 1 else 'utf-8')
+                except UnicodeDecodeError:
+                    return number
+    except OSError:
+        pass
+    return None
 
 
 def _outside(images_dir: str, name: str) -> str | None:
