@@ -467,6 +467,21 @@ def test_truncated_bag(good_bag, tmp_path, fraction):
         read_drive(mcap)                                   # the bare storage file too
 
 
+def test_storage_is_chosen_by_the_metadata_not_the_suffix(good_bag, tmp_path):
+    """An MCAP file named ``.db3`` in a folder whose metadata says ``mcap`` is a valid bag
+    (rosbag2 picks the plugin from ``storage_identifier``): the same messages as before;
+    the bare file, without metadata, is opened by its suffix and refused by name."""
+    bag, mcap = _copy(good_bag, tmp_path)
+    renamed = mcap.rename(mcap.with_suffix('.db3'))
+    meta = bag / 'metadata.yaml'
+    meta.write_text(meta.read_text().replace(mcap.name, renamed.name))
+    assert 'storage_identifier: mcap' in meta.read_text()
+    assert bag_topics(bag) == bag_topics(good_bag)
+    assert_same_drive(read_drive(good_bag), read_drive(bag))
+    with pytest.raises(BagReadError, match=str(renamed)):
+        bag_topics(renamed)
+
+
 def test_corrupt_bag(good_bag, tmp_path):
     bag, mcap = _copy(good_bag, tmp_path)
     data = bytearray(mcap.read_bytes())

@@ -182,3 +182,25 @@ def test_files_sample(tmp_path, monkeypatch):
     assert set(per_tool) == set(GENERATORS)
     assert all(t['cases'] == 5 and t['kit_errors'] == 0 for t in per_tool.values())
     assert per_tool['eval_bag']['ok'] == 5
+
+
+@pytest.mark.slow
+@pytest.mark.ros
+def test_files_mcap_storage_named_db3_is_a_valid_bag(tmp_path, monkeypatch):
+    """A bag whose MCAP file is named ``.db3`` (metadata still saying ``mcap``) is valid:
+    the replay plays every message of the original bag and exits 0, and the kit expects
+    just that (it expected a refusal before)."""
+    from gnsscam_ros.bench.fuzz.corpus import build_corpus
+    from gnsscam_ros.bench.fuzz.corrupt_data import BAG_VARIANTS, replay_case
+    from gnsscam_ros.bench.fuzz.files import FilesConfig, run_case
+    monkeypatch.setenv('ROS_LOG_DIR', str(tmp_path / 'ros_log'))
+    corpus = build_corpus(tmp_path, seed=1)
+    folder = tmp_path / 'case'
+    folder.mkdir()
+    case = replay_case(BAG_VARIANTS.index('mcap_named_db3'), np.random.default_rng(1),
+                       corpus, folder)
+    assert [p.suffix for p in (folder / 'bag').iterdir() if p.name != 'metadata.yaml'] \
+        == ['.db3']
+    result = run_case(FilesConfig(domain=ros_domain_id()), case, folder)
+    assert result.code == 0 and result.problems == [], (result.problems,
+                                                        result.stderr_tail)

@@ -10,11 +10,14 @@ adds: libRSF lines with non-finite or absurd values are refused with file and li
 """
 from __future__ import annotations
 
+import json
 import os
 import shutil
 from pathlib import Path
 
 import numpy as np
+
+from gnsscam_ros.bags.read import bag_topics
 
 from .corpus import Corpus
 from .filecase import UNWRITABLE, FileCase, named
@@ -23,6 +26,12 @@ BAG_VARIANTS = ('truncated', 'bytes_flipped', 'garbage', 'empty_storage', 'stora
                 'metadata_garbage', 'metadata_truncated', 'metadata_empty', 'empty_folder',
                 'missing', 'text_file', 'wrong_type', 'metadata_unknown_storage',
                 'sqlite_garbage', 'mcap_named_db3', 'junk_appended', 'symlink_loop')
+#: Variants that are valid bags, played in full (exit 0). ``mcap_named_db3``: the storage
+#: file renamed ``.db3`` in the folder and in ``metadata.yaml``, whose
+#: ``storage_identifier`` still says ``mcap``; rosbag2 (and rosbags) pick the storage plugin
+#: from that field, not from the file's suffix, so the bag reads as the original does (a
+#: bare MCAP file named ``.db3``, without metadata, is opened as SQLite and refused).
+BAG_VALID = ('mcap_named_db3',)
 
 
 def _storage_file(bag: Path) -> Path:
@@ -95,14 +104,32 @@ def make_bag(kind: str, rng: np.random.Generator, corpus: Corpus, folder: Path
 def replay_case(i: int, rng, corpus: Corpus, folder: Path) -> FileCase:
     kind = BAG_VARIANTS[i % len(BAG_VARIANTS)]
     bag, label, may_play = make_bag(kind, rng, corpus, folder)
-    return FileCase('replay', f'bag_{label}',
-                    [str(bag), '--rate', '0', '--wait', '0.2', '--ack-timeout', '2',
-                     '--no-dds-profile'],
+    argv = [str(bag), '--rate', '0', '--wait', '0.2', '--ack-timeout', '2',
+            '--no-dds-profile']
+    if kind in BAG_VALID:
+        summary = folder / 'replay.json'
+        return FileCase('replay', f'bag_{label}', argv + ['--json', str(summary)], (0,),
+                        names=named(bag, bag / 'metadata.yaml'), watch=[folder],
+                        allowed=[summary], check=_plays_like(corpus.bag, summary))
+    return FileCase('replay', f'bag_{label}', argv,
                     (0, 3) if may_play else (3,), names=named(bag, bag / 'metadata.yaml'),
                     watch=[folder])
 
 
+def _plays_like(original: Path, summary: Path):
+    """``check(outcome)``: the replay published every message of ``original``, per topic."""
+    def check(_outcome) -> str | None:
+        played = json.loads(summary.read_text(encoding='utf-8'))['published']
+        held = {topic: n for topic, (_, n) in bag_topics(original).items()}
+        if played != held:
+            return f'published {played}, the original bag holds {held}'
+        return None
+    return check
+
+
 def eval_bag_case(i: int, rng, corpus: Corpus, folder: Path) -> FileCase:
+    # Exit 3 for the valid variants too: the corpus bag is a dataset bag, without the
+    # nodes' outputs that gnsscam_eval bag evaluates.
     kind = BAG_VARIANTS[(i * 7 + 3) % len(BAG_VARIANTS)]
     bag, label, _ = make_bag(kind, rng, corpus, folder)
     out = folder / 'metrics.json'
