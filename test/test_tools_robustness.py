@@ -26,6 +26,7 @@ from tools_corrupt import (BAD_NUMBERS, GOOD_INPUT, GOOD_TRUTH, ODOM, POINT, PR,
 from gnsscam_ros.bags.convert_cli import main as convert_main
 from gnsscam_ros.evaluation.cli import main as eval_main
 from gnsscam_ros.io import partials
+from gnsscam_ros.io.atomic import write_csv_atomic, write_json_atomic, write_npz_atomic
 from gnsscam_ros.vision import mapdb_cli
 from gnsscam_ros.vision.database import MapDatabase
 from gnsscam_ros.vision.synthetic import synthetic_scene
@@ -253,6 +254,73 @@ def test_partial_names_carry_host_and_pid(tmp_path):
         assert [(f.removed, f.in_use) for f in found] == [(False, True)] and made.exists()
     finally:
         shutil.rmtree(made)
+
+
+def _file_writers(mapdb_set):
+    """``{output name: write(path)}``: every writer of a whole file."""
+    db = MapDatabase.load(mapdb_set[3])
+    return {
+        'r.json': lambda out: write_json_atomic(out, {'a': 1.5}, force=True),
+        't.csv': lambda out: write_csv_atomic(out, ['a'], [[1.5]], force=True),
+        'c.npz': lambda out: write_npz_atomic(out, a=np.arange(3)),
+        'map.npz': lambda out: db.save(out, overwrite=True),
+    }
+
+
+def test_file_writers_name_their_temporary_file_as_partial_outputs(mapdb_set, tmp_path,
+                                                                   monkeypatch):
+    """While a JSON, CSV, npz or database file is written, its temporary file is
+    ``.NAME.partial-HOST-PID-*``: what a SIGKILL leaves says whose it was."""
+    seen = {}
+    for name, write in _file_writers(mapdb_set).items():
+        out = tmp_path / name
+        real_replace = os.replace
+
+        def replace(src, dst, *args, out=out, **kwargs):
+            seen[out.name] = Path(src).name          # the moment before the rename
+            return real_replace(src, dst, *args, **kwargs)
+        monkeypatch.setattr(os, 'replace', replace)
+        write(out)
+        monkeypatch.undo()
+        assert seen[name].startswith(partials.partial_prefix(out)), seen
+        assert out.is_file() and not hidden_leftovers(tmp_path)
+
+
+def test_killed_file_writers_leftovers_removed_by_the_next_write(mapdb_set, tmp_path,
+                                                                 capsys):
+    """A leftover of a killed write (a dead pid's ``.NAME.partial-*`` file) is removed by
+    the next write of the same output, with one line; a running writer's is left alone and
+    not reported, and another output's is not this write's business."""
+    host, gone = partials._host(), dead_pid()
+    live_writer = subprocess.Popen(['sleep', '600'])
+    try:
+        for name, write in _file_writers(mapdb_set).items():
+            out = tmp_path / name
+            dead = tmp_path / f'.{name}.partial-{host}-{gone}-k1ll3d'
+            live = tmp_path / f'.{name}.partial-{host}-{live_writer.pid}-w0rk1n'
+            other = tmp_path / f'.other_{name}.partial-{host}-{gone}-0th3r'
+            for path in (dead, live, other):
+                path.write_bytes(b'half a file')
+            write(out)
+            err = capsys.readouterr().err
+            assert not dead.exists(), err
+            assert (f'removed the leftover partial output {dead} (its writer, pid {gone}, '
+                    'no longer runs)') in err
+            assert live.read_bytes() == b'half a file' and str(live) not in err
+            assert other.read_bytes() == b'half a file' and str(other) not in err
+            assert out.is_file()
+            # Reported, never touched: a writer on another host.
+            remote = tmp_path / f'.{name}.partial-elsewhere-{gone}-r3m0t3'
+            remote.write_bytes(b'half a file')
+            write(out)
+            err = capsys.readouterr().err
+            assert remote.exists() and f'rm -rf -- {remote}' in err
+            for path in (live, other, remote):
+                path.unlink()
+        assert not hidden_leftovers(tmp_path)
+    finally:
+        live_writer.kill()
+        live_writer.wait()
 
 
 @pytest.mark.slow

@@ -2,7 +2,11 @@
 
 Every writer goes through :func:`atomic_output`: a temporary file beside the target that
 replaces it by rename, so a crash or Ctrl-C never leaves a half-written file, and an
-existing file is replaced only when asked (``force``).
+existing file is replaced only when asked (``force``). The temporary file is named as
+:mod:`.partials` names partial outputs, ``.NAME.partial-HOST-PID-XXXXXXXX``: one that a
+SIGKILL leaves behind is removed by the next write of the same output once its writer
+provably no longer runs (and reported with the command that removes it when that cannot
+be proved).
 """
 from __future__ import annotations
 
@@ -15,18 +19,21 @@ from pathlib import Path
 
 import numpy as np
 
+from .partials import make_partial_file, sweep_and_report
+
 
 class OutputExistsError(FileExistsError):
     """An output file exists and overwriting was not asked for."""
 
 
 @contextmanager
-def atomic_output(path: Path, force: bool = False, mode: str = 'w', suffix: str = '',
-                  **open_kwargs):
+def atomic_output(path: Path, force: bool = False, mode: str = 'w', **open_kwargs):
     """An open temporary file beside ``path`` that replaces it atomically on success.
 
     A crash, an exception or Ctrl-C inside the block leaves no half-written file (the
     temporary one is removed), and an existing ``path`` is replaced only with ``force``.
+    Leftovers of killed writes of ``path`` are swept first (:mod:`.partials`; one line on
+    stderr for each).
 
     Raises:
         OutputExistsError: ``path`` exists and ``force`` is False.
@@ -35,13 +42,14 @@ def atomic_output(path: Path, force: bool = False, mode: str = 'w', suffix: str 
     if path.exists() and not force:
         raise OutputExistsError(f'{path} exists; pass --force to replace it')
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f'.{path.name}.', suffix=suffix, dir=path.parent)
+    sweep_and_report(path, None, same_output=True)
+    fd, tmp = make_partial_file(path)
     try:
         with os.fdopen(fd, mode, **open_kwargs) as handle:
             yield handle
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
 
 
@@ -88,7 +96,7 @@ def write_json_atomic(path: Path, data, force: bool = False) -> Path:
 
 def write_npz_atomic(path: Path, **arrays) -> Path:
     """Write a compressed-free .npz via a temporary file and an atomic rename (cache use)."""
-    with atomic_output(path, force=True, mode='wb', suffix='.npz') as handle:
+    with atomic_output(path, force=True, mode='wb') as handle:   # no '.npz' appended
         np.savez(handle, **arrays)
     return Path(path)
 

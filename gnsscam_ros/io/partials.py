@@ -1,9 +1,10 @@
 """Hidden partial outputs (``.NAME.partial-*``) and the leftovers of killed writers.
 
-``gnsscam_convert`` and ``gnsscam_record`` write a bag into a hidden sibling folder and
-rename it into place at the end; an error or Ctrl-C removes it, but SIGKILL (or a power
-cut) cannot, and such a folder may hold hundreds of MB. The folder's name says who wrote
-it, ``.NAME.partial-HOST-PID-XXXXXXXX``, so that the next run can tell a leftover from the
+``gnsscam_convert`` and ``gnsscam_record`` write a bag into a hidden sibling folder, and the
+atomic JSON/CSV/npz writers (:mod:`.atomic`) and the map database a hidden sibling file,
+renamed into place at the end; an error or Ctrl-C removes it, but SIGKILL (or a power cut)
+cannot, and a bag folder may hold hundreds of MB. The name says who wrote it,
+``.NAME.partial-HOST-PID-XXXXXXXX``, so that the next run can tell a leftover from the
 work of a writer that still runs:
 
 * it is **stale** (:func:`sweep_partials` removes it) when it was written on this host and
@@ -45,9 +46,24 @@ def _host() -> str:
     return re.sub(r'[^A-Za-z0-9_.]', '_', socket.gethostname()) or 'host'
 
 
-def partial_prefix(out: str | os.PathLike) -> str:
-    """The name prefix of this process's partial output for ``out``."""
-    return f'.{Path(out).name}{MARK}{_host()}-{os.getpid()}-'
+def partial_prefix(out: str | os.PathLike, pid: int | None = None) -> str:
+    """The name prefix of the partial output for ``out`` of this process (or of ``pid`` on
+    this host)."""
+    return f'.{Path(out).name}{MARK}{_host()}-{os.getpid() if pid is None else pid}-'
+
+
+def make_partial_file(out: str | os.PathLike) -> tuple[int, Path]:
+    """Create the hidden partial file of ``out`` beside it (the parent must exist).
+
+    Returns:
+        (an open descriptor, mode 0600, for writing; its path).
+
+    Raises:
+        OSError: The file cannot be created (read-only or missing parent, ...).
+    """
+    out = Path(out)
+    fd, name = tempfile.mkstemp(prefix=partial_prefix(out), dir=out.parent)
+    return fd, Path(name)
 
 
 def make_partial_dir(out: str | os.PathLike) -> Path:
@@ -159,12 +175,14 @@ def _remove(path: Path) -> None:
         path.unlink()
 
 
-def sweep_partials(folder: str | os.PathLike, remove: bool = True) -> list[Leftover]:
+def sweep_partials(folder: str | os.PathLike, remove: bool = True,
+                   name: str | None = None) -> list[Leftover]:
     """Find the hidden partial outputs in ``folder``; remove the provably stale ones.
 
     Args:
         folder: Where the outputs are written (the parent of ``--out``).
         remove: Remove the stale ones (False: only report).
+        name: Only the partial outputs of the output with this file name (None: all).
 
     Returns:
         One :class:`Leftover` per partial output found, removed or kept (with the reason).
@@ -179,6 +197,10 @@ def sweep_partials(folder: str | os.PathLike, remove: bool = True) -> list[Lefto
     found = []
     for path in entries:
         owned = _OWNED.match(path.name)
+        if name is not None:
+            named = owned or _LEGACY.match(path.name)
+            if named is None or named['name'] != name:
+                continue           # another output's
         if owned is None:
             if _LEGACY.match(path.name):
                 found.append(Leftover(path, False, 'written before partial outputs named '
@@ -212,15 +234,24 @@ def sweep_partials(folder: str | os.PathLike, remove: bool = True) -> list[Lefto
     return found
 
 
-def sweep_and_report(out: str | os.PathLike, prog: str, stream=None) -> list[Leftover]:
+def sweep_and_report(out: str | os.PathLike, prog: str | None, stream=None,
+                     same_output: bool = False) -> list[Leftover]:
     """:func:`sweep_partials` in the folder of ``out``, one line per leftover on stderr.
 
-    What the command-line writers call before they write: a removed leftover is said, a
-    kept one comes with the command that removes it.
+    What the writers call before they write: a removed leftover is said, a kept one comes
+    with the command that removes it.
+
+    Args:
+        out: The output about to be written.
+        prog: Program name that starts each line (None: none).
+        stream: Where the lines go (default: ``sys.stderr``).
+        same_output: Only the leftovers of ``out`` itself (the file writers: their folder
+            may be anyone's); False: every partial output in the folder (the bag writers).
     """
     stream = sys.stderr if stream is None else stream
-    found = sweep_partials(Path(out).parent)
+    found = sweep_partials(Path(out).parent, name=Path(out).name if same_output else None)
     for leftover in found:
         if not leftover.in_use:        # another run writing beside us is no news
-            print(f'{prog}: {leftover.message()}', file=stream)
+            print(f'{prog}: {leftover.message()}' if prog else leftover.message(),
+                  file=stream)
     return found

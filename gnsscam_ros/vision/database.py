@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 import threading
 import time
 import zipfile
@@ -46,6 +45,7 @@ import numpy as np
 from scipy import sparse
 
 from ..core.frames import LocalFrame
+from ..io.partials import make_partial_file, sweep_and_report
 from .errors import ImageError, MapDatabaseError, MapDatabaseOutputError
 from .features import DESCRIPTOR_BYTES, OrbExtractor, OrbParams, load_gray
 from .database_checks import DATABASE_KEYS, _check_arrays, _check_npz
@@ -500,12 +500,13 @@ class MapDatabase:
         path = os.fspath(path)
         if os.path.lexists(path) and not overwrite:
             raise MapDatabaseOutputError(f'{path}: already exists (use --force to overwrite)')
-        directory = os.path.dirname(os.path.abspath(path))
         tmp = None
         try:
-            with tempfile.NamedTemporaryFile(dir=directory, prefix='.' + os.path.basename(path),
-                                             suffix='.tmp', delete=False) as f:
-                tmp = f.name
+            # Named as io.partials names partial outputs, so that the next save of this
+            # path removes what a killed one left (its writer's pid no longer runs).
+            sweep_and_report(os.path.abspath(path), None, same_output=True)
+            fd, tmp = make_partial_file(os.path.abspath(path))
+            with os.fdopen(fd, 'wb') as f:
                 np.savez(f, **self.to_arrays())   # a file object: no '.npz' appended
                 f.flush()
                 os.fsync(f.fileno())
