@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from .corpus import Corpus
-from .filecase import UNWRITABLE, FileCase, named
+from .filecase import UNWRITABLE, FileCase, all_removed, killed_writer_leftovers, named
 from gnsscam_ros.vision.database import MapDatabase
 
 IMAGE_VARIANTS = ('truncated', 'zero_bytes', 'garbage', 'one_pixel', 'two_by_two', 'text',
@@ -99,7 +99,8 @@ CSV_VARIANTS = ('position_nan', 'position_1e300', 'latitude_1e300', 'outside_rel
                 'outside_absolute', 'no_header', 'empty', 'binary', 'no_position_columns',
                 'missing', 'all_rows_bad', 'duplicate_rows', 'field_1mb', 'bom')
 CSV_BENIGN = ('duplicate_rows', 'bom', 'position_nan')
-BUILD_OUTPUT_VARIANTS = ('out_existing', 'out_unwritable', 'out_is_folder', 'images_missing')
+BUILD_OUTPUT_VARIANTS = ('out_existing', 'out_unwritable', 'out_is_folder', 'images_missing',
+                         'stale_partials')
 
 
 def mapdb_build_case(i: int, rng, corpus: Corpus, folder: Path) -> FileCase:
@@ -132,6 +133,11 @@ def mapdb_build_case(i: int, rng, corpus: Corpus, folder: Path) -> FileCase:
                         protect=[] if kind == 'missing' else protect, watch=watch,
                         allowed=[out], check=lambda o: checker(o, out))
     kind = BUILD_OUTPUT_VARIANTS[(i // 3) % len(BUILD_OUTPUT_VARIANTS)]
+    if kind == 'stale_partials':            # a killed earlier build left its temporary file
+        stale = killed_writer_leftovers(rng, out)
+        return FileCase('mapdb_build', f'output_{kind}', argv, (0,), protect=protect,
+                        watch=watch, allowed=[out], stale=stale,
+                        check=all_removed(stale, lambda o: checker(o, out)))
     if kind == 'out_existing':
         out.write_bytes(corpus.database.read_bytes())
         protect.append(out)
@@ -203,7 +209,8 @@ def _corrupt_csv(kind: str, rng, csv: Path, folder: Path) -> int | None:
 DB_VARIANTS = ('truncated', 'bytes_flipped', 'garbage', 'empty', 'missing', 'folder',
                'key_missing', 'object_array', 'positions_nan', 'positions_1e300',
                'lengths_inconsistent', 'tree_out_of_range', 'header_bomb', 'text')
-QUERY_OUTPUT_VARIANTS = ('json_existing', 'json_unwritable', 'json_is_folder')
+QUERY_OUTPUT_VARIANTS = ('json_existing', 'json_unwritable', 'json_is_folder',
+                         'json_stale_partials')
 
 
 def write_database(kind: str, rng, good: Path, path: Path) -> None:
@@ -295,6 +302,12 @@ def mapdb_query_case(i: int, rng, corpus: Corpus, folder: Path) -> FileCase:
         protect.append(out)
     elif kind == 'json_unwritable':
         out = UNWRITABLE / 'matches.json'
+    elif kind == 'json_stale_partials':     # a killed earlier query left its temporary file
+        stale = killed_writer_leftovers(rng, out)
+        return FileCase('mapdb_query', f'output_{kind}',
+                        ['--db', str(db), str(query), '--json', str(out)], (0,),
+                        protect=protect, watch=[folder], allowed=[out], stale=stale,
+                        check=all_removed(stale))
     else:
         out.mkdir()
     return FileCase('mapdb_query', f'output_{kind}',

@@ -9,6 +9,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+from gnsscam_ros.io.partials import partial_prefix
+
 #: A folder no one can write into, root included (sysfs refuses new entries).
 UNWRITABLE = Path('/sys/gnsscam_fuzz_unwritable')
 
@@ -85,3 +87,27 @@ def read_only(folders: list[Path]):
             if os.geteuid() == 0:
                 subprocess.run(['chattr', '-i', str(folder)], capture_output=True)
             folder.chmod(0o755)
+
+
+def killed_writer_leftovers(rng, out: Path) -> list[Path]:
+    """1-3 hidden partial files of ``out`` as a writer SIGKILLed on this host leaves them
+    (``.NAME.partial-HOST-PID-*`` with the pid of a process that has ended): the next
+    write of ``out`` must remove them."""
+    ended = subprocess.Popen(['true'])
+    ended.wait()
+    made = []
+    for _ in range(int(rng.integers(1, 4))):
+        path = out.parent / f'{partial_prefix(out, ended.pid)}{rng.integers(1 << 30):x}'
+        path.write_bytes(rng.bytes(int(rng.integers(1, 4096))))
+        made.append(path)
+    return made
+
+
+def all_removed(paths: list[Path], then: Callable | None = None) -> Callable:
+    """``check(outcome)``: every path in ``paths`` is gone, then ``then(outcome)``."""
+    def check(outcome) -> str | None:
+        kept = [p.name for p in paths if os.path.lexists(p)]
+        if kept:
+            return f'dead writers\' leftovers kept: {kept}'
+        return then(outcome) if then is not None else None
+    return check
