@@ -19,7 +19,7 @@ import numpy as np
 from ..core.engine import EpochEngine
 from ..core.filter import FilterConfig
 from ..core.frames import LocalFrame
-from ..core.gnss import prepare_epoch, ranges
+from ..core.gnss import prepare_epoch
 from ..core.motion import DeadReckoningState
 from ..datasets.emulated.drive import make_emulated_drive
 from ..io.atomic import OutputExistsError, write_json_atomic
@@ -42,7 +42,12 @@ def bare_likelihood(positions_m: np.ndarray, prep) -> np.ndarray:
     """The reference arithmetic: ranges and a Gaussian log-sum-exp over satellites."""
     # Written lean on purpose (max shift by hand, no scipy overhead) so that the reference
     # is not slower than it needs to be.
-    z = (prep.pr_m - ranges(positions_m, prep.sv_enu_m)) / prep.sigma_m
+    # Ranges as |s|^2 - 2 p.s + |p|^2: one matrix product, numpy's fastest form.
+    sv = prep.sv_enu_m
+    sq = positions_m @ (-2.0 * sv.T)
+    sq += (sv * sv).sum(1)
+    sq += np.einsum('ij,ij->i', positions_m, positions_m)[:, None]
+    z = (prep.pr_m - np.sqrt(sq, out=sq)) / prep.sigma_m
     a = -0.5 * z * z - np.log(prep.sigma_m)
     a_max = a.max(axis=1)
     return a_max + np.log(np.exp(a - a_max[:, None]).sum(axis=1))
