@@ -237,3 +237,35 @@ def weighted_mean_cov(points: np.ndarray, log_w: np.ndarray) -> tuple[np.ndarray
     mean = w @ points
     centred = points - mean
     return mean, (centred * w[:, None]).T @ centred
+
+
+def satellite_rejections(epoch, elevation_mask_deg: float = 0.0, cn0_mask_dbhz: float = 0.0,
+                         max_radius_m: float = 1e8, max_pr_m: float = 1e8,
+                         max_var_m2: float = 1e12) -> tuple[np.ndarray, dict]:
+    """``(keep (k,), {reason: count})`` of the per-satellite checks of an epoch, in order:
+    non-finite, non-positive, out of range, duplicated (system, sv_id), below a mask."""
+    keep = np.ones(epoch.n_sv, dtype=bool)
+    rejected: dict[str, int] = {}
+
+    def drop(mask, reason):
+        nonlocal keep
+        hit = mask & keep
+        if hit.any():
+            rejected[reason] = rejected.get(reason, 0) + int(hit.sum())
+            keep &= ~hit
+
+    finite = (np.isfinite(epoch.pr_m) & np.all(np.isfinite(epoch.sv_pos_ecef_m), axis=1)
+              & np.isfinite(epoch.var_m2))
+    drop(~finite, 'non_finite')
+    drop(finite & ((epoch.pr_m <= 0.0) | (epoch.var_m2 <= 0.0)), 'non_positive')
+    with np.errstate(over='ignore', invalid='ignore'):
+        radius = np.sqrt(np.einsum('ij,ij->i', epoch.sv_pos_ecef_m, epoch.sv_pos_ecef_m))
+        drop(finite & ((radius > max_radius_m) | (epoch.pr_m > max_pr_m)
+                       | (epoch.var_m2 > max_var_m2)), 'out_of_range')
+    key = epoch.system.astype(np.int64) * 100000 + epoch.sv_id.astype(np.int64)
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    drop(counts[inverse] > 1, 'duplicate')
+    with np.errstate(invalid='ignore'):
+        drop(epoch.elevation_deg < elevation_mask_deg, 'elevation_mask')
+        drop(epoch.cn0_dbhz < cn0_mask_dbhz, 'cn0_mask')
+    return keep, rejected

@@ -120,3 +120,41 @@ def test_propagation_is_the_oracle_bit_for_bit(rng):
     ref_mean, ref_cov = oracles.weighted_mean_cov(moved[0, :, :3], log_w)
     np.testing.assert_allclose(mean, ref_mean, atol=1e-9)
     np.testing.assert_allclose(cov, ref_cov, atol=1e-9)
+
+
+def test_satellite_checks_match_the_oracle():
+    # Random epochs with every kind of bad satellite, several in one epoch and one
+    # satellite failing several checks (the first reason counts).
+    rng = np.random.default_rng(11)
+    specials = [np.nan, np.inf, -np.inf, 0.0, -5.0, 1e160, 2e8, 1e13]
+    for trial in range(300):
+        k = int(rng.integers(1, 40))
+        epoch = epoch_at(TRUTH_ENU, clock_m=0.0, sv_ecef=sky(k, seed=trial))
+        arrays = {name: getattr(epoch, name).astype(float).copy()
+                  for name in ('pr_m', 'var_m2', 'elevation_deg', 'cn0_dbhz')}
+        sv = epoch.sv_pos_ecef_m.copy()
+        sv_id = rng.integers(1, 6, k) if trial % 3 == 0 else epoch.sv_id
+        for _ in range(int(rng.integers(0, 6))):
+            i = int(rng.integers(k))
+            target = rng.choice(['pr_m', 'var_m2', 'elevation_deg', 'cn0_dbhz', 'sv'])
+            value = rng.choice(specials + [rng.uniform(-90, 90)])
+            if target == 'sv':
+                sv[i, int(rng.integers(3))] = value
+            else:
+                arrays[target][i] = value
+        bad = replace(epoch, sv_pos_ecef_m=sv, sv_id=sv_id, **arrays)
+        masks = {'elevation_mask_deg': 10.0, 'cn0_mask_dbhz': 20.0} if trial % 2 else {}
+        check = gnss.check_epoch(bad, **masks)
+        keep, rejected = oracles.satellite_rejections(bad, **masks)
+        np.testing.assert_array_equal(check.keep, keep)
+        assert check.rejected == rejected
+
+
+def test_constellations_of_one_satellite_are_set_aside_in_system_order():
+    system = np.array([GLONASS, GPS, 5, GLONASS, GPS, GPS, 7])
+    epoch = epoch_at(TRUTH_ENU, clock_m=0.0, sv_ecef=sky(7, seed=2), system=system)
+    prep = gnss.prepare_epoch(epoch, FRAME, TRUTH_ENU, 10.0, False)
+    assert prep.n_systems == 2
+    # GPS (1) before GLONASS (4); systems 5 and 7 have one satellite each.
+    np.testing.assert_array_equal(prep.sys_index, [1, 0, 1, 0, 0])
+    np.testing.assert_array_equal(prep.sv_key // 1000, [GLONASS, GPS, GLONASS, GPS, GPS])

@@ -103,8 +103,18 @@ def check_epoch(epoch: GnssEpoch, min_satellites: int = 4, elevation_mask_deg: f
     are kept ('satellite_limit').
     """
     k = epoch.n_sv
-    keep = np.ones(k, dtype=bool)
+    codes = gnss_kernels.satellite_reasons(
+        np.asarray(epoch.pr_m, dtype=float), np.asarray(epoch.sv_pos_ecef_m, dtype=float),
+        np.asarray(epoch.var_m2, dtype=float), _satellite_key(epoch, 100000),
+        np.asarray(epoch.elevation_deg, dtype=float), np.asarray(epoch.cn0_dbhz, dtype=float),
+        MAX_SATELLITE_RADIUS_M, MAX_PSEUDORANGE_M, MAX_VARIANCE_M2,
+        float(elevation_mask_deg), float(cn0_mask_dbhz))
+    keep = codes == 0
     rejected: dict[str, int] = {}
+    if not keep.all():
+        counts = np.bincount(codes, minlength=len(gnss_kernels.SATELLITE_REASONS) + 1)
+        rejected = {reason: int(n) for reason, n in
+                    zip(gnss_kernels.SATELLITE_REASONS, counts[1:]) if n}
 
     def drop(mask: np.ndarray, reason: str) -> None:
         nonlocal keep
@@ -113,20 +123,6 @@ def check_epoch(epoch: GnssEpoch, min_satellites: int = 4, elevation_mask_deg: f
             rejected[reason] = rejected.get(reason, 0) + int(hit.sum())
             keep &= ~hit
 
-    finite = (np.isfinite(epoch.pr_m) & np.all(np.isfinite(epoch.sv_pos_ecef_m), axis=1)
-              & np.isfinite(epoch.var_m2))
-    drop(~finite, 'non_finite')
-    drop(finite & ((epoch.pr_m <= 0.0) | (epoch.var_m2 <= 0.0)), 'non_positive')
-    with np.errstate(over='ignore', invalid='ignore'):
-        radius = np.sqrt(np.einsum('ij,ij->i', epoch.sv_pos_ecef_m, epoch.sv_pos_ecef_m))
-        drop(finite & ((radius > MAX_SATELLITE_RADIUS_M) | (epoch.pr_m > MAX_PSEUDORANGE_M)
-                       | (epoch.var_m2 > MAX_VARIANCE_M2)), 'out_of_range')
-    key = epoch.system.astype(np.int64) * 100000 + epoch.sv_id.astype(np.int64)
-    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-    drop(counts[inverse] > 1, 'duplicate')
-    with np.errstate(invalid='ignore'):
-        drop(epoch.elevation_deg < elevation_mask_deg, 'elevation_mask')
-        drop(epoch.cn0_dbhz < cn0_mask_dbhz, 'cn0_mask')
     n_keep = int(keep.sum())
     limit = min(int(max_satellites), MAX_SATELLITES)
     if n_keep > limit:
@@ -182,21 +178,23 @@ def prepare_epoch(epoch: GnssEpoch, frame: LocalFrame, rx_enu_m: np.ndarray,
         measurement_var_m2: Default pseudorange variance [m^2].
         use_reported_variance: Use the larger of the default and the epoch's own variances.
     """
-    systems, sys_index, counts = np.unique(epoch.system, return_inverse=True,
-                                           return_counts=True)
-    multi = counts[sys_index] >= 2
+    sys_index, n_systems = gnss_kernels.constellation_index(
+        np.asarray(epoch.system, dtype=np.int64))
+    multi = sys_index >= 0
     rx_ecef = frame.enu_to_ecef(rx_enu_m)
     sv_ecef = sagnac_corrected(epoch.sv_pos_ecef_m[multi], rx_ecef)
     var = np.full(int(multi.sum()), float(measurement_var_m2))
     if use_reported_variance:
         var = np.maximum(var, epoch.var_m2[multi])
-    _, sys_index = np.unique(epoch.system[multi], return_inverse=True)
     return PreparedEpoch(sv_enu_m=frame.ecef_to_enu(sv_ecef), pr_m=epoch.pr_m[multi].copy(),
-                         sigma_m=np.sqrt(var), sys_index=sys_index,
-                         n_systems=int(sys_index.max()) + 1 if sys_index.size else 0,
-                         sv_key=(epoch.system[multi].astype(np.int64) * 1000
-                                 + epoch.sv_id[multi].astype(np.int64)),
+                         sigma_m=np.sqrt(var), sys_index=sys_index[multi],
+                         n_systems=int(n_systems), sv_key=_satellite_key(epoch, 1000)[multi],
                          cn0_dbhz=np.asarray(epoch.cn0_dbhz[multi], dtype=float))
+
+
+def _satellite_key(epoch: GnssEpoch, base: int) -> np.ndarray:
+    """``system * base + sv_id`` (int64): one key per satellite."""
+    return epoch.system.astype(np.int64) * base + epoch.sv_id.astype(np.int64)
 
 
 def clock_weights(prep: PreparedEpoch, centre_m: np.ndarray, spread_m: float,
