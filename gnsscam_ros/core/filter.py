@@ -189,33 +189,33 @@ class ParticleFilter:
         Checked: particles finite and within ``MAX_STATE_COORDINATE``, weights a
         distribution (no NaN, no +inf, some finite), bias offsets finite; of the result,
         estimate, covariance and heading finite, risk bound in [0, 1], protection level not
-        NaN (inf means none within reach). A few passes over the N particles.
+        NaN (inf means none within reach). One compiled pass over the N particles.
         """
         if self.particles is None:
             return None
-        with np.errstate(invalid='ignore'):
-            if not np.isfinite(self.particles).all():
-                return 'non-finite particles'
-            if np.abs(self.particles).max() > MAX_STATE_COORDINATE:
-                return f'particles beyond {MAX_STATE_COORDINATE:g} m of the map origin'
-            log_w = self.log_w
-            if (log_w is None or log_w.shape != self.particles.shape[:1]
-                    or np.isnan(log_w).any() or not np.isfinite(log_w.max())):
-                return 'particle weights are not a distribution'
-            if not np.isfinite(self.bias.offsets_m).all():
-                return 'non-finite bias offsets'
-            if result is None or result.position_enu_m is None:
-                return None
-            if not (np.isfinite(result.position_enu_m).all()
-                    and np.isfinite(result.covariance_m2).all()
-                    and np.isfinite(result.yaw_rad)):
-                return 'non-finite estimate'
-            if result.risk is not None:
-                bound = np.asarray(result.risk.risk_bound, dtype=float)
-                if not ((bound >= 0.0) & (bound <= 1.0)).all():
-                    return 'risk bound outside [0, 1]'
-            if result.protection_level_m is not None and np.isnan(result.protection_level_m):
-                return 'protection level is NaN'
+        if self.log_w is None:
+            return 'particle weights are not a distribution'
+        code = weight_kernels.set_problem(np.ascontiguousarray(self.particles, dtype=float),
+                                          np.ascontiguousarray(self.log_w, dtype=float),
+                                          MAX_STATE_COORDINATE)
+        if code == 2:
+            return f'particles beyond {MAX_STATE_COORDINATE:g} m of the map origin'
+        if code:
+            return weight_kernels.SET_PROBLEMS[code - 1]
+        if not np.isfinite(self.bias.offsets_m).all():
+            return 'non-finite bias offsets'
+        if result is None or result.position_enu_m is None:
+            return None
+        if not (np.isfinite(result.position_enu_m).all()
+                and np.isfinite(result.covariance_m2).all()
+                and np.isfinite(result.yaw_rad)):
+            return 'non-finite estimate'
+        if result.risk is not None:
+            bound = np.asarray(result.risk.risk_bound, dtype=float)
+            if not ((bound >= 0.0) & (bound <= 1.0)).all():
+                return 'risk bound outside [0, 1]'
+        if result.protection_level_m is not None and np.isnan(result.protection_level_m):
+            return 'protection level is NaN'
         return None
 
     def set_parameters(self, **changes) -> None:

@@ -85,3 +85,33 @@ def set_summary(particles, log_w):
             c[a, b] = c[a, b] / w_sum - m[a] * m[b]
             c[b, a] = c[a, b]
     return mean, c, math.atan2(sin_sum, cos_sum), w_sum * w_sum / w_sq
+
+
+#: What :func:`set_problem` finds, by code (0: nothing).
+SET_PROBLEMS = ('non-finite particles', 'particles beyond the bound',
+                'particle weights are not a distribution')
+
+
+@kernel
+def set_problem(particles, log_w, bound):
+    """0 when the set (N, 4) is finite and within ``bound`` in every coordinate and its
+    log-weights (N,) are a distribution (no NaN, no +inf, at least one finite); else 1 +
+    the index in ``SET_PROBLEMS`` of the first problem (one pass)."""
+    n = particles.shape[0]
+    for i in range(n):
+        for a in range(particles.shape[1]):
+            v = particles[i, a]
+            if not math.isfinite(v):
+                return 1
+            if abs(v) > bound:
+                return 2
+    if log_w.shape[0] != n:
+        return 3
+    finite = False
+    for i in range(n):
+        v = log_w[i]
+        if v != v or v == np.inf:
+            return 3
+        if v > -np.inf:
+            finite = True
+    return 0 if finite else 3
