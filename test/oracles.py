@@ -39,3 +39,157 @@ def integrate_odometry(odom: OdometrySeries, t0_ns: int, t1_ns: int) -> MotionIn
     sum_sq = float(np.sum(steps ** 2))
     return MotionIncrement(dt_s=dt_s, distance_m=distance, dyaw_rad=dyaw,
                            distance_var_m2=speed_var * sum_sq, dyaw_var_rad2=yaw_var * sum_sq)
+
+
+# ============================================================ camera fusion (paper §5)
+# The numpy forms the compiled camera kernel replaced (``core.kernels.camera``).
+def camera_log_q(positions_m: np.ndarray, match_enu_m: np.ndarray, temperature_m: float,
+                 gate_m: float | None = None) -> np.ndarray:
+    """Per-set log softmax of ``-distance / T`` over the particles, for one or K matches.
+
+    The distance is Euclidean in 3D as in the paper.
+
+    Args:
+        positions_m: (M, N, 3) particle positions [m].
+        match_enu_m: (3,) matched position at the epoch, or (K, 3) for K matches [m].
+        temperature_m: Softmax temperature T [m].
+        gate_m: Gate distance R [m]; None for the paper's plain softmax over particles.
+
+    Returns:
+        (M, N + 1) log Q with the "elsewhere" cell last, or (M, N) without a gate; with K
+        matches a leading K axis. The cell weighs as much as N particles at the gate
+        distance (logit ``-R / T + log N``).
+    """
+    pos = np.asarray(positions_m, dtype=float)[..., :3]
+    match = np.asarray(match_enu_m, dtype=float)
+    matches = match.reshape(-1, match.shape[-1])[:, :3]
+    m, n = pos.shape[0], pos.shape[1]
+    centre = pos[:, 0, :].mean(axis=0)
+    flat = pos.reshape(-1, 3) - centre
+    rel = matches - centre
+    d2 = rel @ (-2.0 * flat.T)
+    d2 += np.einsum('ij,ij->i', flat, flat)[None, :]
+    d2 += np.einsum('ij,ij->i', rel, rel)[:, None]
+    np.maximum(d2, 0.0, out=d2)
+    logits = np.sqrt(d2, out=d2).reshape(len(matches), m, n)
+    logits *= -1.0 / temperature_m
+    if gate_m is not None:
+        logits = np.concatenate(
+            [logits, np.full(logits.shape[:-1] + (1,), -gate_m / temperature_m + np.log(n))],
+            axis=-1)
+    top = logits.max(axis=-1, keepdims=True)
+    log_norm = top + np.log(np.exp(logits - top).sum(axis=-1, keepdims=True))
+    logits -= log_norm
+    return logits if match.ndim > 1 else logits[0]
+
+
+def fuse_camera(log_p: np.ndarray, log_q: np.ndarray, kl_threshold_nats: float,
+                elsewhere_prob: float | None = None):
+    """Mixture-of-experts weights and the camera mixture for every posterior set.
+
+    Args:
+        log_p: (M, N) normalised log GNSS distribution over the particles of each set.
+        log_q: (K, M, N) normalised log camera distributions, or (K, M, N + 1) with the
+            "elsewhere" cell last (see :func:`camera_log_q`).
+        kl_threshold_nats: Exclude the camera of a set when every KL(Q_j || P) exceeds it.
+        elsewhere_prob: GNSS probability of the "elsewhere" cell (needed with that cell).
+
+    Returns:
+        ``core.fusion.FusionResult``; ``log_q_mix`` covers the N particles only.
+    """
+    from scipy.special import logsumexp
+
+    from gnsscam_ros.core.fusion import FusionResult
+    n = log_p.shape[-1]
+    if log_q.shape[-1] == n + 1:
+        if elsewhere_prob is None:
+            raise ValueError('log_q has an elsewhere cell: give elsewhere_prob')
+        log_p = np.concatenate([log_p + np.log1p(-elsewhere_prob),
+                                np.full(log_p.shape[:-1] + (1,), np.log(elsewhere_prob))],
+                               axis=-1)
+    elif log_q.shape[-1] != n:
+        raise ValueError(f'log_q has {log_q.shape[-1]} cells for {n} particles')
+    q = np.exp(log_q)
+    kl = (q * (log_q - log_p[None])).sum(-1)
+    k = -kl / q.sum(-1) - 1.0
+    alpha = np.exp(k - logsumexp(k, axis=0, keepdims=True))
+    mix = np.einsum('km,kmn->mn', alpha, q[..., :n])
+    with np.errstate(divide='ignore'):
+        log_q_mix = np.log(mix)
+    tiny = mix < 1e-280
+    if tiny.any():
+        exact = logsumexp(log_q[..., :n] + np.log(np.maximum(alpha, 1e-300))[..., None],
+                          axis=0)
+        log_q_mix[tiny] = exact[tiny]
+    excluded = kl.min(axis=0) > kl_threshold_nats
+    log_q_mix[excluded] = 0.0
+    return FusionResult(log_q_mix=log_q_mix, alpha=alpha, kl_nats=kl, excluded=excluded)
+
+
+# ============================================================ integrity (paper §6)
+# The numpy forms the compiled posterior kernels replaced (``core.kernels.posterior``).
+def inverse_bernoulli_exact(q, eps, iterations: int = 64) -> np.ndarray:
+    """``t >= 0`` with ``kl(q || q + t) = eps``: vectorised bisection on ``[q, 1]``."""
+    from gnsscam_ros.core.integrity import bernoulli_kl
+    q, eps = np.broadcast_arrays(np.asarray(q, dtype=float), np.asarray(eps, dtype=float))
+    lo = q.copy()
+    hi = np.ones_like(q)
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        above = bernoulli_kl(q, mid) > eps
+        hi = np.where(above, mid, hi)
+        lo = np.where(above, lo, mid)
+    return 0.5 * (lo + hi) - q
+
+
+def posterior_distances(posteriors, centre_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(M, N) distances of every posterior's particles from ``centre_m`` and their (M, N)
+    weights, by the kernel's arithmetic: ``r = x - centre``, ``d = |r - offset_j|`` with
+    the squares summed east, north (, up)."""
+    dims = 2 if posteriors.horizontal else 3
+    rel = posteriors.positions_m[..., :dims] - np.asarray(centre_m, dtype=float)[:dims]
+    diff = rel[posteriors.motion_index] - posteriors.offsets_m[:, None, :dims]
+    d2 = diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]
+    if dims == 3:
+        d2 = d2 + diff[..., 2] * diff[..., 2]
+    return np.sqrt(d2), np.exp(posteriors.log_w[posteriors.motion_index])
+
+
+def hazard_mass(dist: np.ndarray, w: np.ndarray, radii_m) -> np.ndarray:
+    """Mean over the M posteriors of the mass at or beyond each radius, (A,)."""
+    radii = np.atleast_1d(np.asarray(radii_m, dtype=float))
+    masses = np.array([(w * (dist >= r)).sum() for r in radii]) / dist.shape[0]
+    return np.clip(masses, 0.0, 1.0)
+
+
+def protection_level(dist: np.ndarray, w: np.ndarray, q_max: float) -> float:
+    """The smallest ``v`` in ``{0} ∪ {distances}`` whose pooled mass strictly beyond it is
+    at most ``q_max`` (a full sort of the M * N distances; ties form one value)."""
+    if not q_max > 0.0:
+        return float('inf')
+    d, w = dist.ravel(), w.ravel() / dist.shape[0]
+    order = np.argsort(d, kind='stable')
+    d, w = d[order], w[order]
+    values, first = np.unique(d, return_index=True)
+    group = np.add.reduceat(w, first)
+    # beyond[i]: mass strictly beyond values[i]; candidate 0 has the mass of d > 0.
+    beyond = np.concatenate((np.cumsum(group[::-1])[::-1][1:], [0.0]))
+    ok = np.flatnonzero(beyond <= q_max)
+    level = float(values[ok[0]])
+    positive = group[values > 0.0].sum()
+    return 0.0 if positive <= q_max else level
+
+
+def pooled_moments(posteriors) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (3,) and covariance (3, 3) of the pooled (equal-share) mixture of the M
+    posteriors, from the per-sample moments (einsums)."""
+    w = np.exp(posteriors.log_w)
+    pos = posteriors.positions_m[..., :3]
+    means = np.einsum('sn,snd->sd', w, pos)
+    centred = pos - means[:, None, :]
+    covs = np.einsum('sn,snd,sne->sde', w, centred, centred)
+    component_means = means[posteriors.motion_index] - posteriors.offsets_m
+    mean = component_means.mean(axis=0)
+    spread = component_means - mean
+    cov = covs[posteriors.motion_index].mean(axis=0) + spread.T @ spread / len(spread)
+    return mean, cov
