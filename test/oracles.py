@@ -1,4 +1,6 @@
 """Independent reference implementations the tests hold the package's code against."""
+import math
+
 import numpy as np
 
 from gnsscam_ros.core.particles import MotionIncrement
@@ -193,3 +195,139 @@ def pooled_moments(posteriors) -> tuple[np.ndarray, np.ndarray]:
     spread = component_means - mean
     cov = covs[posteriors.motion_index].mean(axis=0) + spread.T @ spread / len(spread)
     return mean, cov
+
+
+class NumpyPosteriorSet:
+    """The numpy ``PosteriorSet`` methods the kernels replaced, verbatim: float32
+    distances by one small matrix product per motion sample, a partitioned sort for the
+    protection level, einsum moments (``gnsscam_bench_kernels`` times them)."""
+
+    def __init__(self, posteriors):
+        self.positions_m = posteriors.positions_m
+        self.log_w = np.asarray(posteriors.log_w)
+        self.motion_index = posteriors.motion_index
+        self.offsets_m = posteriors.offsets_m
+        self.horizontal = posteriors.horizontal
+        self.posteriors = posteriors
+
+    def distances(self, centre_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distances (M, N) of every posterior's particles from ``centre_m`` and their
+        weights (M, N), each row summing to one."""
+        dims = 2 if self.horizontal else 3
+        # Particles of posterior j sit at x - o_j, so with r = x - centre:
+        # |r - o_j|^2 = |r|^2 - 2 r.o_j + |o_j|^2, one small matrix product per motion
+        # sample instead of an (M, N, d) copy. Relative coordinates are small: single
+        # precision is ample for the M * N result.
+        rel = self.positions_m[..., :dims] - np.asarray(centre_m, dtype=float)[:dims]
+        offsets = self.offsets_m[:, :dims]
+        dist = np.empty((self.motion_index.shape[0], rel.shape[1]), dtype=np.float32)
+        r2 = np.einsum('snd,snd->sn', rel, rel)
+        o2 = np.einsum('md,md->m', offsets, offsets)
+        for s in range(rel.shape[0]):
+            rows = np.flatnonzero(self.motion_index == s)
+            if rows.size:
+                d2 = r2[s][None, :] - 2.0 * (offsets[rows] @ rel[s].T) + o2[rows][:, None]
+                dist[rows] = np.sqrt(np.maximum(d2, 0.0))
+        return dist, np.exp(self.log_w[self.motion_index])
+
+    def hazard_mass(self, centre_m: np.ndarray, radii_m, dist_w: tuple | None = None
+                    ) -> np.ndarray:
+        """Mean over the M posteriors of the mass at or beyond each radius, (A,).
+
+        With the estimate as centre this is the empirical risk ``R_M``; with the true
+        position it is the reference risk (evaluation only). ``dist_w``: the result of
+        :meth:`distances` for this centre, when already at hand.
+        """
+        dist, w = self.distances(centre_m) if dist_w is None else dist_w
+        radii = np.atleast_1d(np.asarray(radii_m, dtype=float))
+        # A is small (1-3): one weighted count per radius, no sort needed.
+        masses = np.array([(w * (dist >= r)).sum() for r in radii]) / dist.shape[0]
+        return np.clip(masses, 0.0, 1.0)
+
+    def protection_level(self, centre_m: np.ndarray, q_max: float,
+                         dist_w: tuple | None = None) -> float:
+        """Smallest radius around ``centre_m`` with at most ``q_max`` pooled mass beyond it.
+
+        Args:
+            centre_m: (3,) the estimate [m].
+            q_max: Largest admissible empirical risk (:func:`max_empirical_risk`).
+            dist_w: The result of :meth:`distances` for this centre, when at hand.
+
+        Returns:
+            The radius [m]; ``inf`` when ``q_max`` is 0 and the posteriors do not all sit
+            at the centre, i.e. when no radius can be certified.
+        """
+        if not q_max > 0.0:
+            return float('inf')
+        dist, w = self.distances(centre_m) if dist_w is None else dist_w
+        dist, w = dist.ravel(), w.ravel() / dist.shape[0]
+        # Only the far tail matters (q_max is a few per cent): partition off the farthest
+        # candidates, check that they hold more than q_max, and sort just those.
+        n = dist.shape[0]
+        count = min(n, int(8 * q_max * n) + 256)
+        while True:
+            if count < n:
+                part = np.argpartition(dist, n - count)[n - count:]
+                d_tail, w_tail = dist[part], w[part]
+                if w_tail.sum() <= q_max:     # too few (heavy weights in the tail): widen
+                    count = min(n, 4 * count)
+                    continue
+            else:
+                d_tail, w_tail = dist, w
+            break
+        order = np.argsort(d_tail)
+        d, w = d_tail[order], w_tail[order]
+        # tail[k] = mass at or beyond d[k]; R_M(r) for d[k-1] < r <= d[k] is tail[k]. The
+        # level is the smallest d[k-1] whose strict tail (tail[k]) is within q_max.
+        tail = np.cumsum(w[::-1])[::-1]
+        k = int(np.searchsorted(-tail, -q_max, side='left'))
+        return float(d[k - 1]) if k > 0 else 0.0
+
+    def pooled_moments(self) -> tuple[np.ndarray, np.ndarray]:
+        """Mean (3,) and covariance (3, 3) of the pooled (equal-share) mixture of the M
+        posteriors, from the per-sample moments (no M * N copy)."""
+        w = np.exp(self.log_w)
+        means = np.einsum('sn,snd->sd', w, self.positions_m)
+        centred = self.positions_m - means[:, None, :]
+        covs = np.einsum('sn,snd,sne->sde', w, centred, centred)
+        component_means = means[self.motion_index] - self.offsets_m
+        mean = component_means.mean(axis=0)
+        spread = component_means - mean
+        cov = covs[self.motion_index].mean(axis=0) + spread.T @ spread / len(spread)
+        return mean, cov
+
+
+def _bernoulli_kl_scalar(q: float, p: float) -> float:
+    out = q * math.log(q / p) if q > 0.0 else 0.0
+    return out + ((1.0 - q) * math.log((1.0 - q) / (1.0 - p)) if q < 1.0 else 0.0)
+
+
+def max_empirical_risk_exact(target: float, eps: float, iterations: int = 60) -> float:
+    """The exact inverse's threshold by a Python scalar bisection."""
+    if -math.log1p(-target) < eps:
+        return 0.0
+    lo, hi = 0.0, target
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        if _bernoulli_kl_scalar(mid, target) >= eps:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+def integrity_epoch(posteriors, priors, mean: np.ndarray, limits: np.ndarray,
+                    target: float = 0.1, delta: float = 0.1):
+    """The risk bound and level of an epoch as ``ParticleFilter._integrity`` computed them
+    before the kernels: pooled moments twice, Gaussian KL, float32 distances, hazard mass,
+    vectorised inverse Bernoulli, scalar threshold, partitioned level."""
+    from gnsscam_ros.core import integrity
+    post, prior = NumpyPosteriorSet(posteriors), NumpyPosteriorSet(priors)
+    kl = integrity.gaussian_kl(*post.pooled_moments(), *prior.pooled_moments())
+    m = posteriors.n_posteriors
+    dist_w = post.distances(mean)
+    empirical = post.hazard_mass(mean, limits, dist_w)
+    eps = integrity.divergence_budget(kl, m, delta)
+    bound = np.minimum(empirical + inverse_bernoulli_exact(empirical, eps), 1.0)
+    q_max = max_empirical_risk_exact(target, eps)
+    return bound, post.protection_level(mean, q_max, dist_w)

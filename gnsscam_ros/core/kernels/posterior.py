@@ -29,6 +29,8 @@ from .elementary import exp
 
 #: Bins of the tail-mass histogram of the protection level.
 LEVEL_BINS = 2048
+#: (row, column) of the packed symmetric 3 x 3 entries (xx, xy, xz, yy, yz, zz).
+_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 #: The crossing bin is sorted once it holds at most this many particles (else it is
 #: split into LEVEL_BINS bins again).
 LEVEL_SORT_MAX = 2048
@@ -89,38 +91,37 @@ def _pool(sums, ref, index, offsets, mean, cov):
     """Mean and covariance of the equal-share mixture of the M posteriors from the
     per-sample sums: each sample's moments ``mean_s = sum w x``,
     ``cov_s = sum w (x - mean_s)(x - mean_s)^T`` (weights as given), component means
-    ``mean_s - offset_j``, and the covariance of the mixture (within plus between)."""
-    n_sets = sums.shape[0]
+    ``mean_s - offset_j``, and the covariance of the mixture (within plus between).
+    Covariances are packed as (xx, xy, xz, yy, yz, zz)."""
+    n_sets, n_post = sums.shape[0], index.shape[0]
     u = np.empty((n_sets, 3))              # mean_s - ref
-    c = np.empty((n_sets, 3, 3))
+    c = np.empty((n_sets, 6))
     for s in range(n_sets):
         s_w = sums[s, 0]
-        m = sums[s, 1:4]
         for a in range(3):
-            u[s, a] = (s_w - 1.0) * ref[a] + m[a]
-        e = sums[s, 4:]
-        second = np.array([[e[0], e[1], e[2]], [e[1], e[3], e[4]], [e[2], e[4], e[5]]])
-        for a in range(3):
-            for b in range(3):
-                c[s, a, b] = (second[a, b] - u[s, a] * m[b] - m[a] * u[s, b]
-                              + s_w * u[s, a] * u[s, b])
-    n_post = index.shape[0]
+            u[s, a] = (s_w - 1.0) * ref[a] + sums[s, 1 + a]
+        for k in range(6):
+            a, b = _PAIRS[k]
+            c[s, k] = (sums[s, 4 + k] - u[s, a] * sums[s, 1 + b] - sums[s, 1 + a] * u[s, b]
+                       + s_w * u[s, a] * u[s, b])
     centre = np.zeros(3)
     for j in range(n_post):
         for a in range(3):
             centre[a] += u[index[j], a] - offsets[j, a]
-    centre /= n_post
-    cov[:, :] = 0.0
+    for a in range(3):
+        centre[a] /= n_post
+    packed = np.zeros(6)
+    d = np.empty(3)
     for j in range(n_post):
         s = index[j]
-        d0 = u[s, 0] - offsets[j, 0] - centre[0]
-        d1 = u[s, 1] - offsets[j, 1] - centre[1]
-        d2 = u[s, 2] - offsets[j, 2] - centre[2]
-        d = (d0, d1, d2)
         for a in range(3):
-            for b in range(3):
-                cov[a, b] += c[s, a, b] + d[a] * d[b]
-    cov /= n_post
+            d[a] = u[s, a] - offsets[j, a] - centre[a]
+        for k in range(6):
+            a, b = _PAIRS[k]
+            packed[k] += c[s, k] + d[a] * d[b]
+    for k in range(6):
+        a, b = _PAIRS[k]
+        cov[a, b] = cov[b, a] = packed[k] / n_post
     for a in range(3):
         mean[a] = ref[a] + centre[a]
 
@@ -140,10 +141,11 @@ def _cholesky3(a, floor):
 
 @kernel
 def gaussian_kl(mean0, cov0, mean1, cov1, floor):
-    """KL(N0 || N1) of 3D Gaussians with ``floor`` added to both diagonals [nats]."""
+    """KL(N0 || N1) of 3D Gaussians with ``floor`` added to both diagonals [nats]
+    (Cholesky factors; plain loops, no BLAS)."""
     l0 = _cholesky3(cov0, floor)
     l1 = _cholesky3(cov1, floor)
-    # inv1 = (L1 L1^T)^-1 from the inverse of L1.
+    # li = L1^-1 (lower triangular); inv1 = li^T li.
     li = np.zeros((3, 3))
     for i in range(3):
         li[i, i] = 1.0 / l1[i, i]
@@ -152,14 +154,16 @@ def gaussian_kl(mean0, cov0, mean1, cov1, floor):
             for k in range(j, i):
                 v -= l1[i, k] * li[k, j]
             li[i, j] = v / l1[i, i]
-    inv1 = li.T @ li
-    c0 = cov0 + floor * np.eye(3)
-    trace = 0.0
+    inv1 = np.zeros((3, 3))
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                inv1[i, j] += li[k, i] * li[k, j]
+    trace = maha = 0.0
     for i in range(3):
         for k in range(3):
-            trace += inv1[i, k] * c0[k, i]
-    diff = mean1 - mean0
-    maha = diff @ (inv1 @ diff)
+            trace += inv1[i, k] * (cov0[k, i] + (floor if k == i else 0.0))
+            maha += (mean1[i] - mean0[i]) * inv1[i, k] * (mean1[k] - mean0[k])
     logdet0 = 2.0 * (math.log(l0[0, 0]) + math.log(l0[1, 1]) + math.log(l0[2, 2]))
     logdet1 = 2.0 * (math.log(l1[0, 0]) + math.log(l1[1, 1]) + math.log(l1[2, 2]))
     return 0.5 * (trace + maha - 3.0 + logdet1 - logdet0)
@@ -231,25 +235,55 @@ def distances(x, y, z, index, offsets, centre, dims, out):
 
 
 @kernel
+def _sift_down(keys, payload, root, end):
+    """Restore the max-heap below ``root`` within ``[0, end)``, moving both arrays."""
+    while True:
+        child = 2 * root + 1
+        if child >= end:
+            return
+        if child + 1 < end and keys[child + 1] > keys[child]:
+            child += 1
+        if keys[root] >= keys[child]:
+            return
+        keys[root], keys[child] = keys[child], keys[root]
+        payload[root], payload[child] = payload[child], payload[root]
+        root = child
+
+
+@kernel
+def _sort_pairs(keys, payload):
+    """Sort ``keys`` ascending in place, ``payload`` along (heap sort: O(n log n), no
+    extra memory, small to compile)."""
+    n = keys.shape[0]
+    for root in range(n // 2 - 1, -1, -1):
+        _sift_down(keys, payload, root, n)
+    for end in range(n - 1, 0, -1):
+        keys[0], keys[end] = keys[end], keys[0]
+        payload[0], payload[end] = payload[end], payload[0]
+        _sift_down(keys, payload, 0, end)
+
+
+@kernel
 def _walk(values, weights, base, q_mass):
     """Smallest value v among ``values`` (or below them) with ``base`` + the mass of the
     values strictly above v at most ``q_mass``; ``base`` (the mass beyond all of them) is
     at most ``q_mass``. Returns ``(level, exhausted)``: exhausted when even the smallest
-    value's whole group fits, i.e. the level lies below every value given."""
-    order = np.argsort(values)
+    value's whole group fits, i.e. the level lies below every value given. Sorts both
+    arrays in place."""
+    _sort_pairs(values, weights)
     idx = values.shape[0] - 1
-    level = values[order[idx]]
+    level = values[idx]
     acc = base
     while True:
-        v = values[order[idx]]
-        while idx >= 0 and values[order[idx]] == v:
-            acc += weights[order[idx]]
+        v = values[idx]
+        while idx >= 0 and values[idx] == v:
+            acc += weights[idx]
             idx -= 1
         if acc > q_mass:
             return level, False
         if idx < 0:
             return level, True
-        level = values[order[idx]]
+        level = values[idx]
 
 
 @kernel
