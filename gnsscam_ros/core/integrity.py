@@ -60,13 +60,19 @@ def inverse_bernoulli_exact(q, eps, iterations: int = 64) -> np.ndarray:
         The gap(s) t, so that ``q + t`` is the upper confidence bound on the risk.
     """
     q, eps = np.asarray(q, dtype=float), np.asarray(eps, dtype=float)
-    shape = np.broadcast_shapes(q.shape, eps.shape)
-    # Writable contiguous copies (a few values): one kernel signature for every caller.
-    q = np.array(np.broadcast_to(q, shape)).reshape(-1)
-    eps = np.array(np.broadcast_to(eps, shape)).reshape(-1)
-    out = np.empty(q.shape[0])
-    posterior_kernels.bernoulli_gap(q, eps, int(iterations), out)
-    return out.reshape(shape) if shape else out[0]
+    shape = q.shape if eps.ndim == 0 else np.broadcast_shapes(q.shape, eps.shape)
+    out = np.empty(shape)
+    posterior_kernels.bernoulli_gap(_flat(q, shape), _flat(eps, shape if eps.ndim else ()),
+                                    int(iterations), out.reshape(-1))
+    return out if shape else out[()]
+
+
+def _flat(values: np.ndarray, shape: tuple) -> np.ndarray:
+    """``values`` broadcast to ``shape`` as a writable contiguous 1-D array (a view when it
+    already is one): one kernel signature for every caller."""
+    if values.shape == shape and values.flags.c_contiguous and values.flags.writeable:
+        return values.reshape(-1)
+    return np.array(np.broadcast_to(values, shape)).reshape(-1)
 
 
 def inverse_bernoulli_approx(q, eps) -> np.ndarray:

@@ -449,12 +449,15 @@ def _bernoulli_kl(q, p):
 
 @kernel
 def bernoulli_gap(q, eps, iterations, out):
-    """``out[i] = t >= 0`` with ``kl(q_i || q_i + t) = eps_i``: bisection on ``[q_i, 1]``."""
+    """``out[i] = t >= 0`` with ``kl(q_i || q_i + t) = eps_i``: bisection on ``[q_i, 1]``
+    (``eps`` of one value applies to every ``q_i``)."""
+    one = eps.shape[0] == 1
     for i in range(q.shape[0]):
         lo, hi = q[i], 1.0
+        budget = eps[0] if one else eps[i]
         for _ in range(iterations):
             mid = 0.5 * (lo + hi)
-            if _bernoulli_kl(q[i], mid) > eps[i]:
+            if _bernoulli_kl(q[i], mid) > budget:
                 hi = mid
             else:
                 lo = mid
