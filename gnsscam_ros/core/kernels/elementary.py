@@ -7,6 +7,10 @@ reduction with a two-part ln 2), the degree-13 Taylor polynomial of ``exp(r)`` i
 form (short dependency chains), and ``2^k`` built from its bits. Relative error at most
 2 ulp; results below ``exp(-708)`` (under the smallest normal double) are 0, above
 ``exp(709)`` inf, NaN stays NaN.
+
+Inlined helpers are compiled into the kernels that call them, and numba's disk cache of a
+kernel depends on its own file only: after changing this file, touch the modules that use
+it (``camera.py``, ``posterior.py``) so that their cached kernels are compiled again.
 """
 from __future__ import annotations
 
