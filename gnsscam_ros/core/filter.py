@@ -16,12 +16,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.special import logsumexp
 
 from . import gnss, integrity
 from .bias import BIAS_CN0, BIAS_MODELS, BIAS_NONE, BiasHypotheses
 from .config import FilterConfig
-from .fusion import MAX_CAMERA_MATCHES, CameraMeasurement, camera_log_q, fuse_camera
+from .fusion import MAX_CAMERA_MATCHES, CameraMeasurement, camera_fusion
 from .frames import LocalFrame
 from .gnss import LIKELIHOODS, PARTICLE_RAIM, ROBUST
 from .kernels import weights as weight_kernels
@@ -394,11 +393,9 @@ class ParticleFilter:
             camera = camera[-MAX_CAMERA_MATCHES:]
             # Camera and GNSS distributions share the domain: the particles of each set.
             log_p = joint - total[:, None]
-            log_q = camera_log_q(priors[..., POS],
-                                 np.array([c.position_enu_m[:3] for c in camera]),
-                                 cfg.camera_temperature_m, cfg.camera_gate_m)
-            fusion = fuse_camera(log_p, log_q, cfg.camera_kl_threshold_nats,
-                                 cfg.camera_elsewhere_prob)
+            fusion = camera_fusion(priors, np.array([c.position_enu_m[:3] for c in camera]),
+                                   log_p, cfg.camera_temperature_m, cfg.camera_gate_m,
+                                   cfg.camera_kl_threshold_nats, cfg.camera_elsewhere_prob)
             joint = joint + fusion.log_q_mix
             total = log_sum_exp_rows(joint)[:, 0]
         post_log_w = joint
@@ -491,8 +488,8 @@ class ParticleFilter:
             # Heading acquisition holds more particles than the working size; the bound
             # sees an evenly thinned set of about the working size.
             pos, post_log_w = pos[:, thin], post_log_w[:, thin]
-            post_log_w = post_log_w - logsumexp(post_log_w, axis=1, keepdims=True)
-            prior_log_w = self.log_w[thin] - logsumexp(self.log_w[thin])
+            post_log_w = normalize_log_weights(post_log_w)
+            prior_log_w = normalize_log_weights(self.log_w[thin])
         else:
             prior_log_w = self.log_w
         prior_offsets = self.bias.offsets_m.copy()
@@ -515,17 +512,17 @@ class ParticleFilter:
                                             cfg.horizontal_risk)
         priors = integrity.PosteriorSet(pos, np.broadcast_to(prior_log_w, post_log_w.shape),
                                         index, prior_offsets, cfg.horizontal_risk)
-        # KL(pi_t || pi_t-1) between Gaussian fits of the pooled posteriors and priors.
-        kl = integrity.gaussian_kl(*posteriors.pooled_moments(), *priors.pooled_moments())
+        # KL(pi_t || pi_t-1) between Gaussian fits of the pooled posteriors and priors; it
+        # sets q_max, so the empirical risk and the level come from one pass.
+        kl = posteriors.divergence_from(priors)
+        eps = integrity.divergence_budget(kl, cfg.n_posteriors, cfg.risk_delta)
+        q_max = integrity.max_empirical_risk(cfg.target_risk, eps, cfg.inverse_bernoulli)
         limits = cfg.alert_limits_m
-        dist_w = posteriors.distances(mean)
-        risk = integrity.risk_bound(posteriors.hazard_mass(mean, limits, dist_w), kl,
-                                    cfg.n_posteriors, cfg.risk_delta, cfg.inverse_bernoulli,
-                                    limits)
-        q_max = integrity.max_empirical_risk(cfg.target_risk, risk.epsilon,
-                                             cfg.inverse_bernoulli)
+        empirical, level = posteriors.risk_and_level(mean, limits, q_max)
+        risk = integrity.risk_bound(empirical, kl, cfg.n_posteriors, cfg.risk_delta,
+                                    cfg.inverse_bernoulli, limits)
         self.posterior_set = posteriors
-        return risk, posteriors.protection_level(mean, q_max, dist_w)
+        return risk, level
 
     def _evidence_weight(self, dt_s: float) -> float:
         """Tempering exponent of this epoch's GNSS log-likelihood.
