@@ -7,11 +7,19 @@ hazard mass and protection level (``posterior``). The modules of ``core`` call t
 plain numpy forms they replaced survive only as test oracles (``test/oracles.py``).
 
 Kernels are compiled on first use and cached on disk (``cache=True``: the next process
-loads them instead of compiling); :func:`warm_up` runs each once on a tiny input so that a
-node's first epoch is not a compilation. They run on the calling thread only (no numba
-threading layer, no BLAS), so an epoch costs the same whatever was imported before.
+loads them instead of compiling); ``core.warmup`` runs each once on a tiny input so that a
+node's first epoch is not a compilation. numba checks a cached kernel against its own
+source file only, not against the helpers it inlines from another module
+(``elementary.exp``): :func:`drop_stale_caches` removes, at import, every cached kernel of
+this package older than any of its sources, so an edited helper is compiled again.
+
+Kernels run on the calling thread only (no numba threading layer, no BLAS), so an epoch
+costs the same whatever was imported before.
 """
 from __future__ import annotations
+
+import os
+from pathlib import Path
 
 import numba
 
@@ -25,3 +33,27 @@ KERNEL_OPTIONS = dict(cache=True, nogil=True, error_model='numpy')
 def kernel(function):
     """Compile ``function`` as an epoch kernel (:data:`KERNEL_OPTIONS`)."""
     return numba.njit(**KERNEL_OPTIONS)(function)
+
+
+def drop_stale_caches(package_dir: Path = Path(__file__).parent) -> int:
+    """Remove the cached kernels (numba's ``__pycache__/*.nbi`` index and ``*.nbc`` code
+    files) of this package that are older than its newest source file; returns how many
+    files went. Best effort: a cache that cannot be read or removed is left alone (an
+    installed package's sources do not change after installation)."""
+    removed = 0
+    try:
+        newest = max(f.stat().st_mtime for f in package_dir.glob('*.py'))
+        cached = list((package_dir / '__pycache__').glob('*.nb[ic]'))
+    except (OSError, ValueError):
+        return 0
+    for path in cached:
+        try:
+            if path.stat().st_mtime < newest:
+                os.remove(path)
+                removed += 1
+        except OSError:
+            pass
+    return removed
+
+
+drop_stale_caches()

@@ -9,8 +9,8 @@ form (short dependency chains), and ``2^k`` built from its bits. Relative error 
 ``exp(709)`` inf, NaN stays NaN.
 
 Inlined helpers are compiled into the kernels that call them, and numba's disk cache of a
-kernel depends on its own file only: after changing this file, touch the modules that use
-it (``camera.py``, ``posterior.py``) so that their cached kernels are compiled again.
+kernel depends on its own file only: the package drops cached kernels older than any of
+its sources at import (``kernels.drop_stale_caches``), so a change here recompiles them.
 """
 from __future__ import annotations
 

@@ -9,14 +9,8 @@ inner loop runs over the particles of a block, which the compiler turns into vec
 instructions (ranges, clocks, normalised residuals).
 
 Ranges are taken directly as ``|s - p|`` in float64: the rounding of a 2e7 m range is
-4e-9 m. Residuals, clocks and ``z`` stay in float64 (they come from differences of 2e7 m
-ranges); only the argument of the per-satellite ``exp`` of the likelihoods goes to
-float32, whose ``exp`` costs a third less than float64's and dominates the kernels: its
-relative error (~1e-7 times the argument) moves a log-likelihood by at most ~1e-6 nats per
-satellite (``test/test_kernels_gnss.py`` holds the kernels to float64 oracles within
-1e-5 nats). The argument is clipped at ``EXP32_FLOOR`` (float64 paths: ``EXP_FLOOR``):
-below, the Gaussian term is negligible against the outlier floor it is added to, and the
-slow subnormal range of ``exp`` is never entered.
+4e-9 m. The per-satellite exponentials, which dominate the kernels, are
+``elementary.exp`` (vectorised with the rest of a block's loop, within 2 ulp of libm's).
 """
 from __future__ import annotations
 
@@ -24,12 +18,8 @@ import math
 
 import numpy as np
 
-from . import kernel
+from . import elementary, kernel
 
-#: Smallest argument given to a float64 ``exp`` (see the module docstring).
-EXP_FLOOR = -700.0
-#: Smallest argument given to a float32 ``exp`` (its subnormals start below -87).
-EXP32_FLOOR = -80.0
 #: Particles per block (see the module docstring).
 BLOCK = 64
 LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
@@ -139,8 +129,7 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
                 ls, isg = log_scale[j], inv_sigma[j]
                 for b in range(m):
                     zj = r[j, b] * isg
-                    arg = np.float32(max(ls - 0.5 * zj * zj, EXP32_FLOOR))
-                    prod[b] *= np.float64(math.exp(arg)) + floor
+                    prod[b] *= elementary.exp(ls - 0.5 * zj * zj) + floor
                 count += 1
                 if count == group:
                     for b in range(m):
@@ -204,8 +193,7 @@ def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
                     # E-step votes, pooled by prior weight.
                     for j in range(k):
                         for b in range(m):
-                            arg = np.float32(max(r[j, b] - a_max[b], EXP32_FLOOR))
-                            r[j, b] = np.float64(math.exp(arg))
+                            r[j, b] = elementary.exp(r[j, b] - a_max[b])
                             acc[b] += r[j, b]
                     for b in range(m):
                         acc[b] = math.exp(prior_log_w[start + b]) / acc[b]
@@ -218,8 +206,7 @@ def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
                     for j in range(k):
                         scale = gamma[s, j] * inv_sigma[j]
                         for b in range(m):
-                            arg = np.float32(max(r[j, b] - a_max[b], EXP32_FLOOR))
-                            acc[b] += scale * np.float64(math.exp(arg))
+                            acc[b] += scale * elementary.exp(r[j, b] - a_max[b])
                     for b in range(m):
                         joint[s, start + b] = prior_log_w[start + b] + evidence * (
                             a_max[b] + math.log(acc[b]) - LOG_SQRT_2PI)
@@ -259,7 +246,7 @@ def robust_inlier_shares(points, log_w, sv, pr, inv_sigma, sys_index, clock_w, n
             sw, sp = 0.0, 0.0
             for b in range(m):
                 zj = r[j, b] * isg
-                dens = math.exp(max(ls - 0.5 * zj * zj, EXP_FLOOR))
+                dens = elementary.exp(ls - 0.5 * zj * zj)
                 p = dens / (dens + floor)
                 sw += w[b] * p
                 sp += p
