@@ -24,7 +24,7 @@ from .fusion import MAX_CAMERA_MATCHES, CameraMeasurement, camera_fusion
 from .frames import LocalFrame
 from .gnss import LIKELIHOODS, PARTICLE_RAIM, ROBUST
 from .kernels import weights as weight_kernels
-from .particles import (POS, SYSTEMATIC, YAW, MotionIncrement, log_sum_exp_rows,
+from .particles import (POS, SYSTEMATIC, YAW, MotionIncrement,
                         motion_samples, normalize_log_weights, propagate, weighted_mean_cov)
 from .snapshot import solve_snapshot
 from .types import GnssEpoch
@@ -396,8 +396,7 @@ class ParticleFilter:
             fusion = camera_fusion(priors, np.array([c.position_enu_m[:3] for c in camera]),
                                    log_p, cfg.camera_temperature_m, cfg.camera_gate_m,
                                    cfg.camera_kl_threshold_nats, cfg.camera_elsewhere_prob)
-            joint = joint + fusion.log_q_mix
-            total = log_sum_exp_rows(joint)[:, 0]
+            total = weight_kernels.add_and_sum_rows(joint, fusion.log_q_mix)
         post_log_w = joint
         post_log_w -= total[:, None]
         chosen = int(np.argmax(total))

@@ -30,6 +30,18 @@ def log_sum_exp(values):
 
 
 @kernel
+def add_and_sum_rows(joint, extra):
+    """``joint += extra`` in place, (S, N) each; returns the (S,) log-sum-exp of each row
+    of the result (one pass for the sum, one for the shift)."""
+    totals = np.empty(joint.shape[0])
+    for s in range(joint.shape[0]):
+        for i in range(joint.shape[1]):
+            joint[s, i] += extra[s, i]
+        totals[s] = log_sum_exp(joint[s])
+    return totals
+
+
+@kernel
 def normalised(log_w):
     """Log-weights (N,) shifted so that their exponentials sum to one (a new array)."""
     return log_w - log_sum_exp(log_w)
