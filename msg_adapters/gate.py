@@ -5,16 +5,18 @@ refused, and the stream goes on as if it had not come: refusing it instead of ta
 as the newest stamp keeps one bad message from making every later valid one "out of
 order". A deliberate change of the time base (a bag replayed from its start again, a
 clock set anew) shows as a run of messages that agree with each other but not with the
-stream before: after :data:`.limits.NEW_TIME_BASE_MESSAGES` of them the gate adopts the
-new time base and says so, so that the node can reset what it keeps of the old one. The
-gate never blocks for good.
+stream before: after :data:`.limits.NEW_TIME_BASE_MESSAGES` of them, received over at
+least :data:`.limits.NEW_TIME_BASE_SPAN_S` (a burst of consistent garbage is over within
+milliseconds), the gate adopts the new time base and says so, so that the node can reset
+what it keeps of the old one. The gate never blocks for good.
 
 Plain Python, no ROS: the nodes hold one gate per subscribed topic.
 """
 from __future__ import annotations
 
 from .errors import MessageError
-from .limits import NEW_TIME_BASE_MESSAGES, NS_PER_S, STAMP_WINDOW_NS
+from .limits import (NEW_TIME_BASE_MESSAGES, NEW_TIME_BASE_SPAN_S, NS_PER_S,
+                     STAMP_WINDOW_NS)
 
 #: Verdicts of :meth:`StampGate.admit`.
 ADVANCE = 'advance'        # after the newest accepted stamp, within the window
@@ -34,37 +36,46 @@ class StampGate:
 
     Every message that does not advance the stream (behind or refused) is also a
     candidate of a new time base: ``confirm`` consecutive ones, each after the previous
-    and within ``window_ns`` of it, make the last one the new ``newest_ns``
-    (:data:`NEW_BASE`; the earlier ones stay refused or passed on as they were). A
-    message that advances the stream ends the run. That bookkeeping is the only state
-    a refused message changes.
+    and within ``window_ns`` of it, received over at least ``span_s`` (when receipt
+    times are given), make the last one the new ``newest_ns`` (:data:`NEW_BASE`; the
+    earlier ones stay refused or passed on as they were). A message that advances the
+    stream ends the run. That bookkeeping is the only state a refused message changes.
 
     Args:
         window_ns: Largest distance from the newest stamp [ns].
         confirm: Consecutive consistent messages that make a new time base.
         what: Topic name for the messages.
+        span_s: Receipt time the run must span [s].
     """
 
     def __init__(self, window_ns: int = STAMP_WINDOW_NS, confirm: int = NEW_TIME_BASE_MESSAGES,
-                 what: str = 'stamp'):
-        if window_ns <= 0 or confirm < 1:
-            raise ValueError('window_ns must be > 0 and confirm >= 1')
+                 what: str = 'stamp', span_s: float = NEW_TIME_BASE_SPAN_S):
+        if window_ns <= 0 or confirm < 1 or not span_s >= 0.0:
+            raise ValueError('window_ns must be > 0, confirm >= 1 and span_s >= 0')
         self.window_ns = int(window_ns)
         self.confirm = int(confirm)
+        self.span_s = float(span_s)
         self.what = what
         self.newest_ns: int | None = None
         self.time_base_changes = 0
         self._run_last_ns: int | None = None
         self._run_length = 0
+        self._run_first_s: float | None = None
 
     def reset(self) -> None:
         """Forget the stream: the next stamp is taken as its start."""
         self.newest_ns = None
         self._run_last_ns = None
         self._run_length = 0
+        self._run_first_s = None
 
-    def admit(self, stamp_ns: int) -> str:
+    def admit(self, stamp_ns: int, received_s: float | None = None) -> str:
         """Judge one stamp (of a message otherwise valid).
+
+        Args:
+            stamp_ns: The message's stamp [ns].
+            received_s: When it was received (a monotonic clock) [s]; None: the run of a
+                new time base needs no receipt span (offline use).
 
         Returns:
             :data:`ADVANCE`, :data:`BEHIND` or :data:`NEW_BASE`.
@@ -81,17 +92,20 @@ class StampGate:
         offset = stamp_ns - newest
         if 0 < offset <= self.window_ns:
             self.newest_ns = stamp_ns
-            self._run_last_ns, self._run_length = None, 0
+            self._run_last_ns, self._run_length, self._run_first_s = None, 0, None
             return ADVANCE
         last = self._run_last_ns
         if last is not None and 0 < stamp_ns - last <= self.window_ns:
             self._run_length += 1
         else:
             self._run_length = 1
+            self._run_first_s = received_s
         self._run_last_ns = stamp_ns
-        if self._run_length >= self.confirm:
+        spanned = (received_s is None or self._run_first_s is None
+                   or received_s - self._run_first_s >= self.span_s)
+        if self._run_length >= self.confirm and spanned:
             self.newest_ns = stamp_ns
-            self._run_last_ns, self._run_length = None, 0
+            self._run_last_ns, self._run_length, self._run_first_s = None, 0, None
             self.time_base_changes += 1
             return NEW_BASE
         if offset <= 0 and -offset <= self.window_ns:
@@ -99,4 +113,5 @@ class StampGate:
         raise MessageError(
             f'{self.what}: stamp {stamp_ns} ns is {offset / NS_PER_S:+.3f} s from the '
             f'newest accepted one (window +-{self.window_ns / NS_PER_S:g} s); a new time '
-            f'base needs {self.confirm} consistent messages', 'stamp_jump')
+            f'base needs {self.confirm} consistent messages over {self.span_s:g} s',
+            'stamp_jump')

@@ -42,9 +42,15 @@ STAMP_WINDOW_NS = int(STAMP_WINDOW_S * NS_PER_S)
 #: A deliberate change of the time base (a bag replayed again, a clock set anew): this
 #: many consecutive messages of one topic consistent with each other (each after the
 #: previous one and within the window of it) but not with the stream before are adopted
-#: as the new time base (the last of them is accepted). 5 messages: 0.05 s of IMU, 5 s of
-#: GNSS at 1 Hz; one glitch, or a few stray messages, never reaches it.
+#: as the new time base (the last of them is accepted), once they also span
+#: ``NEW_TIME_BASE_SPAN_S`` of receipt time. 5 messages: 5 s of GNSS at 1 Hz; one
+#: glitch, or a few stray messages, never reaches it.
 NEW_TIME_BASE_MESSAGES = 5
+#: Receipt (wall-clock) time the consistent run must span before it is a new time base
+#: [s]: a new clock keeps sending, a burst of garbage with consistent stamps arrives
+#: within milliseconds and is over. 1 s: 100 messages of a 100 Hz IMU, 5 of a 1 Hz GNSS
+#: receiver (which need 4 s anyway); at 10x replay speed, 10 s of the bag.
+NEW_TIME_BASE_SPAN_S = 1.0
 
 # -------------------------------------------------------------------------------- GNSS
 #: Satellites per epoch. All constellations together have ~130 satellites, about half

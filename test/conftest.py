@@ -34,6 +34,13 @@ def rng():
     return np.random.default_rng(12345)
 
 
+def pytest_sessionstart(session):
+    """Compile the epoch kernels once, into numba's disk cache, before any test starts a
+    node process (each would compile them itself otherwise, all at once)."""
+    from gnsscam_ros.core.warmup import warm_up_kernels
+    warm_up_kernels()
+
+
 @pytest.fixture(scope='session')
 def smartloc_excerpt():
     from gnsscam_ros.datasets.smartloc import discover_files, load_smartloc

@@ -1,7 +1,15 @@
-"""Independent reference implementations the tests hold the package's code against."""
+"""Independent reference implementations the tests hold the package's code against.
+
+The plain numpy forms of the epoch's per-particle work (the package runs compiled kernels,
+``core.kernels``) are here: written for clarity, with the same arithmetic the kernels fuse.
+"""
+import math
+from dataclasses import dataclass
+
 import numpy as np
 
-from gnsscam_ros.core.particles import MotionIncrement
+from gnsscam_ros.core.gnss import LOG_SQRT_2PI, PreparedEpoch
+from gnsscam_ros.core.particles import STATE_DIM, YAW, MotionIncrement
 from gnsscam_ros.core.types import OdometrySeries
 
 
@@ -39,3 +47,516 @@ def integrate_odometry(odom: OdometrySeries, t0_ns: int, t1_ns: int) -> MotionIn
     sum_sq = float(np.sum(steps ** 2))
     return MotionIncrement(dt_s=dt_s, distance_m=distance, dyaw_rad=dyaw,
                            distance_var_m2=speed_var * sum_sq, dyaw_var_rad2=yaw_var * sum_sq)
+
+
+# ------------------------------------------------------------- GNSS (core.kernels.gnss)
+def ranges(positions_m: np.ndarray, sv_m: np.ndarray) -> np.ndarray:
+    """Geometric ranges (P, k) from (P, 3) positions to (k, 3) satellites [m].
+
+    Uses ``|s|^2 - 2 p.s + |p|^2`` (one matrix product); in a local frame |p| is small, so
+    the rounding of |s|^2 ~ 4e14 m^2 costs under a micrometre of range.
+    """
+    sq = positions_m @ (-2.0 * sv_m.T)
+    sq += (sv_m * sv_m).sum(1)
+    sq += np.einsum('ij,ij->i', positions_m, positions_m)[:, None]
+    return np.sqrt(sq, out=sq)
+
+
+def clock_inlier_weights(residual_m: np.ndarray, sigma_m: np.ndarray, sys_index: np.ndarray,
+                         n_systems: int, spread_m: float, iterations: int = 3) -> np.ndarray:
+    """Robust per-constellation clock at one reference point; returns satellite weights.
+
+    For each constellation, every satellite's residual is a clock candidate; the one with
+    the most support under a Gaussian kernel wins, then a few mean-shift steps refine it
+    (a Welsch M-estimator). The kernel width is the measurement noise widened by how far
+    the reference point may be from the particles (``spread_m``), so that geometry alone
+    does not turn healthy satellites into outliers.
+
+    Args:
+        residual_m: (k,) pseudorange minus range at the reference point [m].
+        sigma_m: (k,) measurement standard deviations [m].
+        sys_index: (k,) constellation index.
+        n_systems: Number of constellations.
+        spread_m: Position uncertainty of the reference point [m].
+        iterations: Mean-shift refinement steps.
+
+    Returns:
+        (k,) non-negative weights; within a constellation they sum to one.
+    """
+    width = np.sqrt(sigma_m ** 2 + spread_m ** 2)
+    weights = np.zeros_like(residual_m)
+    for s in range(n_systems):
+        idx = np.flatnonzero(sys_index == s)
+        r, h = residual_m[idx], width[idx]
+        support = np.exp(-0.5 * ((r[None, :] - r[:, None]) / h[None, :]) ** 2).sum(1)
+        clock = r[np.argmax(support)]
+        for _ in range(iterations):
+            w = np.exp(-0.5 * ((r - clock) / h) ** 2) / h ** 2
+            clock = float(w @ r / w.sum())
+        w = np.exp(-0.5 * ((r - clock) / h) ** 2) / h ** 2
+        weights[idx] = w / w.sum()
+    return weights
+
+
+def clock_corrected_residuals(positions_m: np.ndarray, prep: PreparedEpoch,
+                              clock_weights: np.ndarray) -> np.ndarray:
+    """Residuals (P, k) after removing each particle's own per-constellation clock [m]."""
+    residual = ranges(positions_m, prep.sv_enu_m)
+    np.subtract(prep.pr_m, residual, out=residual)
+    onehot = np.zeros((prep.pr_m.shape[0], prep.n_systems))
+    onehot[np.arange(prep.pr_m.shape[0]), prep.sys_index] = clock_weights
+    clock = residual @ onehot                       # (P, S): inlier-weighted mean residual
+    residual -= clock[:, prep.sys_index]
+    return residual
+
+
+@dataclass(frozen=True)
+class OracleLikelihood:
+    """Per-particle GNSS log-likelihoods of M sets, with the EM mixture weights.
+
+    Attributes:
+        log_lik: (M, N) log-likelihood of each particle.
+        gamma: (M, k) satellite mixture weights of each set.
+    """
+
+    log_lik: np.ndarray
+    gamma: np.ndarray
+
+
+def particle_raim_log_likelihood(z: np.ndarray, log_sigma: np.ndarray, prior_log_w: np.ndarray,
+                                 dirichlet_alpha: float) -> OracleLikelihood:
+    """The Particle RAIM mixture likelihood with weights from one EM step.
+
+    Args:
+        z: (M, N, k) normalised residuals ``e / sigma``.
+        log_sigma: (k,) log standard deviations.
+        prior_log_w: (N,) or (M, N) normalised prior log-weights (for MAP pooling).
+        dirichlet_alpha: Dirichlet concentration (> 1 keeps every satellite possible).
+
+    Returns:
+        Log-likelihoods (M, N) and mixture weights gamma (M, k).
+    """
+    # E-step, squared-normal voting: a particle votes for satellite k with exp(-z^2/2),
+    # normalised over satellites (a softmax, computed once with a max shift).
+    a = -0.5 * z * z
+    a_max = a.max(axis=-1, keepdims=True)
+    e = np.exp(a - a_max)
+    e_sum = e.sum(axis=-1, keepdims=True)
+    votes = e / e_sum
+    # M-step, MAP pooling: gamma_k = (sum_p w_p v_pk + alpha - 1) / (1 + k (alpha - 1)).
+    w = np.exp(np.broadcast_to(prior_log_w, z.shape[:2]))
+    pooled = np.einsum('mn,mnk->mk', w, votes)
+    k = z.shape[-1]
+    gamma = (pooled + dirichlet_alpha - 1.0) / (1.0 + k * (dirichlet_alpha - 1.0))
+    # log sum_k gamma_k N(e_k; 0, sigma_k) = a_max + log sum_k gamma_k/sigma_k exp(a - a_max)
+    scale = gamma * np.exp(-log_sigma)[None, :]
+    log_lik = a_max[..., 0] + np.log(np.einsum('mnk,mk->mn', e, scale)) - LOG_SQRT_2PI
+    return OracleLikelihood(log_lik=log_lik, gamma=gamma)
+
+
+def robust_inlier_probability(z: np.ndarray, log_sigma: np.ndarray, outlier_prob: float,
+                              outlier_range_m: float, log_w: np.ndarray) -> np.ndarray:
+    """Posterior probability that each satellite is an inlier, under the robust model,
+    averaged over one weighted particle set.
+
+    Args:
+        z: (N, k) normalised residuals of the set.
+        log_sigma: (k,) log standard deviations.
+        outlier_prob: Outlier probability eps.
+        outlier_range_m: Width of the uniform outlier density [m].
+        log_w: (N,) normalised log-weights.
+
+    Returns:
+        (k,) probabilities in [0, 1].
+    """
+    dens = np.exp(-0.5 * z * z) * ((1.0 - outlier_prob) * np.exp(-log_sigma - LOG_SQRT_2PI))
+    inlier = dens / (dens + outlier_prob / outlier_range_m)
+    return np.exp(log_w) @ inlier
+
+
+def robust_log_likelihood(z: np.ndarray, log_sigma: np.ndarray, outlier_prob: float,
+                          outlier_range_m: float, inlier_share: bool = True) -> OracleLikelihood:
+    """Product over satellites of a Gaussian with a uniform outlier floor.
+
+    ``log L = sum_k log((1 - eps) N(e_k; 0, sigma_k) + eps / range_out)``: every healthy
+    satellite contributes evidence (the mixture over satellites lets the best-fitting one
+    dominate), while a faulty one costs at most a constant. The floor keeps the sum away
+    from zero, so the per-satellite term is evaluated directly (one exp, one log) without a
+    log-sum-exp shift: an underflowing Gaussian simply leaves the floor.
+
+    Args:
+        z: (M, N, k) normalised residuals.
+        log_sigma: (k,) log standard deviations.
+        outlier_prob: Outlier probability eps.
+        outlier_range_m: Width of the uniform outlier density [m].
+        inlier_share: Also return the per-satellite inlier share (costs one more pass; the
+            filter asks for it on the chosen set only).
+
+    Returns:
+        Log-likelihoods (M, N) and, as ``gamma``, the posterior inlier probability per
+        satellite (M, k) averaged over particles and normalised (None when not asked for).
+    """
+    dens = np.square(z)
+    dens *= -0.5
+    np.exp(dens, out=dens)
+    dens *= (1.0 - outlier_prob) * np.exp(-log_sigma - LOG_SQRT_2PI)
+    floor = outlier_prob / outlier_range_m
+    gamma = None
+    if inlier_share:
+        inlier = (dens / (dens + floor)).mean(axis=1)
+        gamma = inlier / inlier.sum(axis=-1, keepdims=True)
+    dens += floor
+    log_lik = np.log(dens, out=dens).sum(axis=-1)
+    return OracleLikelihood(log_lik=log_lik, gamma=gamma)
+
+
+# --------------------------------------------------------- motion (core.kernels.motion)
+def propagate(particles: np.ndarray, distance_m: np.ndarray, dyaw_rad: np.ndarray,
+              dup_m: float, pos_var_m2: np.ndarray, yaw_var_rad2: float,
+              rng: np.random.Generator) -> np.ndarray:
+    """(M, N, 4): the (N, 4) set moved by each of M motion samples along the mid-interval
+    heading, with per-particle process noise (float32 standard normal draws)."""
+    m, n = distance_m.shape[0], particles.shape[0]
+    noise = rng.standard_normal((m, n, STATE_DIM), dtype=np.float32)
+    cos_n, sin_n = np.cos(particles[:, YAW]), np.sin(particles[:, YAW])
+    half = 0.5 * dyaw_rad
+    step_c = (distance_m * np.cos(half))[:, None]
+    step_s = (distance_m * np.sin(half))[:, None]
+    out = np.empty((m, n, STATE_DIM))
+    out[..., 0] = particles[None, :, 0] + step_c * cos_n - step_s * sin_n
+    out[..., 1] = particles[None, :, 1] + step_c * sin_n + step_s * cos_n
+    out[..., 2] = particles[None, :, 2] + dup_m
+    out[..., :3] += np.sqrt(pos_var_m2) * noise[..., :3]
+    out[..., YAW] = particles[None, :, YAW] + dyaw_rad[:, None] + np.sqrt(
+        yaw_var_rad2) * noise[..., YAW]
+    return out
+
+
+def weighted_mean_cov(points: np.ndarray, log_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted mean (d,) and covariance (d, d) of (N, d) points, normalised log-weights."""
+    w = np.exp(log_w)
+    mean = w @ points
+    centred = points - mean
+    return mean, (centred * w[:, None]).T @ centred
+
+
+def satellite_rejections(epoch, elevation_mask_deg: float = 0.0, cn0_mask_dbhz: float = 0.0,
+                         max_radius_m: float = 1e8, max_pr_m: float = 1e8,
+                         max_var_m2: float = 1e12) -> tuple[np.ndarray, dict]:
+    """``(keep (k,), {reason: count})`` of the per-satellite checks of an epoch, in order:
+    non-finite, non-positive, out of range, duplicated (system, sv_id), below a mask."""
+    keep = np.ones(epoch.n_sv, dtype=bool)
+    rejected: dict[str, int] = {}
+
+    def drop(mask, reason):
+        nonlocal keep
+        hit = mask & keep
+        if hit.any():
+            rejected[reason] = rejected.get(reason, 0) + int(hit.sum())
+            keep &= ~hit
+
+    finite = (np.isfinite(epoch.pr_m) & np.all(np.isfinite(epoch.sv_pos_ecef_m), axis=1)
+              & np.isfinite(epoch.var_m2))
+    drop(~finite, 'non_finite')
+    drop(finite & ((epoch.pr_m <= 0.0) | (epoch.var_m2 <= 0.0)), 'non_positive')
+    with np.errstate(over='ignore', invalid='ignore'):
+        radius = np.sqrt(np.einsum('ij,ij->i', epoch.sv_pos_ecef_m, epoch.sv_pos_ecef_m))
+        drop(finite & ((radius > max_radius_m) | (epoch.pr_m > max_pr_m)
+                       | (epoch.var_m2 > max_var_m2)), 'out_of_range')
+    key = epoch.system.astype(np.int64) * 100000 + epoch.sv_id.astype(np.int64)
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    drop(counts[inverse] > 1, 'duplicate')
+    with np.errstate(invalid='ignore'):
+        drop(epoch.elevation_deg < elevation_mask_deg, 'elevation_mask')
+        drop(epoch.cn0_dbhz < cn0_mask_dbhz, 'cn0_mask')
+    return keep, rejected
+
+
+# ============================================================ camera fusion (paper §5)
+# The numpy forms the compiled camera kernel replaced (``core.kernels.camera``).
+def camera_log_q(positions_m: np.ndarray, match_enu_m: np.ndarray, temperature_m: float,
+                 gate_m: float | None = None) -> np.ndarray:
+    """Per-set log softmax of ``-distance / T`` over the particles, for one or K matches.
+
+    The distance is Euclidean in 3D as in the paper.
+
+    Args:
+        positions_m: (M, N, 3) particle positions [m].
+        match_enu_m: (3,) matched position at the epoch, or (K, 3) for K matches [m].
+        temperature_m: Softmax temperature T [m].
+        gate_m: Gate distance R [m]; None for the paper's plain softmax over particles.
+
+    Returns:
+        (M, N + 1) log Q with the "elsewhere" cell last, or (M, N) without a gate; with K
+        matches a leading K axis. The cell weighs as much as N particles at the gate
+        distance (logit ``-R / T + log N``).
+    """
+    pos = np.asarray(positions_m, dtype=float)[..., :3]
+    match = np.asarray(match_enu_m, dtype=float)
+    matches = match.reshape(-1, match.shape[-1])[:, :3]
+    m, n = pos.shape[0], pos.shape[1]
+    centre = pos[:, 0, :].mean(axis=0)
+    flat = pos.reshape(-1, 3) - centre
+    rel = matches - centre
+    d2 = rel @ (-2.0 * flat.T)
+    d2 += np.einsum('ij,ij->i', flat, flat)[None, :]
+    d2 += np.einsum('ij,ij->i', rel, rel)[:, None]
+    np.maximum(d2, 0.0, out=d2)
+    logits = np.sqrt(d2, out=d2).reshape(len(matches), m, n)
+    logits *= -1.0 / temperature_m
+    if gate_m is not None:
+        logits = np.concatenate(
+            [logits, np.full(logits.shape[:-1] + (1,), -gate_m / temperature_m + np.log(n))],
+            axis=-1)
+    top = logits.max(axis=-1, keepdims=True)
+    log_norm = top + np.log(np.exp(logits - top).sum(axis=-1, keepdims=True))
+    logits -= log_norm
+    return logits if match.ndim > 1 else logits[0]
+
+
+def fuse_camera(log_p: np.ndarray, log_q: np.ndarray, kl_threshold_nats: float,
+                elsewhere_prob: float | None = None):
+    """Mixture-of-experts weights and the camera mixture for every posterior set.
+
+    Args:
+        log_p: (M, N) normalised log GNSS distribution over the particles of each set.
+        log_q: (K, M, N) normalised log camera distributions, or (K, M, N + 1) with the
+            "elsewhere" cell last (see :func:`camera_log_q`).
+        kl_threshold_nats: Exclude the camera of a set when every KL(Q_j || P) exceeds it.
+        elsewhere_prob: GNSS probability of the "elsewhere" cell (needed with that cell).
+
+    Returns:
+        ``core.fusion.FusionResult``; ``log_q_mix`` covers the N particles only.
+    """
+    from scipy.special import logsumexp
+
+    from gnsscam_ros.core.fusion import FusionResult
+    n = log_p.shape[-1]
+    if log_q.shape[-1] == n + 1:
+        if elsewhere_prob is None:
+            raise ValueError('log_q has an elsewhere cell: give elsewhere_prob')
+        log_p = np.concatenate([log_p + np.log1p(-elsewhere_prob),
+                                np.full(log_p.shape[:-1] + (1,), np.log(elsewhere_prob))],
+                               axis=-1)
+    elif log_q.shape[-1] != n:
+        raise ValueError(f'log_q has {log_q.shape[-1]} cells for {n} particles')
+    q = np.exp(log_q)
+    kl = (q * (log_q - log_p[None])).sum(-1)
+    k = -kl / q.sum(-1) - 1.0
+    alpha = np.exp(k - logsumexp(k, axis=0, keepdims=True))
+    mix = np.einsum('km,kmn->mn', alpha, q[..., :n])
+    with np.errstate(divide='ignore'):
+        log_q_mix = np.log(mix)
+    tiny = mix < 1e-280
+    if tiny.any():
+        exact = logsumexp(log_q[..., :n] + np.log(np.maximum(alpha, 1e-300))[..., None],
+                          axis=0)
+        log_q_mix[tiny] = exact[tiny]
+    excluded = kl.min(axis=0) > kl_threshold_nats
+    log_q_mix[excluded] = 0.0
+    return FusionResult(log_q_mix=log_q_mix, alpha=alpha, kl_nats=kl, excluded=excluded)
+
+
+# ============================================================ integrity (paper §6)
+# The numpy forms the compiled posterior kernels replaced (``core.kernels.posterior``).
+def inverse_bernoulli_exact(q, eps, iterations: int = 64) -> np.ndarray:
+    """``t >= 0`` with ``kl(q || q + t) = eps``: vectorised bisection on ``[q, 1]``."""
+    from gnsscam_ros.core.integrity import bernoulli_kl
+    q, eps = np.broadcast_arrays(np.asarray(q, dtype=float), np.asarray(eps, dtype=float))
+    lo = q.copy()
+    hi = np.ones_like(q)
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        above = bernoulli_kl(q, mid) > eps
+        hi = np.where(above, mid, hi)
+        lo = np.where(above, lo, mid)
+    return 0.5 * (lo + hi) - q
+
+
+def posterior_distances(posteriors, centre_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(M, N) distances of every posterior's particles from ``centre_m`` and their (M, N)
+    weights, by the kernel's arithmetic: ``r = x - centre``, ``d = |r - offset_j|`` with
+    the squares summed east, north (, up)."""
+    dims = 2 if posteriors.horizontal else 3
+    rel = posteriors.positions_m[..., :dims] - np.asarray(centre_m, dtype=float)[:dims]
+    diff = rel[posteriors.motion_index] - posteriors.offsets_m[:, None, :dims]
+    d2 = diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]
+    if dims == 3:
+        d2 = d2 + diff[..., 2] * diff[..., 2]
+    return np.sqrt(d2), np.exp(posteriors.log_w[posteriors.motion_index])
+
+
+def hazard_mass(dist: np.ndarray, w: np.ndarray, radii_m) -> np.ndarray:
+    """Mean over the M posteriors of the mass at or beyond each radius, (A,)."""
+    radii = np.atleast_1d(np.asarray(radii_m, dtype=float))
+    masses = np.array([(w * (dist >= r)).sum() for r in radii]) / dist.shape[0]
+    return np.clip(masses, 0.0, 1.0)
+
+
+def protection_level(dist: np.ndarray, w: np.ndarray, q_max: float) -> float:
+    """The smallest ``v`` in ``{0} ∪ {distances}`` whose pooled mass strictly beyond it is
+    at most ``q_max`` (a full sort of the M * N distances; ties form one value)."""
+    if not q_max > 0.0:
+        return float('inf')
+    d, w = dist.ravel(), w.ravel() / dist.shape[0]
+    order = np.argsort(d, kind='stable')
+    d, w = d[order], w[order]
+    values, first = np.unique(d, return_index=True)
+    group = np.add.reduceat(w, first)
+    # beyond[i]: mass strictly beyond values[i]; candidate 0 has the mass of d > 0.
+    beyond = np.concatenate((np.cumsum(group[::-1])[::-1][1:], [0.0]))
+    ok = np.flatnonzero(beyond <= q_max)
+    level = float(values[ok[0]])
+    positive = group[values > 0.0].sum()
+    return 0.0 if positive <= q_max else level
+
+
+def pooled_moments(posteriors) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (3,) and covariance (3, 3) of the pooled (equal-share) mixture of the M
+    posteriors, from the per-sample moments (einsums)."""
+    w = np.exp(posteriors.log_w)
+    pos = posteriors.positions_m[..., :3]
+    means = np.einsum('sn,snd->sd', w, pos)
+    centred = pos - means[:, None, :]
+    covs = np.einsum('sn,snd,sne->sde', w, centred, centred)
+    component_means = means[posteriors.motion_index] - posteriors.offsets_m
+    mean = component_means.mean(axis=0)
+    spread = component_means - mean
+    cov = covs[posteriors.motion_index].mean(axis=0) + spread.T @ spread / len(spread)
+    return mean, cov
+
+
+class NumpyPosteriorSet:
+    """The numpy ``PosteriorSet`` methods the kernels replaced, verbatim: float32
+    distances by one small matrix product per motion sample, a partitioned sort for the
+    protection level, einsum moments (``gnsscam_bench_kernels`` times them)."""
+
+    def __init__(self, posteriors):
+        self.positions_m = posteriors.positions_m
+        self.log_w = np.asarray(posteriors.log_w)
+        self.motion_index = posteriors.motion_index
+        self.offsets_m = posteriors.offsets_m
+        self.horizontal = posteriors.horizontal
+        self.posteriors = posteriors
+
+    def distances(self, centre_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distances (M, N) of every posterior's particles from ``centre_m`` and their
+        weights (M, N), each row summing to one."""
+        dims = 2 if self.horizontal else 3
+        # Particles of posterior j sit at x - o_j, so with r = x - centre:
+        # |r - o_j|^2 = |r|^2 - 2 r.o_j + |o_j|^2, one small matrix product per motion
+        # sample instead of an (M, N, d) copy. Relative coordinates are small: single
+        # precision is ample for the M * N result.
+        rel = self.positions_m[..., :dims] - np.asarray(centre_m, dtype=float)[:dims]
+        offsets = self.offsets_m[:, :dims]
+        dist = np.empty((self.motion_index.shape[0], rel.shape[1]), dtype=np.float32)
+        r2 = np.einsum('snd,snd->sn', rel, rel)
+        o2 = np.einsum('md,md->m', offsets, offsets)
+        for s in range(rel.shape[0]):
+            rows = np.flatnonzero(self.motion_index == s)
+            if rows.size:
+                d2 = r2[s][None, :] - 2.0 * (offsets[rows] @ rel[s].T) + o2[rows][:, None]
+                dist[rows] = np.sqrt(np.maximum(d2, 0.0))
+        return dist, np.exp(self.log_w[self.motion_index])
+
+    def hazard_mass(self, centre_m: np.ndarray, radii_m, dist_w: tuple | None = None
+                    ) -> np.ndarray:
+        """Mean over the M posteriors of the mass at or beyond each radius, (A,).
+
+        With the estimate as centre this is the empirical risk ``R_M``; with the true
+        position it is the reference risk (evaluation only). ``dist_w``: the result of
+        :meth:`distances` for this centre, when already at hand.
+        """
+        dist, w = self.distances(centre_m) if dist_w is None else dist_w
+        radii = np.atleast_1d(np.asarray(radii_m, dtype=float))
+        # A is small (1-3): one weighted count per radius, no sort needed.
+        masses = np.array([(w * (dist >= r)).sum() for r in radii]) / dist.shape[0]
+        return np.clip(masses, 0.0, 1.0)
+
+    def protection_level(self, centre_m: np.ndarray, q_max: float,
+                         dist_w: tuple | None = None) -> float:
+        """Smallest radius around ``centre_m`` with at most ``q_max`` pooled mass beyond it.
+
+        Args:
+            centre_m: (3,) the estimate [m].
+            q_max: Largest admissible empirical risk (:func:`max_empirical_risk`).
+            dist_w: The result of :meth:`distances` for this centre, when at hand.
+
+        Returns:
+            The radius [m]; ``inf`` when ``q_max`` is 0 and the posteriors do not all sit
+            at the centre, i.e. when no radius can be certified.
+        """
+        if not q_max > 0.0:
+            return float('inf')
+        dist, w = self.distances(centre_m) if dist_w is None else dist_w
+        dist, w = dist.ravel(), w.ravel() / dist.shape[0]
+        # Only the far tail matters (q_max is a few per cent): partition off the farthest
+        # candidates, check that they hold more than q_max, and sort just those.
+        n = dist.shape[0]
+        count = min(n, int(8 * q_max * n) + 256)
+        while True:
+            if count < n:
+                part = np.argpartition(dist, n - count)[n - count:]
+                d_tail, w_tail = dist[part], w[part]
+                if w_tail.sum() <= q_max:     # too few (heavy weights in the tail): widen
+                    count = min(n, 4 * count)
+                    continue
+            else:
+                d_tail, w_tail = dist, w
+            break
+        order = np.argsort(d_tail)
+        d, w = d_tail[order], w_tail[order]
+        # tail[k] = mass at or beyond d[k]; R_M(r) for d[k-1] < r <= d[k] is tail[k]. The
+        # level is the smallest d[k-1] whose strict tail (tail[k]) is within q_max.
+        tail = np.cumsum(w[::-1])[::-1]
+        k = int(np.searchsorted(-tail, -q_max, side='left'))
+        return float(d[k - 1]) if k > 0 else 0.0
+
+    def pooled_moments(self) -> tuple[np.ndarray, np.ndarray]:
+        """Mean (3,) and covariance (3, 3) of the pooled (equal-share) mixture of the M
+        posteriors, from the per-sample moments (no M * N copy)."""
+        w = np.exp(self.log_w)
+        means = np.einsum('sn,snd->sd', w, self.positions_m)
+        centred = self.positions_m - means[:, None, :]
+        covs = np.einsum('sn,snd,sne->sde', w, centred, centred)
+        component_means = means[self.motion_index] - self.offsets_m
+        mean = component_means.mean(axis=0)
+        spread = component_means - mean
+        cov = covs[self.motion_index].mean(axis=0) + spread.T @ spread / len(spread)
+        return mean, cov
+
+
+def _bernoulli_kl_scalar(q: float, p: float) -> float:
+    out = q * math.log(q / p) if q > 0.0 else 0.0
+    return out + ((1.0 - q) * math.log((1.0 - q) / (1.0 - p)) if q < 1.0 else 0.0)
+
+
+def max_empirical_risk_exact(target: float, eps: float, iterations: int = 60) -> float:
+    """The exact inverse's threshold by a Python scalar bisection."""
+    if -math.log1p(-target) < eps:
+        return 0.0
+    lo, hi = 0.0, target
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        if _bernoulli_kl_scalar(mid, target) >= eps:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+def integrity_epoch(posteriors, priors, mean: np.ndarray, limits: np.ndarray,
+                    target: float = 0.1, delta: float = 0.1):
+    """The risk bound and level of an epoch as ``ParticleFilter._integrity`` computed them
+    before the kernels: pooled moments twice, Gaussian KL, float32 distances, hazard mass,
+    vectorised inverse Bernoulli, scalar threshold, partitioned level."""
+    from gnsscam_ros.core import integrity
+    post, prior = NumpyPosteriorSet(posteriors), NumpyPosteriorSet(priors)
+    kl = integrity.gaussian_kl(*post.pooled_moments(), *prior.pooled_moments())
+    m = posteriors.n_posteriors
+    dist_w = post.distances(mean)
+    empirical = post.hazard_mass(mean, limits, dist_w)
+    eps = integrity.divergence_budget(kl, m, delta)
+    bound = np.minimum(empirical + inverse_bernoulli_exact(empirical, eps), 1.0)
+    q_max = max_empirical_risk_exact(target, eps)
+    return bound, post.protection_level(mean, q_max, dist_w)

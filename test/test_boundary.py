@@ -317,6 +317,32 @@ def test_gate_adopts_a_consistent_new_time_base_after_k_messages():
         gate.admit(T0 + 21 * S)
 
 
+def test_gate_takes_a_new_time_base_only_once_it_has_been_received_for_a_while():
+    """A burst of consistent far stamps arriving within milliseconds (garbage, a replayed
+    buffer) is not a new clock: the run must also span NEW_TIME_BASE_SPAN_S of receipt
+    time, and the stream that goes on afterwards is never interrupted."""
+    span = lim.NEW_TIME_BASE_SPAN_S
+    gate = StampGate()
+    for k in range(20):
+        assert gate.admit(T0 + k * S, received_s=100.0 + k) == ADVANCE
+    future = T0 + 10_000 * S
+    for k in range(3 * K):               # three times the messages, within 10 ms
+        with pytest.raises(ma.MessageError):
+            gate.admit(future + k * 1000, received_s=119.0 + k * span / 1000)
+    assert gate.admit(T0 + 20 * S, received_s=120.0) == ADVANCE
+    assert gate.time_base_changes == 0
+    # A clock that keeps sending the new base: adopted at the first message at least
+    # NEW_TIME_BASE_SPAN_S after its run began (and after K messages).
+    verdicts = []
+    for k in range(3 * K):
+        try:
+            verdicts.append(gate.admit(future + k * S, received_s=121.0 + k * span / 4))
+        except ma.MessageError:
+            verdicts.append('refused')
+    first = verdicts.index(NEW_BASE)
+    assert first == max(K - 1, 4) and verdicts[first + 1:] == [ADVANCE] * (3 * K - first - 1)
+
+
 def test_gate_rewind_within_the_window_is_a_new_time_base_too():
     """A bag replayed again: its stamps are behind the stream (out of order for the node)
     but consistent with each other, so the node is not blocked for the length of the bag."""
@@ -548,12 +574,21 @@ def test_single_malformed_messages_are_refused_counted_and_change_no_output(shor
         assert other_bound == bound or (math.isnan(bound) and math.isnan(other_bound))
 
 
+def no_receipt_span(node) -> None:
+    """Let the node's stamp gates adopt a new time base without a receipt span."""
+    for handler in node.inputs.values():
+        handler.gate.span_s = 0.0
+
+
 @pytest.mark.slow
 @pytest.mark.ros
 def test_a_replay_started_again_is_a_new_time_base_not_a_permanent_block(graph, short_drive):
     from gnsscam_ros.nodes.gnss_node import GnssNode
     g = graph
     gnss = g.add(GnssNode(context=g.ctx))
+    # The passes are published as fast as they go: no receipt span (the gate's own test
+    # holds the span rule).
+    no_receipt_span(gnss)
     pub = g.publisher(PointCloud2, 'gnss/pseudoranges')
     g.connect(pub)
     epochs = short_drive.gnss
@@ -586,6 +621,7 @@ def test_fusion_resets_its_engine_on_a_new_time_base(graph, short_drive):
     from gnsscam_ros.nodes.fusion_node import FusionNode
     g = graph
     fusion = g.add(FusionNode(context=g.ctx, parameter_overrides=_overrides(n_particles=50)))
+    no_receipt_span(fusion)
     pub = g.publisher(PointCloud2, 'gnss/measurements')
     g.connect(pub)
 

@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 from synthetic import FRAME, epoch_at, sky
 
 from gnsscam_ros.core import gnss
+from gnsscam_ros.core.filter import FilterConfig
 from gnsscam_ros.core.frames import sagnac_corrected
 from gnsscam_ros.core.snapshot import solve_snapshot
 from gnsscam_ros.core.types import GLONASS, GPS
@@ -49,15 +50,15 @@ def test_sagnac_correction_matters_and_is_exact():
     assert np.max(np.abs(raw - epoch.pr_m)) > 5.0      # tens of metres at mid latitudes
 
 
-def test_ranges_match_direct_norm(rng):
-    pts = rng.normal(scale=50.0, size=(100, 3))
-    sv = FRAME.ecef_to_enu(sky())
-    direct = np.linalg.norm(sv[None] - pts[:, None], axis=2)
-    np.testing.assert_allclose(gnss.ranges(pts, sv), direct, atol=1e-5)
-
-
 def prepared(epoch, centre=TRUTH_ENU):
     return gnss.prepare_epoch(epoch, FRAME, centre, 10.0, False)
+
+
+def joint_of(likelihood, pts, prep, clock_w):
+    """The likelihood's joint log-weights of one set of points under a uniform prior."""
+    model = gnss.make_likelihood(FilterConfig(likelihood=likelihood))
+    uniform = np.full(len(pts), -np.log(len(pts)))
+    return model.joint(pts[None], prep, clock_w, 1.0, uniform)
 
 
 @pytest.mark.parametrize('likelihood', ['particle_raim', 'robust'])
@@ -68,15 +69,8 @@ def test_likelihood_peaks_at_truth_with_unknown_clock(likelihood):
     centre = TRUTH_ENU + np.array([6.0, -4.0, 0.0])     # the prior is off the truth
     prep = prepared(epoch, centre)
     pts = grid_around(TRUTH_ENU)
-    res_c = prep.pr_m - gnss.ranges(centre[None], prep.sv_enu_m)[0]
-    w = gnss.clock_inlier_weights(res_c, prep.sigma_m, prep.sys_index, prep.n_systems, 8.0)
-    z = (gnss.clock_corrected_residuals(pts, prep, w) / prep.sigma_m)[None]
-    if likelihood == 'particle_raim':
-        lik = gnss.particle_raim_log_likelihood(z, np.log(prep.sigma_m),
-                                                np.full(len(pts), -np.log(len(pts))), 1.01)
-    else:
-        lik = gnss.robust_log_likelihood(z, np.log(prep.sigma_m), 0.3, 300.0)
-    best = pts[np.argmax(lik.log_lik[0])]
+    lik = joint_of(likelihood, pts, prep, gnss.clock_weights(prep, centre, 8.0))
+    best = pts[np.argmax(lik.joint[0])]
     np.testing.assert_allclose(best[:2], TRUTH_ENU[:2], atol=1.01)
 
 
@@ -87,14 +81,16 @@ def test_faulty_satellite_gets_lowest_mixture_weight():
     prep = prepared(replace(epoch, pr_m=pr))
     rng = np.random.default_rng(0)
     pts = TRUTH_ENU + rng.normal(scale=3.0, size=(2000, 3))
-    res_c = prep.pr_m - gnss.ranges(TRUTH_ENU[None], prep.sv_enu_m)[0]
-    w = gnss.clock_inlier_weights(res_c, prep.sigma_m, prep.sys_index, prep.n_systems, 3.0)
+    w = gnss.clock_weights(prep, TRUTH_ENU, 3.0)
     assert w[3] < 1e-6 * w.max()                       # the fault is out of the clock
-    z = (gnss.clock_corrected_residuals(pts, prep, w) / prep.sigma_m)[None]
-    lik = gnss.particle_raim_log_likelihood(z, np.log(prep.sigma_m),
-                                            np.full(len(pts), -np.log(len(pts))), 1.01)
+    lik = joint_of('particle_raim', pts, prep, w)
     assert np.argmin(lik.gamma[0]) == 3
     assert np.isclose(lik.gamma[0].sum(), 1.0)
+    # The robust model's inlier share says the same.
+    uniform = np.full(len(pts), -np.log(len(pts)))
+    probability, share = gnss.robust_inlier_shares(pts, uniform, prep, w, 0.3, 300.0)
+    assert np.argmin(share) == 3 and np.isclose(share.sum(), 1.0)
+    assert probability[3] < 0.01 < 0.9 < np.delete(probability, 3).min()
 
 
 @settings(max_examples=30, deadline=None)
@@ -107,12 +103,8 @@ def test_likelihood_invariant_to_per_system_clock(shift_gps, shift_glo):
     out = []
     for ep in (base, shifted):
         prep = prepared(ep)
-        res_c = prep.pr_m - gnss.ranges(TRUTH_ENU[None], prep.sv_enu_m)[0]
-        w = gnss.clock_inlier_weights(res_c, prep.sigma_m, prep.sys_index, prep.n_systems,
-                                      3.0)
-        z = (gnss.clock_corrected_residuals(pts, prep, w) / prep.sigma_m)[None]
-        out.append(gnss.robust_log_likelihood(z, np.log(prep.sigma_m), 0.3, 300.0).log_lik)
-    np.testing.assert_allclose(out[0], out[1], atol=1e-6)
+        out.append(joint_of('robust', pts, prep, gnss.clock_weights(prep, TRUTH_ENU, 3.0)))
+    np.testing.assert_allclose(out[0].joint, out[1].joint, atol=1e-6)
 
 
 def test_check_epoch_rejects_bad_satellites():
@@ -138,7 +130,6 @@ def test_single_satellite_constellation_is_set_aside():
 
 
 def test_likelihood_objects_are_the_registry_of_the_likelihood_parameter():
-    from gnsscam_ros.core.filter import FilterConfig
     assert gnss.LIKELIHOODS == tuple(gnss.LIKELIHOOD_MODELS) == ('particle_raim', 'robust')
     raim = gnss.make_likelihood(FilterConfig(likelihood='particle_raim', dirichlet_alpha=1.2))
     robust = gnss.make_likelihood(FilterConfig(outlier_prob=0.2).gnss)
@@ -146,18 +137,3 @@ def test_likelihood_objects_are_the_registry_of_the_likelihood_parameter():
     assert robust == gnss.RobustLikelihood(0.2, FilterConfig().outlier_range_m)
     with pytest.raises(ValueError, match='likelihood must be one of'):
         gnss.make_likelihood(SimpleNamespace(likelihood='gauss'))
-    # The objects compute what the functions compute, and the chosen set's weights.
-    rng = np.random.default_rng(3)
-    z = rng.normal(size=(3, 50, 7))
-    log_sigma = np.log(rng.uniform(2.0, 5.0, 7))
-    prior = np.full(50, -np.log(50))
-    lik = raim.log_likelihood(z, log_sigma, prior)
-    ref = gnss.particle_raim_log_likelihood(z, log_sigma, prior, 1.2)
-    np.testing.assert_array_equal(lik.log_lik, ref.log_lik)
-    np.testing.assert_array_equal(raim.mixture_weights(lik, z, log_sigma, 2), ref.gamma[2])
-    lik = robust.log_likelihood(z, log_sigma, prior)
-    ref = gnss.robust_log_likelihood(z, log_sigma, 0.2, 300.0)
-    np.testing.assert_array_equal(lik.log_lik, ref.log_lik)
-    assert lik.gamma is None                     # not computed for every set
-    np.testing.assert_allclose(robust.mixture_weights(lik, z, log_sigma, 1), ref.gamma[1],
-                               rtol=1e-12)

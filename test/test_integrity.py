@@ -95,3 +95,11 @@ def test_inverse_methods_are_the_registry_of_the_parameter():
                  lambda: integrity.max_empirical_risk(0.1, eps, 'bisect')):
         with pytest.raises(ValueError, match='unknown inverse Bernoulli method'):
             call()
+
+
+@pytest.mark.parametrize('target', [0.01, 0.1, 0.3])
+def test_compiled_threshold_equals_the_python_bisection(target):
+    from oracles import max_empirical_risk_exact
+    for eps in np.linspace(0.0, 0.5, 26):
+        assert integrity.max_empirical_risk(target, eps) == max_empirical_risk_exact(
+            target, eps)

@@ -302,3 +302,23 @@ def test_distances_equal_the_direct_formula():
     direct = np.linalg.norm((pos[cloud.motion_index] - cloud.offsets_m[:, None, :]
                              - centre)[..., :2], axis=-1)
     np.testing.assert_allclose(dist, direct, rtol=1e-5, atol=1e-4)
+
+
+def test_level_is_invariant_to_the_order_of_tied_particles():
+    # Resampled sets hold many copies of few particles: the level is a distance value
+    # whose strict tail fits, so any order of the copies gives the same level and masses.
+    rng = np.random.default_rng(8)
+    few = rng.normal(0.0, 4.0, (2, 30, 3))
+    pos = few[:, rng.integers(0, 30, 600)]
+    log_w = np.full((2, 600), -np.log(600))
+    offsets = rng.normal(0.0, 1.0, (6, 3))
+    cloud = integrity.PosteriorSet(pos, log_w, np.arange(6) % 2, offsets)
+    order = rng.permutation(600)
+    shuffled = integrity.PosteriorSet(pos[:, order], log_w, np.arange(6) % 2, offsets)
+    for q_max in (0.013, 0.05, 0.2):
+        masses, level = cloud.risk_and_level(np.zeros(3), [4.0, 8.0], q_max)
+        again = shuffled.risk_and_level(np.zeros(3), [4.0, 8.0], q_max)
+        assert again[1] == level
+        np.testing.assert_allclose(again[0], masses, rtol=0, atol=1e-14)
+        dist, _ = cloud.distances(np.zeros(3))
+        assert level in set(dist.ravel())

@@ -169,7 +169,7 @@ def test_a_step_that_raises_or_overflows_leaves_no_state_and_keeps_the_last_good
     broken = filt.likelihood
 
     class Raising:
-        def log_likelihood(self, *args):
+        def joint(self, *args):
             raise FloatingPointError('overflow encountered in exp')
 
     filt.likelihood = Raising()

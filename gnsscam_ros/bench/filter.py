@@ -1,9 +1,12 @@
 """``gnsscam_bench``: time one GNSS epoch of the filter and the bare likelihood arithmetic.
 
 Prints, for each particle count N per posterior (M posteriors, 12 satellites), the median
-wall time of a full filter epoch (propagate, clock, likelihood, EM weights, choice,
-risk bound, resampling) next to the bare arithmetic on the same M*N array (ranges plus a
-Gaussian log-sum-exp over satellites), and the peak resident memory.
+wall time of a full filter epoch through the epoch engine (propagate, clock, likelihood,
+choice, risk bound and protection level, resampling), the same with 10 camera matches per
+epoch, and the bare arithmetic on the same number of likelihood evaluations (ranges plus a
+Gaussian log-sum-exp over satellites, plain numpy: the yardstick); then the package's
+default configuration alone; then the peak resident memory. Kernels are compiled (or
+loaded from the cache) before anything is timed, and the time that took is printed.
 """
 from __future__ import annotations
 
@@ -19,13 +22,18 @@ import numpy as np
 from ..core.engine import EpochEngine
 from ..core.filter import FilterConfig
 from ..core.frames import LocalFrame
-from ..core.gnss import prepare_epoch, ranges
+from ..core.fusion import CameraMeasurement
+from ..core.gnss import prepare_epoch
 from ..core.motion import DeadReckoningState
+from ..core.warmup import warm_up_kernels
 from ..datasets.emulated.drive import make_emulated_drive
 from ..io.atomic import OutputExistsError, write_json_atomic
 from ..io.tables import format_table
 
 DEFAULT_COUNTS = (120, 1000, 10000, 100000)
+#: Posteriors M of the rows (the issue's yardstick: M = 10) and camera matches per epoch.
+BENCH_POSTERIORS = 10
+CAMERA_MATCHES = 10
 
 
 def _median_ms(fn, repeats: int) -> float:
@@ -42,7 +50,12 @@ def bare_likelihood(positions_m: np.ndarray, prep) -> np.ndarray:
     """The reference arithmetic: ranges and a Gaussian log-sum-exp over satellites."""
     # Written lean on purpose (max shift by hand, no scipy overhead) so that the reference
     # is not slower than it needs to be.
-    z = (prep.pr_m - ranges(positions_m, prep.sv_enu_m)) / prep.sigma_m
+    # Ranges as |s|^2 - 2 p.s + |p|^2: one matrix product, numpy's fastest form.
+    sv = prep.sv_enu_m
+    sq = positions_m @ (-2.0 * sv.T)
+    sq += (sv * sv).sum(1)
+    sq += np.einsum('ij,ij->i', positions_m, positions_m)[:, None]
+    z = (prep.pr_m - np.sqrt(sq, out=sq)) / prep.sigma_m
     a = -0.5 * z * z - np.log(prep.sigma_m)
     a_max = a.max(axis=1)
     return a_max + np.log(np.exp(a - a_max[:, None]).sum(axis=1))
@@ -58,16 +71,70 @@ def straight_state(stamp_ns: int, x_m: float, previous: DeadReckoningState | Non
                               distance_var_m2=var[0], yaw_var_rad2=var[1])
 
 
-def bench(counts=DEFAULT_COUNTS, n_posteriors: int | None = None,
-          likelihood: str | None = None, repeats: int = 15, seed: int = 0,
-          bias_model: str | None = None) -> dict:
-    """Median epoch times [ms] per particle count, and the bare arithmetic's.
+def _timed_engine(config: FilterConfig, epochs: list, frame: LocalFrame, seed: int,
+                  camera_matches: int):
+    """An engine after its first epoch, and a function that runs one more epoch.
 
-    ``n_posteriors`` and ``bias_model`` default to the package's (M = 200 posteriors from
-    10 motion samples with bias hypotheses); the likelihood is evaluated for the motion
-    samples only (``evaluations``)."""
+    Every call advances the stamp by 1 s with 8 m of dead reckoning (through the engine,
+    as fusion_node) and, with ``camera_matches``, that many camera matches spread over
+    the interval, each within a few metres of the current estimate (matches that agree
+    with GNSS: the fusion is computed, not excluded).
+    """
+    engine = EpochEngine(config, frame=frame, rng=np.random.default_rng(seed))
+    filt = engine.filter
+    rng = np.random.default_rng(seed + 1)
+    state = {'i': 1, 'dr': straight_state(epochs[0].stamp_ns - 1_000_000_000, 0.0)}
+    engine.add_dead_reckoning(state['dr'])
+    engine.add_gnss(epochs[0])
+    list(engine.ready_reports())
+
+    def one_epoch():
+        template = epochs[state['i'] % len(epochs)]
+        previous = filt.last_stamp_ns
+        stamp = previous + 1_000_000_000
+        state['dr'] = straight_state(stamp, state['dr'].x_m + 8.0, state['dr'])
+        engine.add_dead_reckoning(state['dr'])
+        centre = filt.last_result.position_enu_m
+        for j in range(camera_matches):
+            at = previous + (j + 1) * (1_000_000_000 // camera_matches)
+            engine.add_camera(at, CameraMeasurement(
+                stamp_ns=at, position_enu_m=centre + rng.normal(scale=3.0, size=3),
+                score=1.0, frame_id=state['i'] * camera_matches + j))
+        engine.add_gnss(replace(template, stamp_ns=stamp))
+        list(engine.ready_reports())
+        state['i'] += 1
+
+    return engine, one_epoch
+
+
+def _repeats(evaluations: int, repeats: int) -> int:
+    return max(3, min(repeats, int(2e6 // evaluations) + 3))
+
+
+def _bare_ms(filt, epoch, frame: LocalFrame, config: FilterConfig, evaluations: int,
+             repeats: int) -> float:
+    """The bare arithmetic over ``evaluations`` positions of the filter's last sets."""
+    positions = filt.posteriors[..., :3].reshape(-1, 3)
+    positions = np.ascontiguousarray(np.resize(positions, (evaluations, 3)))
+    prep = prepare_epoch(epoch, frame, positions.mean(0), config.measurement_var_m2, False)
+    reps = _repeats(evaluations, repeats)
+    return _median_ms(lambda: bare_likelihood(positions, prep), reps)
+
+
+def bench(counts=DEFAULT_COUNTS, n_posteriors: int = BENCH_POSTERIORS,
+          likelihood: str | None = None, repeats: int = 15, seed: int = 0,
+          bias_model: str | None = None, camera_matches: int = CAMERA_MATCHES,
+          default_config: bool = True) -> dict:
+    """Median epoch times [ms] per particle count (GNSS only and with camera matches),
+    the bare arithmetic's, and the package's default configuration.
+
+    The rows use ``n_posteriors`` (default 10) and the package's bias model; the
+    likelihood is evaluated for the motion samples only (``evaluations``, the size of the
+    bare arithmetic)."""
+    started = time.perf_counter()
+    warm_up_kernels()
+    warm_up_s = time.perf_counter() - started
     defaults = FilterConfig()
-    n_posteriors = defaults.n_posteriors if n_posteriors is None else n_posteriors
     bias_model = defaults.bias_model if bias_model is None else bias_model
     drive = make_emulated_drive(seed, faults=4, duration_s=60.0)
     epochs = [e for e in drive.gnss if e.n_sv == 12]
@@ -78,52 +145,64 @@ def bench(counts=DEFAULT_COUNTS, n_posteriors: int | None = None,
                               acquisition_particles=0, bias_model=bias_model)
         if likelihood is not None:
             config = replace(config, likelihood=likelihood)
-        engine = EpochEngine(config, frame=frame, rng=np.random.default_rng(seed))
-        filt = engine.filter
-        state = {'i': 1, 'dr': straight_state(epochs[0].stamp_ns - 1_000_000_000, 0.0)}
-        engine.add_dead_reckoning(state['dr'])
-        engine.add_gnss(epochs[0])
-        list(engine.ready_reports())
-
-        def one_epoch():
-            # Advance the stamp every call so each call is a fresh, valid epoch, with 8 m
-            # of dead reckoning over the interval (through the engine, as fusion_node).
-            template = epochs[state['i'] % len(epochs)]
-            stamp = filt.last_stamp_ns + 1_000_000_000
-            state['dr'] = straight_state(stamp, state['dr'].x_m + 8.0, state['dr'])
-            engine.add_dead_reckoning(state['dr'])
-            engine.add_gnss(replace(template, stamp_ns=stamp))
-            list(engine.ready_reports())
-            state['i'] += 1
-
         evaluations = n * config.motion_sample_count
-        reps = max(3, min(repeats, int(2e6 // evaluations) + 3))
+        reps = _repeats(evaluations, repeats)
+        engine, one_epoch = _timed_engine(config, epochs, frame, seed, 0)
         epoch_ms = _median_ms(one_epoch, reps)
-        positions = np.ascontiguousarray(filt.posteriors[..., :3].reshape(-1, 3))
-        prep = prepare_epoch(epochs[1], frame, positions.mean(0), config.measurement_var_m2,
-                             False)
-        bare_ms = _median_ms(lambda: bare_likelihood(positions, prep), reps)
-        rows[n] = {'epoch_ms': epoch_ms, 'bare_likelihood_ms': bare_ms,
-                   'ratio': epoch_ms / bare_ms, 'evaluations': evaluations,
+        bare_ms = _bare_ms(engine.filter, epochs[1], frame, config, evaluations, repeats)
+        camera_ms = float('nan')
+        if camera_matches:
+            _, one_camera_epoch = _timed_engine(config, epochs, frame, seed, camera_matches)
+            camera_ms = _median_ms(one_camera_epoch, reps)
+        rows[n] = {'epoch_ms': epoch_ms, 'camera_epoch_ms': camera_ms,
+                   'bare_likelihood_ms': bare_ms, 'ratio': epoch_ms / bare_ms,
+                   'camera_ratio': camera_ms / bare_ms, 'evaluations': evaluations,
                    'likelihood': config.likelihood}
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-    return {'epoch_ms_median': {str(n): r['epoch_ms'] for n, r in rows.items()},
-            'bare_likelihood_ms_median': {str(n): r['bare_likelihood_ms']
-                                          for n, r in rows.items()},
-            'details': {str(n): r for n, r in rows.items()},
-            'n_posteriors': n_posteriors, 'bias_model': bias_model, 'satellites': 12,
-            'peak_rss_mb': peak_mb}
+    result = {'epoch_ms_median': {str(n): r['epoch_ms'] for n, r in rows.items()},
+              'camera_epoch_ms_median': {str(n): r['camera_epoch_ms']
+                                         for n, r in rows.items()},
+              'bare_likelihood_ms_median': {str(n): r['bare_likelihood_ms']
+                                            for n, r in rows.items()},
+              'details': {str(n): r for n, r in rows.items()},
+              'n_posteriors': n_posteriors, 'bias_model': bias_model, 'satellites': 12,
+              'camera_matches': camera_matches, 'kernel_warm_up_s': warm_up_s}
+    if default_config:
+        result['default_config'] = _default_config(defaults, epochs, frame, seed, repeats)
+    result['peak_rss_mb'] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return result
+
+
+def _default_config(config: FilterConfig, epochs: list, frame: LocalFrame, seed: int,
+                    repeats: int) -> dict:
+    """The package's default configuration (heading acquisition over: the working size),
+    against the bare arithmetic at M * N evaluations (posteriors times particles) and at
+    S * N (what its likelihood evaluates)."""
+    config = replace(config, acquisition_particles=0)
+    n, m, s = config.n_particles, config.n_posteriors, config.motion_sample_count
+    engine, one_epoch = _timed_engine(config, epochs, frame, seed, 0)
+    epoch_ms = _median_ms(one_epoch, _repeats(n * s, repeats))
+    bare_mn = _bare_ms(engine.filter, epochs[1], frame, config, m * n, repeats)
+    bare_sn = _bare_ms(engine.filter, epochs[1], frame, config, s * n, repeats)
+    return {'n_particles': n, 'n_posteriors': m, 'motion_samples': s,
+            'epoch_ms_median': epoch_ms, 'bare_likelihood_ms_at_mn': bare_mn,
+            'bare_likelihood_ms_at_sn': bare_sn, 'ratio_at_mn': epoch_ms / bare_mn,
+            'ratio_at_sn': epoch_ms / bare_sn}
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog='gnsscam_bench', description=__doc__.split('\n')[0])
     parser.add_argument('--particles', type=int, nargs='+', default=list(DEFAULT_COUNTS),
                         help='particle counts per posterior (default %(default)s)')
-    parser.add_argument('--posteriors', type=int, default=None,
-                        help='posteriors M (default: the package default)')
+    parser.add_argument('--posteriors', type=int, default=BENCH_POSTERIORS,
+                        help='posteriors M of the rows (default %(default)s)')
     parser.add_argument('--bias-model', choices=('cn0', 'none'), default=None,
                         help="'none': every posterior its own motion sample (the paper)")
     parser.add_argument('--likelihood', choices=('robust', 'particle_raim'), default=None)
+    parser.add_argument('--camera-matches', type=int, default=CAMERA_MATCHES,
+                        help='camera matches per epoch of the camera rows (0: none; '
+                             'default %(default)s)')
+    parser.add_argument('--no-default-config', action='store_true',
+                        help="skip the package's default configuration")
     parser.add_argument('--json', type=Path, help='write the figures as JSON')
     parser.add_argument('--force', action='store_true', help='replace an existing --json')
     args = parser.parse_args(argv)
@@ -132,14 +211,27 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 4
     result = bench(args.particles, args.posteriors, args.likelihood,
-                   bias_model=args.bias_model)
+                   bias_model=args.bias_model, camera_matches=args.camera_matches,
+                   default_config=not args.no_default_config)
+    print(f"kernels ready in {result['kernel_warm_up_s']:.2f} s (compiled or loaded from "
+          'the cache)')
     print(f"M = {result['n_posteriors']} posteriors, bias model {result['bias_model']}; "
-          'M*N below counts likelihood evaluations (the motion samples)')
+          'M*N below counts likelihood evaluations (the motion samples); camera: '
+          f"{result['camera_matches']} matches per epoch")
     rows = [[n, d['evaluations'], d['epoch_ms'], d['bare_likelihood_ms'], d['ratio'],
+             d['camera_epoch_ms'], d['camera_ratio'],
              d['epoch_ms'] / d['evaluations'] * 1e3]
             for n, d in result['details'].items()]
     print(format_table(['N/posterior', 'M*N', 'epoch [ms]', 'bare lik [ms]', 'ratio',
-                        'us per 1k evals'], rows))
+                        'camera epoch [ms]', 'camera ratio', 'us per 1k evals'], rows))
+    default = result.get('default_config')
+    if default:
+        print(f"default configuration (N = {default['n_particles']}, M = "
+              f"{default['n_posteriors']} posteriors from {default['motion_samples']} "
+              f"motion samples): epoch {default['epoch_ms_median']:.2f} ms; bare arithmetic "
+              f"at M*N {default['bare_likelihood_ms_at_mn']:.2f} ms (ratio "
+              f"{default['ratio_at_mn']:.2f}), at S*N {default['bare_likelihood_ms_at_sn']:.2f}"
+              f" ms (ratio {default['ratio_at_sn']:.2f})")
     print(f"peak RSS: {result['peak_rss_mb']:.0f} MB")
     if args.json is not None:
         try:

@@ -7,7 +7,7 @@ vehicle's motion:
     x_t = x_{t-1} + v dt + a dt^2 / 2
 
 The distribution over the particles built from it (a softmax of the distances with a
-temperature in metres, plus an "elsewhere" cell) is :func:`.fusion.camera_log_q`.
+temperature in metres, plus an "elsewhere" cell) is in :func:`.fusion.camera_fusion`.
 
 Pure numpy; no OpenCV and no rclpy.
 """

@@ -16,15 +16,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.special import logsumexp
 
 from . import gnss, integrity
 from .bias import BIAS_CN0, BIAS_MODELS, BIAS_NONE, BiasHypotheses
 from .config import FilterConfig
-from .fusion import MAX_CAMERA_MATCHES, CameraMeasurement, camera_log_q, fuse_camera
+from .fusion import MAX_CAMERA_MATCHES, CameraMeasurement, camera_fusion
 from .frames import LocalFrame
 from .gnss import LIKELIHOODS, PARTICLE_RAIM, ROBUST
-from .particles import (POS, SYSTEMATIC, YAW, MotionIncrement, effective_sample_size,
+from .kernels import weights as weight_kernels
+from .particles import (POS, SYSTEMATIC, YAW, MotionIncrement,
                         motion_samples, normalize_log_weights, propagate, weighted_mean_cov)
 from .snapshot import solve_snapshot
 from .types import GnssEpoch
@@ -188,33 +188,33 @@ class ParticleFilter:
         Checked: particles finite and within ``MAX_STATE_COORDINATE``, weights a
         distribution (no NaN, no +inf, some finite), bias offsets finite; of the result,
         estimate, covariance and heading finite, risk bound in [0, 1], protection level not
-        NaN (inf means none within reach). A few passes over the N particles.
+        NaN (inf means none within reach). One compiled pass over the N particles.
         """
         if self.particles is None:
             return None
-        with np.errstate(invalid='ignore'):
-            if not np.isfinite(self.particles).all():
-                return 'non-finite particles'
-            if np.abs(self.particles).max() > MAX_STATE_COORDINATE:
-                return f'particles beyond {MAX_STATE_COORDINATE:g} m of the map origin'
-            log_w = self.log_w
-            if (log_w is None or log_w.shape != self.particles.shape[:1]
-                    or np.isnan(log_w).any() or not np.isfinite(log_w.max())):
-                return 'particle weights are not a distribution'
-            if not np.isfinite(self.bias.offsets_m).all():
-                return 'non-finite bias offsets'
-            if result is None or result.position_enu_m is None:
-                return None
-            if not (np.isfinite(result.position_enu_m).all()
-                    and np.isfinite(result.covariance_m2).all()
-                    and np.isfinite(result.yaw_rad)):
-                return 'non-finite estimate'
-            if result.risk is not None:
-                bound = np.asarray(result.risk.risk_bound, dtype=float)
-                if not ((bound >= 0.0) & (bound <= 1.0)).all():
-                    return 'risk bound outside [0, 1]'
-            if result.protection_level_m is not None and np.isnan(result.protection_level_m):
-                return 'protection level is NaN'
+        if self.log_w is None:
+            return 'particle weights are not a distribution'
+        code = weight_kernels.set_problem(np.ascontiguousarray(self.particles, dtype=float),
+                                          np.ascontiguousarray(self.log_w, dtype=float),
+                                          MAX_STATE_COORDINATE)
+        if code == 2:
+            return f'particles beyond {MAX_STATE_COORDINATE:g} m of the map origin'
+        if code:
+            return weight_kernels.SET_PROBLEMS[code - 1]
+        if not np.isfinite(self.bias.offsets_m).all():
+            return 'non-finite bias offsets'
+        if result is None or result.position_enu_m is None:
+            return None
+        if not (np.isfinite(result.position_enu_m).all()
+                and np.isfinite(result.covariance_m2).all()
+                and np.isfinite(result.yaw_rad)):
+            return 'non-finite estimate'
+        if result.risk is not None:
+            bound = np.asarray(result.risk.risk_bound, dtype=float)
+            if not ((bound >= 0.0) & (bound <= 1.0)).all():
+                return 'risk bound outside [0, 1]'
+        if result.protection_level_m is not None and np.isnan(result.protection_level_m):
+            return 'protection level is NaN'
         return None
 
     def set_parameters(self, **changes) -> None:
@@ -367,10 +367,9 @@ class ParticleFilter:
         self.particles = priors[0]
         self.posteriors = priors
         self.posterior_log_w = np.broadcast_to(self.log_w, priors.shape[:2]).copy()
-        mean, cov = weighted_mean_cov(self.particles[:, POS], self.log_w)
+        mean, cov, yaw, _ = weight_kernels.set_summary(self.particles, self.log_w)
         result = EpochResult(stamp_ns=epoch.stamp_ns, status=PROPAGATED, reason=check.reason,
-                             position_enu_m=mean, covariance_m2=cov,
-                             yaw_rad=self._circular_mean(self.particles[:, YAW], self.log_w),
+                             position_enu_m=mean, covariance_m2=cov, yaw_rad=float(yaw),
                              chosen=0, rejected=check.rejected, integrity_ok=False,
                              integrity_reason=f'no GNSS update: {check.reason}',
                              motion_unknown_s=self._motion_unknown_s)
@@ -381,39 +380,31 @@ class ParticleFilter:
                 prep: gnss.PreparedEpoch, centre: np.ndarray, cov: np.ndarray,
                 dt_s: float, camera: list[CameraMeasurement] | None = None) -> EpochResult:
         cfg = self.config
-        m, n = priors.shape[:2]
-        # Receiver clock: robust inlier weights at the prior's centre, then per particle.
-        centre_residual = prep.pr_m - gnss.ranges(centre[None], prep.sv_enu_m)[0]
+        # Receiver clock: robust inlier weights at the prior's centre, then per particle
+        # (profiled out inside the likelihood kernel).
         spread_m = min(float(np.sqrt(max(np.trace(cov), 0.0))), cfg.clock_kernel_max_m)
-        clock_w = gnss.clock_inlier_weights(centre_residual, prep.sigma_m, prep.sys_index,
-                                            prep.n_systems, spread_m)
-        residual = gnss.clock_corrected_residuals(priors[..., POS].reshape(-1, 3), prep,
-                                                  clock_w)
-        residual /= prep.sigma_m
-        z = residual.reshape(m, n, -1)
-        log_sigma = np.log(prep.sigma_m)
-        lik = self.likelihood.log_likelihood(z, log_sigma, self.log_w)
+        clock_w = gnss.clock_weights(prep, centre, spread_m)
         evidence = self._evidence_weight(dt_s)
-        log_lik = lik.log_lik * evidence
-        joint = self.log_w[None, :] + log_lik
+        lik = self.likelihood.joint(priors, prep, clock_w, evidence, self.log_w)
+        joint, total = lik.joint, lik.total
         fusion = None
         if camera and cfg.use_camera:
             # The cost is images x samples x particles: a bounded number of images.
             camera = camera[-MAX_CAMERA_MATCHES:]
             # Camera and GNSS distributions share the domain: the particles of each set.
-            log_p = joint - logsumexp(joint, axis=1, keepdims=True)
-            log_q = camera_log_q(priors[..., POS],
-                                 np.array([c.position_enu_m[:3] for c in camera]),
-                                 cfg.camera_temperature_m, cfg.camera_gate_m)
-            fusion = fuse_camera(log_p, log_q, cfg.camera_kl_threshold_nats,
-                                 cfg.camera_elsewhere_prob)
-            joint = joint + fusion.log_q_mix
-        total = logsumexp(joint, axis=1)
-        post_log_w = joint - total[:, None]
+            log_p = joint - total[:, None]
+            fusion = camera_fusion(priors, np.array([c.position_enu_m[:3] for c in camera]),
+                                   log_p, cfg.camera_temperature_m, cfg.camera_gate_m,
+                                   cfg.camera_kl_threshold_nats, cfg.camera_elsewhere_prob)
+            total = weight_kernels.add_and_sum_rows(joint, fusion.log_q_mix)
+        post_log_w = joint
+        post_log_w -= total[:, None]
         chosen = int(np.argmax(total))
-        # The chosen set's inlier probability of each satellite, for the bias hypotheses.
-        inlier = gnss.robust_inlier_probability(z[chosen], log_sigma, cfg.outlier_prob,
-                                                cfg.outlier_range_m, post_log_w[chosen])
+        # The chosen set's inlier probability of each satellite, for the bias hypotheses,
+        # and its inlier share (the robust likelihood's reported mixture weights).
+        inlier, share = gnss.robust_inlier_shares(priors[chosen], post_log_w[chosen], prep,
+                                                  clock_w, cfg.outlier_prob,
+                                                  cfg.outlier_range_m)
         result = self._finish(epoch, check, priors, post_log_w, chosen, total,
                               (prep, inlier, evidence, clock_w))
         if fusion is not None:
@@ -421,7 +412,7 @@ class ParticleFilter:
             result.camera_alpha = fusion.alpha[:, chosen]
             result.camera_kl_nats = fusion.kl_nats[:, chosen]
             result.camera_excluded = bool(fusion.excluded[chosen])
-        result.gamma = self.likelihood.mixture_weights(lik, z, log_sigma, chosen)
+        result.gamma = self.likelihood.mixture_weights(lik, chosen, share)
         result.n_satellites = int(prep.pr_m.shape[0])
         return result
 
@@ -432,7 +423,7 @@ class ParticleFilter:
         cfg = self.config
         m, n = post_log_w.shape
         pos = priors[..., POS]
-        mean, cov = weighted_mean_cov(pos[chosen], post_log_w[chosen])
+        mean, cov, yaw, ess = weight_kernels.set_summary(priors[chosen], post_log_w[chosen])
         risk, level = self._integrity(pos, post_log_w, chosen, mean, cov, epoch.stamp_ns,
                                       update)
         limit = float(cfg.alert_limits_m[0])
@@ -451,7 +442,6 @@ class ParticleFilter:
             reason = f'protection level {level:.1f} m above the alert limit {limit:g} m'
         else:
             reason = ''
-        ess = float(effective_sample_size(post_log_w[chosen]))
         particles, log_w = priors[chosen], post_log_w[chosen]
         acquired = self.distance_since_init_m >= cfg.heading_acquisition_m
         n_out = cfg.n_particles if acquired else n
@@ -464,13 +454,13 @@ class ParticleFilter:
         self.posteriors, self.posterior_log_w = priors, post_log_w
         result = EpochResult(
             stamp_ns=epoch.stamp_ns, status=UPDATED, position_enu_m=mean, covariance_m2=cov,
-            yaw_rad=self._circular_mean(priors[chosen, :, YAW], post_log_w[chosen]),
+            yaw_rad=float(yaw),
             chosen=chosen, total_log_lik=total, risk=risk, protection_level_m=level,
             integrity_ok=not reason, integrity_reason=reason,
             integrity_valid=self._motion_unknown_s == 0.0 and (
                 settled_s >= cfg.integrity_settling_s),
             motion_unknown_s=self._motion_unknown_s,
-            rejected=check.rejected, ess=ess, resampled=bool(resampled))
+            rejected=check.rejected, ess=float(ess), resampled=bool(resampled))
         self.last_result = result
         return result
 
@@ -497,8 +487,8 @@ class ParticleFilter:
             # Heading acquisition holds more particles than the working size; the bound
             # sees an evenly thinned set of about the working size.
             pos, post_log_w = pos[:, thin], post_log_w[:, thin]
-            post_log_w = post_log_w - logsumexp(post_log_w, axis=1, keepdims=True)
-            prior_log_w = self.log_w[thin] - logsumexp(self.log_w[thin])
+            post_log_w = normalize_log_weights(post_log_w)
+            prior_log_w = normalize_log_weights(self.log_w[thin])
         else:
             prior_log_w = self.log_w
         prior_offsets = self.bias.offsets_m.copy()
@@ -521,17 +511,17 @@ class ParticleFilter:
                                             cfg.horizontal_risk)
         priors = integrity.PosteriorSet(pos, np.broadcast_to(prior_log_w, post_log_w.shape),
                                         index, prior_offsets, cfg.horizontal_risk)
-        # KL(pi_t || pi_t-1) between Gaussian fits of the pooled posteriors and priors.
-        kl = integrity.gaussian_kl(*posteriors.pooled_moments(), *priors.pooled_moments())
+        # KL(pi_t || pi_t-1) between Gaussian fits of the pooled posteriors and priors; it
+        # sets q_max, so the empirical risk and the level come from one pass.
+        kl = posteriors.divergence_from(priors)
+        eps = integrity.divergence_budget(kl, cfg.n_posteriors, cfg.risk_delta)
+        q_max = integrity.max_empirical_risk(cfg.target_risk, eps, cfg.inverse_bernoulli)
         limits = cfg.alert_limits_m
-        dist_w = posteriors.distances(mean)
-        risk = integrity.risk_bound(posteriors.hazard_mass(mean, limits, dist_w), kl,
-                                    cfg.n_posteriors, cfg.risk_delta, cfg.inverse_bernoulli,
-                                    limits)
-        q_max = integrity.max_empirical_risk(cfg.target_risk, risk.epsilon,
-                                             cfg.inverse_bernoulli)
+        empirical, level = posteriors.risk_and_level(mean, limits, q_max)
+        risk = integrity.risk_bound(empirical, kl, cfg.n_posteriors, cfg.risk_delta,
+                                    cfg.inverse_bernoulli, limits)
         self.posterior_set = posteriors
-        return risk, posteriors.protection_level(mean, q_max, dist_w)
+        return risk, level
 
     def _evidence_weight(self, dt_s: float) -> float:
         """Tempering exponent of this epoch's GNSS log-likelihood.
@@ -543,8 +533,3 @@ class ParticleFilter:
         if cfg.error_correlation_time_s <= 0.0:
             return 1.0
         return min(1.0, max(dt_s, 1e-3) / cfg.error_correlation_time_s)
-
-    @staticmethod
-    def _circular_mean(yaw: np.ndarray, log_w: np.ndarray) -> float:
-        w = np.exp(log_w)
-        return float(np.arctan2(w @ np.sin(yaw), w @ np.cos(yaw)))

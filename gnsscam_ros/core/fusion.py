@@ -1,7 +1,7 @@
 """GNSS-camera fusion with the KL-divergence mixture-of-experts weights (paper §5).
 
 For the K camera images between two GNSS epochs, each image j gives a distribution Q_j over
-the particles (:func:`camera_log_q`). Its weight minimises ``KL(alpha_j Q_j || P)`` against the
+the particles (:func:`camera_fusion`). Its weight minimises ``KL(alpha_j Q_j || P)`` against the
 GNSS distribution P over the same particles:
 
     alpha_j = exp(k_j),  k_j = sum_i Q_j log(P / Q_j) / sum_i Q_j - 1 = -KL(Q_j || P) - 1
@@ -24,12 +24,13 @@ the estimate. With every image far from the cloud, KL -> log(1 / elsewhere_prob)
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import logsumexp
 
 from .camera import propagate_match_state
+from .kernels import camera as camera_kernels
 from .types import OdometrySeries
 
 #: Most camera images one epoch fuses (the newest of its interval). The fusion holds
@@ -110,51 +111,6 @@ def measurements_at_epoch(matches: list[CameraMeasurement], odometry: OdometrySe
     return out
 
 
-def camera_log_q(positions_m: np.ndarray, match_enu_m: np.ndarray, temperature_m: float,
-                 gate_m: float | None = None) -> np.ndarray:
-    """Per-set log softmax of ``-distance / T`` over the particles, for one or K matches.
-
-    The distance is Euclidean in 3D as in the paper: a geotagged database image carries
-    its height, which GNSS in a street canyon observes poorly.
-
-    Args:
-        positions_m: (M, N, 3) particle positions [m].
-        match_enu_m: (3,) matched position at the epoch, or (K, 3) for K matches [m].
-        temperature_m: Softmax temperature T [m].
-        gate_m: Gate distance R [m]; None for the paper's plain softmax over particles.
-
-    Returns:
-        (M, N + 1) log Q with the "elsewhere" cell last, or (M, N) without a gate; with K
-        matches a leading K axis. Each row sums to one in probability. The cell weighs as
-        much as N particles at the gate distance (logit ``-R / T + log N``), so the test
-        does not depend on N.
-    """
-    pos = np.asarray(positions_m, dtype=float)[..., :3]
-    match = np.asarray(match_enu_m, dtype=float)
-    matches = match.reshape(-1, match.shape[-1])[:, :3]
-    m, n = pos.shape[0], pos.shape[1]
-    # Squared distances |p|^2 - 2 p.c + |c|^2 as one matrix product for all K matches (the
-    # K x M x N array is the costly part at N = 10,000); coordinates relative to the cloud
-    # centre keep the cancellation harmless (|p|^2 is the cloud's spread, not the map's).
-    centre = pos[:, 0, :].mean(axis=0)
-    flat = pos.reshape(-1, 3) - centre
-    rel = matches - centre
-    d2 = rel @ (-2.0 * flat.T)
-    d2 += np.einsum('ij,ij->i', flat, flat)[None, :]
-    d2 += np.einsum('ij,ij->i', rel, rel)[:, None]
-    np.maximum(d2, 0.0, out=d2)
-    logits = np.sqrt(d2, out=d2).reshape(len(matches), m, n)
-    logits *= -1.0 / temperature_m
-    if gate_m is not None:
-        logits = np.concatenate(
-            [logits, np.full(logits.shape[:-1] + (1,), -gate_m / temperature_m + np.log(n))],
-            axis=-1)
-    top = logits.max(axis=-1, keepdims=True)
-    log_norm = top + np.log(np.exp(logits - top).sum(axis=-1, keepdims=True))
-    logits -= log_norm
-    return logits if match.ndim > 1 else logits[0]
-
-
 @dataclass(frozen=True)
 class FusionResult:
     """The camera mixture of one epoch, per posterior set.
@@ -172,44 +128,62 @@ class FusionResult:
     excluded: np.ndarray
 
 
-def fuse_camera(log_p: np.ndarray, log_q: np.ndarray, kl_threshold_nats: float,
-                elsewhere_prob: float | None = None) -> FusionResult:
-    """Mixture-of-experts weights and the camera mixture for every posterior set.
+def camera_fusion(particles: np.ndarray, matches_m: np.ndarray, log_p: np.ndarray,
+                  temperature_m: float, gate_m: float | None, kl_threshold_nats: float,
+                  elsewhere_prob: float | None = None) -> FusionResult:
+    """The camera distributions of K matches and their mixture, for every posterior set.
+
+    Each match k gives a distribution over the particles of each set s: the softmax of
+    ``-distance / T`` (3D distance as in the paper: a geotagged database image carries its
+    height, which GNSS in a street canyon observes poorly) over the N particles and the
+    "elsewhere" cell, whose logit ``-R / T + log N`` weighs it like N particles at the gate
+    distance R (so the test does not depend on N). Against the GNSS distribution, which
+    puts ``elsewhere_prob`` on the cell and ``(1 - elsewhere_prob) P`` on the particles,
+    its weight is ``alpha_k = softmax_k(-KL(Q_k || P) - 1)``; the mixture is
+    ``Q* = sum_k alpha_k Q_k`` over the particles. A set whose smallest KL exceeds
+    ``kl_threshold_nats`` excludes the camera (``log_q_mix`` 0). One compiled pass per
+    match and set (``core.kernels.camera``).
 
     Args:
-        log_p: (M, N) normalised log GNSS distribution over the particles of each set.
-        log_q: (K, M, N) normalised log camera distributions, or (K, M, N + 1) with the
-            "elsewhere" cell last (see :func:`camera_log_q`).
-        kl_threshold_nats: Exclude the camera of a set when every KL(Q_j || P) exceeds it.
-        elsewhere_prob: GNSS probability of the "elsewhere" cell (needed with that cell).
+        particles: (S, N, >= 3) particles of the S sets, east, north, up first [m].
+        matches_m: (K, 3) matched positions at the epoch (or (3,) for one) [m].
+        log_p: (S, N) normalised log GNSS distribution of each set.
+        temperature_m: Softmax temperature T [m].
+        gate_m: Gate distance R [m]; None for the paper's plain softmax over the particles
+            (no "elsewhere" cell).
+        kl_threshold_nats: Exclude the camera of a set when every KL(Q_k || P) exceeds it.
+        elsewhere_prob: GNSS probability of the "elsewhere" cell (needed with a gate).
 
     Returns:
-        The fusion result; ``log_q_mix`` covers the N particles only.
+        The fusion result: (S, N) log Q*, (K, S) alpha and KL, (S,) exclusion.
+
+    Raises:
+        ValueError: Shapes that do not fit, no match, or a gate without
+            ``elsewhere_prob``.
     """
-    n = log_p.shape[-1]
-    if log_q.shape[-1] == n + 1:
-        if elsewhere_prob is None:
-            raise ValueError('log_q has an elsewhere cell: give elsewhere_prob')
-        log_p = np.concatenate([log_p + np.log1p(-elsewhere_prob),
-                                np.full(log_p.shape[:-1] + (1,), np.log(elsewhere_prob))],
-                               axis=-1)
-    elif log_q.shape[-1] != n:
-        raise ValueError(f'log_q has {log_q.shape[-1]} cells for {n} particles')
-    q = np.exp(log_q)
-    # k_j = sum_i Q log(P/Q) / sum_i Q - 1 (sum_i Q = 1 for a normalised Q_j).
-    kl = (q * (log_q - log_p[None])).sum(-1)
-    k = -kl / q.sum(-1) - 1.0
-    alpha = np.exp(k - logsumexp(k, axis=0, keepdims=True))       # normalised over j
-    # log sum_j alpha_j Q_j from the Q already at hand; where every Q_j underflows (a
-    # particle kilometres from every match) the log-sum-exp does it exactly.
-    mix = np.einsum('km,kmn->mn', alpha, q[..., :n])
-    with np.errstate(divide='ignore'):
-        log_q_mix = np.log(mix)
-    tiny = mix < 1e-280
-    if tiny.any():
-        exact = logsumexp(log_q[..., :n] + np.log(np.maximum(alpha, 1e-300))[..., None],
-                          axis=0)
-        log_q_mix[tiny] = exact[tiny]
-    excluded = kl.min(axis=0) > kl_threshold_nats
-    log_q_mix[excluded] = 0.0
+    particles = np.asarray(particles, dtype=float)
+    matches = np.ascontiguousarray(np.atleast_2d(np.asarray(matches_m, dtype=float))[:, :3])
+    log_p = np.ascontiguousarray(log_p, dtype=float)
+    if particles.ndim != 3 or particles.shape[-1] < 3:
+        raise ValueError(f'particles must be (S, N, >= 3), not {particles.shape}')
+    if log_p.shape != particles.shape[:2]:
+        raise ValueError(f'log_p is {log_p.shape} for particles {particles.shape[:2]}')
+    if matches.shape[0] == 0 or matches.shape[1] != 3:
+        raise ValueError(f'matches must be (K >= 1, 3), not {matches.shape}')
+    n_sets, n = log_p.shape
+    has_cell = gate_m is not None
+    if has_cell and elsewhere_prob is None:
+        raise ValueError('a gate needs elsewhere_prob (the GNSS mass of the elsewhere cell)')
+    cell_logit = -float(gate_m) / temperature_m + math.log(n) if has_cell else 0.0
+    log_inside = math.log1p(-elsewhere_prob) if has_cell else 0.0
+    log_elsewhere = math.log(elsewhere_prob) if has_cell else 0.0
+    k = matches.shape[0]
+    log_q_mix = np.empty((n_sets, n))
+    alpha = np.empty((k, n_sets))
+    kl = np.empty((k, n_sets))
+    excluded = np.empty(n_sets, dtype=np.bool_)
+    # Coordinates as strided (S, N) views: one kernel signature for any particle array.
+    camera_kernels.fuse(particles[..., 0], particles[..., 1], particles[..., 2], matches,
+                        log_p, 1.0 / temperature_m, cell_logit, log_inside, log_elsewhere,
+                        has_cell, float(kl_threshold_nats), log_q_mix, alpha, kl, excluded)
     return FusionResult(log_q_mix=log_q_mix, alpha=alpha, kl_nats=kl, excluded=excluded)

@@ -9,7 +9,10 @@ prior. Everything is computed in log space with a max shift (log-sum-exp).
 The receiver clock is estimated online: per constellation, a robust mode of
 the residuals at the prior's centre picks the consistent satellites, then every particle
 gets its own clock as the inlier-weighted mean of its residuals. This profiles the clock out
-per particle (it is strongly correlated with height) at the cost of one small matrix product.
+per particle (it is strongly correlated with height).
+
+The per-particle work (ranges, clocks, likelihoods) runs in the compiled kernels of
+``core.kernels.gnss``; this module prepares their inputs and holds the model objects.
 """
 from __future__ import annotations
 
@@ -19,6 +22,7 @@ from typing import Protocol
 import numpy as np
 
 from .frames import LocalFrame, sagnac_corrected
+from .kernels import gnss as gnss_kernels
 from .types import GnssEpoch
 
 LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
@@ -99,8 +103,18 @@ def check_epoch(epoch: GnssEpoch, min_satellites: int = 4, elevation_mask_deg: f
     are kept ('satellite_limit').
     """
     k = epoch.n_sv
-    keep = np.ones(k, dtype=bool)
+    codes = gnss_kernels.satellite_reasons(
+        np.asarray(epoch.pr_m, dtype=float), np.asarray(epoch.sv_pos_ecef_m, dtype=float),
+        np.asarray(epoch.var_m2, dtype=float), _satellite_key(epoch, 100000),
+        np.asarray(epoch.elevation_deg, dtype=float), np.asarray(epoch.cn0_dbhz, dtype=float),
+        MAX_SATELLITE_RADIUS_M, MAX_PSEUDORANGE_M, MAX_VARIANCE_M2,
+        float(elevation_mask_deg), float(cn0_mask_dbhz))
+    keep = codes == 0
     rejected: dict[str, int] = {}
+    if not keep.all():
+        counts = np.bincount(codes, minlength=len(gnss_kernels.SATELLITE_REASONS) + 1)
+        rejected = {reason: int(n) for reason, n in
+                    zip(gnss_kernels.SATELLITE_REASONS, counts[1:]) if n}
 
     def drop(mask: np.ndarray, reason: str) -> None:
         nonlocal keep
@@ -109,20 +123,6 @@ def check_epoch(epoch: GnssEpoch, min_satellites: int = 4, elevation_mask_deg: f
             rejected[reason] = rejected.get(reason, 0) + int(hit.sum())
             keep &= ~hit
 
-    finite = (np.isfinite(epoch.pr_m) & np.all(np.isfinite(epoch.sv_pos_ecef_m), axis=1)
-              & np.isfinite(epoch.var_m2))
-    drop(~finite, 'non_finite')
-    drop(finite & ((epoch.pr_m <= 0.0) | (epoch.var_m2 <= 0.0)), 'non_positive')
-    with np.errstate(over='ignore', invalid='ignore'):
-        radius = np.sqrt(np.einsum('ij,ij->i', epoch.sv_pos_ecef_m, epoch.sv_pos_ecef_m))
-        drop(finite & ((radius > MAX_SATELLITE_RADIUS_M) | (epoch.pr_m > MAX_PSEUDORANGE_M)
-                       | (epoch.var_m2 > MAX_VARIANCE_M2)), 'out_of_range')
-    key = epoch.system.astype(np.int64) * 100000 + epoch.sv_id.astype(np.int64)
-    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-    drop(counts[inverse] > 1, 'duplicate')
-    with np.errstate(invalid='ignore'):
-        drop(epoch.elevation_deg < elevation_mask_deg, 'elevation_mask')
-        drop(epoch.cn0_dbhz < cn0_mask_dbhz, 'cn0_mask')
     n_keep = int(keep.sum())
     limit = min(int(max_satellites), MAX_SATELLITES)
     if n_keep > limit:
@@ -178,204 +178,139 @@ def prepare_epoch(epoch: GnssEpoch, frame: LocalFrame, rx_enu_m: np.ndarray,
         measurement_var_m2: Default pseudorange variance [m^2].
         use_reported_variance: Use the larger of the default and the epoch's own variances.
     """
-    systems, sys_index, counts = np.unique(epoch.system, return_inverse=True,
-                                           return_counts=True)
-    multi = counts[sys_index] >= 2
+    sys_index, n_systems = gnss_kernels.constellation_index(
+        np.asarray(epoch.system, dtype=np.int64))
+    multi = sys_index >= 0
     rx_ecef = frame.enu_to_ecef(rx_enu_m)
     sv_ecef = sagnac_corrected(epoch.sv_pos_ecef_m[multi], rx_ecef)
     var = np.full(int(multi.sum()), float(measurement_var_m2))
     if use_reported_variance:
         var = np.maximum(var, epoch.var_m2[multi])
-    _, sys_index = np.unique(epoch.system[multi], return_inverse=True)
     return PreparedEpoch(sv_enu_m=frame.ecef_to_enu(sv_ecef), pr_m=epoch.pr_m[multi].copy(),
-                         sigma_m=np.sqrt(var), sys_index=sys_index,
-                         n_systems=int(sys_index.max()) + 1 if sys_index.size else 0,
-                         sv_key=(epoch.system[multi].astype(np.int64) * 1000
-                                 + epoch.sv_id[multi].astype(np.int64)),
+                         sigma_m=np.sqrt(var), sys_index=sys_index[multi],
+                         n_systems=int(n_systems), sv_key=_satellite_key(epoch, 1000)[multi],
                          cn0_dbhz=np.asarray(epoch.cn0_dbhz[multi], dtype=float))
 
 
-def ranges(positions_m: np.ndarray, sv_m: np.ndarray) -> np.ndarray:
-    """Geometric ranges (P, k) from (P, 3) positions to (k, 3) satellites [m].
-
-    Uses ``|s|^2 - 2 p.s + |p|^2`` (one matrix product); in a local frame |p| is small, so
-    the rounding of |s|^2 ~ 4e14 m^2 costs under a micrometre of range.
-    """
-    sq = positions_m @ (-2.0 * sv_m.T)
-    sq += (sv_m * sv_m).sum(1)
-    sq += np.einsum('ij,ij->i', positions_m, positions_m)[:, None]
-    return np.sqrt(sq, out=sq)
+def _satellite_key(epoch: GnssEpoch, base: int) -> np.ndarray:
+    """``system * base + sv_id`` (int64): one key per satellite."""
+    return epoch.system.astype(np.int64) * base + epoch.sv_id.astype(np.int64)
 
 
-def clock_inlier_weights(residual_m: np.ndarray, sigma_m: np.ndarray, sys_index: np.ndarray,
-                         n_systems: int, spread_m: float, iterations: int = 3) -> np.ndarray:
-    """Robust per-constellation clock at one reference point; returns satellite weights.
+def clock_weights(prep: PreparedEpoch, centre_m: np.ndarray, spread_m: float,
+                  iterations: int = 3) -> np.ndarray:
+    """Robust per-constellation clock at the prior's centre; returns satellite weights.
 
-    For each constellation, every satellite's residual is a clock candidate; the one with
-    the most support under a Gaussian kernel wins, then a few mean-shift steps refine it
-    (a Welsch M-estimator). The kernel width is the measurement noise widened by how far
-    the reference point may be from the particles (``spread_m``), so that geometry alone
-    does not turn healthy satellites into outliers.
+    For each constellation, every satellite's residual at ``centre_m`` is a clock
+    candidate; the one with the most support under a Gaussian kernel wins, then a few
+    mean-shift steps refine it (a Welsch M-estimator). The kernel width is the measurement
+    noise widened by how far the centre may be from the particles (``spread_m``), so that
+    geometry alone does not turn healthy satellites into outliers.
 
     Args:
-        residual_m: (k,) pseudorange minus range at the reference point [m].
-        sigma_m: (k,) measurement standard deviations [m].
-        sys_index: (k,) constellation index.
-        n_systems: Number of constellations.
+        prep: The prepared epoch.
+        centre_m: (3,) reference point, map frame [m].
         spread_m: Position uncertainty of the reference point [m].
         iterations: Mean-shift refinement steps.
 
     Returns:
         (k,) non-negative weights; within a constellation they sum to one.
     """
-    width = np.sqrt(sigma_m ** 2 + spread_m ** 2)
-    weights = np.zeros_like(residual_m)
-    for s in range(n_systems):
-        idx = np.flatnonzero(sys_index == s)
-        r, h = residual_m[idx], width[idx]
-        support = np.exp(-0.5 * ((r[None, :] - r[:, None]) / h[None, :]) ** 2).sum(1)
-        clock = r[np.argmax(support)]
-        for _ in range(iterations):
-            w = np.exp(-0.5 * ((r - clock) / h) ** 2) / h ** 2
-            clock = float(w @ r / w.sum())
-        w = np.exp(-0.5 * ((r - clock) / h) ** 2) / h ** 2
-        weights[idx] = w / w.sum()
-    return weights
+    residual = prep.pr_m - np.sqrt(((prep.sv_enu_m - centre_m) ** 2).sum(axis=1))
+    return gnss_kernels.clock_inlier_weights(residual, prep.sigma_m, prep.sys_index,
+                                             prep.n_systems, float(spread_m), iterations)
 
 
 def clock_corrected_residuals(positions_m: np.ndarray, prep: PreparedEpoch,
                               clock_weights: np.ndarray) -> np.ndarray:
-    """Residuals (P, k) after removing each particle's own per-constellation clock [m]."""
-    residual = ranges(positions_m, prep.sv_enu_m)
-    np.subtract(prep.pr_m, residual, out=residual)
-    onehot = np.zeros((prep.pr_m.shape[0], prep.n_systems))
-    onehot[np.arange(prep.pr_m.shape[0]), prep.sys_index] = clock_weights
-    clock = residual @ onehot                       # (P, S): inlier-weighted mean residual
-    residual -= clock[:, prep.sys_index]
-    return residual
+    """Residuals (P, k) at (P, >= 3) positions after removing each position's own
+    per-constellation clock (the inlier-weighted mean of its residuals) [m]."""
+    return gnss_kernels.residuals_of_points(np.ascontiguousarray(positions_m, dtype=float),
+                                            prep.sv_enu_m, prep.pr_m, prep.sys_index,
+                                            clock_weights, prep.n_systems)
+
+
+def robust_scale(sigma_m: np.ndarray, outlier_prob: float, outlier_range_m: float
+                 ) -> tuple[np.ndarray, float, int]:
+    """The robust model's per-satellite density ``scale_k exp(-z_k^2 / 2) + floor`` as the
+    kernels take it: ``(log scale_k (k,), floor, group)`` with
+    ``scale_k = (1 - eps) / (sigma_k sqrt(2 pi))``, ``floor = eps / range_out`` and
+    ``group`` the number of densities whose product stays within [1e-300, 1e300] (the
+    kernel takes one log per group)."""
+    log_scale = np.log1p(-outlier_prob) - np.log(sigma_m) - LOG_SQRT_2PI
+    floor = outlier_prob / outlier_range_m
+    # Every density lies between the floor and the largest scale plus the floor.
+    log_largest = float(np.logaddexp(log_scale.max(initial=-np.inf), np.log(floor)))
+    per_term = max(abs(float(np.log(floor))), abs(log_largest), 1e-3)
+    return log_scale, floor, max(1, int(690.0 / per_term))
+
+
+def robust_inlier_shares(positions_m: np.ndarray, log_w: np.ndarray, prep: PreparedEpoch,
+                         clock_weights: np.ndarray, outlier_prob: float,
+                         outlier_range_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Posterior probability that each satellite is an inlier under the robust model, for
+    one particle set (N, >= 3) with normalised log-weights (N,).
+
+    Returns:
+        ``(probability (k,), share (k,))``: the probabilities averaged under the weights
+        (in [0, 1]; the bias hypotheses weigh satellites with them) and their plain
+        average over the particles normalised to sum to one (the robust likelihood's
+        mixture weights, reported with the epoch).
+    """
+    log_scale, floor, _ = robust_scale(prep.sigma_m, outlier_prob, outlier_range_m)
+    return gnss_kernels.robust_inlier_shares(
+        np.ascontiguousarray(positions_m, dtype=float), np.ascontiguousarray(log_w, float),
+        prep.sv_enu_m, prep.pr_m, 1.0 / prep.sigma_m, prep.sys_index, clock_weights,
+        prep.n_systems, log_scale, floor)
 
 
 @dataclass(frozen=True)
 class GnssLikelihood:
-    """Per-particle GNSS log-likelihoods of M sets, with the EM mixture weights.
+    """The GNSS update of S particle sets.
 
     Attributes:
-        log_lik: (M, N) log-likelihood of each particle.
-        gamma: (M, k) satellite mixture weights of each set.
+        joint: (S, N) joint log-weights: prior log-weight plus the tempered
+            log-likelihood of each particle.
+        total: (S,) log-sum-exp of each set's joint (its evidence).
+        gamma: (S, k) satellite mixture weights of each set (Particle RAIM; None for the
+            robust likelihood, whose weights are those of the chosen set only).
     """
 
-    log_lik: np.ndarray
-    gamma: np.ndarray
-
-
-def particle_raim_log_likelihood(z: np.ndarray, log_sigma: np.ndarray, prior_log_w: np.ndarray,
-                                 dirichlet_alpha: float) -> GnssLikelihood:
-    """The Particle RAIM mixture likelihood with weights from one EM step.
-
-    Args:
-        z: (M, N, k) normalised residuals ``e / sigma``.
-        log_sigma: (k,) log standard deviations.
-        prior_log_w: (N,) or (M, N) normalised prior log-weights (for MAP pooling).
-        dirichlet_alpha: Dirichlet concentration (> 1 keeps every satellite possible).
-
-    Returns:
-        Log-likelihoods (M, N) and mixture weights gamma (M, k).
-    """
-    # E-step, squared-normal voting: a particle votes for satellite k with exp(-z^2/2),
-    # normalised over satellites (a softmax, computed once with a max shift).
-    a = -0.5 * z * z
-    a_max = a.max(axis=-1, keepdims=True)
-    e = np.exp(a - a_max)
-    e_sum = e.sum(axis=-1, keepdims=True)
-    votes = e / e_sum
-    # M-step, MAP pooling: gamma_k = (sum_p w_p v_pk + alpha - 1) / (1 + k (alpha - 1)).
-    w = np.exp(np.broadcast_to(prior_log_w, z.shape[:2]))
-    pooled = np.einsum('mn,mnk->mk', w, votes)
-    k = z.shape[-1]
-    gamma = (pooled + dirichlet_alpha - 1.0) / (1.0 + k * (dirichlet_alpha - 1.0))
-    # log sum_k gamma_k N(e_k; 0, sigma_k) = a_max + log sum_k gamma_k/sigma_k exp(a - a_max)
-    scale = gamma * np.exp(-log_sigma)[None, :]
-    log_lik = a_max[..., 0] + np.log(np.einsum('mnk,mk->mn', e, scale)) - LOG_SQRT_2PI
-    return GnssLikelihood(log_lik=log_lik, gamma=gamma)
-
-
-def robust_inlier_probability(z: np.ndarray, log_sigma: np.ndarray, outlier_prob: float,
-                              outlier_range_m: float, log_w: np.ndarray) -> np.ndarray:
-    """Posterior probability that each satellite is an inlier, under the robust model,
-    averaged over one weighted particle set.
-
-    Args:
-        z: (N, k) normalised residuals of the set.
-        log_sigma: (k,) log standard deviations.
-        outlier_prob: Outlier probability eps.
-        outlier_range_m: Width of the uniform outlier density [m].
-        log_w: (N,) normalised log-weights.
-
-    Returns:
-        (k,) probabilities in [0, 1].
-    """
-    dens = np.exp(-0.5 * z * z) * ((1.0 - outlier_prob) * np.exp(-log_sigma - LOG_SQRT_2PI))
-    inlier = dens / (dens + outlier_prob / outlier_range_m)
-    return np.exp(log_w) @ inlier
-
-
-def robust_log_likelihood(z: np.ndarray, log_sigma: np.ndarray, outlier_prob: float,
-                          outlier_range_m: float, inlier_share: bool = True) -> GnssLikelihood:
-    """Product over satellites of a Gaussian with a uniform outlier floor.
-
-    ``log L = sum_k log((1 - eps) N(e_k; 0, sigma_k) + eps / range_out)``: every healthy
-    satellite contributes evidence (the mixture over satellites lets the best-fitting one
-    dominate), while a faulty one costs at most a constant. The floor keeps the sum away
-    from zero, so the per-satellite term is evaluated directly (one exp, one log) without a
-    log-sum-exp shift: an underflowing Gaussian simply leaves the floor.
-
-    Args:
-        z: (M, N, k) normalised residuals.
-        log_sigma: (k,) log standard deviations.
-        outlier_prob: Outlier probability eps.
-        outlier_range_m: Width of the uniform outlier density [m].
-        inlier_share: Also return the per-satellite inlier share (costs one more pass; the
-            filter asks for it on the chosen set only).
-
-    Returns:
-        Log-likelihoods (M, N) and, as ``gamma``, the posterior inlier probability per
-        satellite (M, k) averaged over particles and normalised (None when not asked for).
-    """
-    dens = np.square(z)
-    dens *= -0.5
-    np.exp(dens, out=dens)
-    dens *= (1.0 - outlier_prob) * np.exp(-log_sigma - LOG_SQRT_2PI)
-    floor = outlier_prob / outlier_range_m
-    gamma = None
-    if inlier_share:
-        inlier = (dens / (dens + floor)).mean(axis=1)
-        gamma = inlier / inlier.sum(axis=-1, keepdims=True)
-    dens += floor
-    log_lik = np.log(dens, out=dens).sum(axis=-1)
-    return GnssLikelihood(log_lik=log_lik, gamma=gamma)
+    joint: np.ndarray
+    total: np.ndarray
+    gamma: np.ndarray | None = None
 
 
 class Likelihood(Protocol):
     """A GNSS likelihood of the filter update, built once from the configuration
     (:func:`make_likelihood`)."""
 
-    def log_likelihood(self, z: np.ndarray, log_sigma: np.ndarray, prior_log_w: np.ndarray
-                       ) -> GnssLikelihood:
-        """Per-particle log-likelihoods (M, N) of the normalised residuals ``z`` (M, N, k),
-        with ``log_sigma`` (k,) and the prior log-weights (N,) or (M, N)."""
+    def joint(self, sets: np.ndarray, prep: PreparedEpoch, clock_weights: np.ndarray,
+              evidence: float, prior_log_w: np.ndarray) -> GnssLikelihood:
+        """Joint log-weights of the (S, N, >= 3) sets: ``prior_log_w`` (N,) plus
+        ``evidence`` times each particle's log-likelihood, its clock profiled out."""
 
-    def mixture_weights(self, lik: GnssLikelihood, z: np.ndarray, log_sigma: np.ndarray,
-                        chosen: int) -> np.ndarray:
+    def mixture_weights(self, lik: GnssLikelihood, chosen: int,
+                        inlier_share: np.ndarray) -> np.ndarray:
         """The (k,) satellite weights of set ``chosen`` (reported with the epoch), from
-        the result ``lik`` of :meth:`log_likelihood` on the same input."""
+        ``lik`` and the set's robust inlier share (:func:`robust_inlier_shares`)."""
+
+
+def _sets(sets: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(sets, dtype=float)
 
 
 @dataclass(frozen=True)
 class ParticleRaimLikelihood:
-    """The paper's mixture over satellites (:func:`particle_raim_log_likelihood`).
+    """The paper's mixture over satellites with weights from one EM step.
+
+    ``sum_k gamma_k N(pr_k | range_k + clock, sigma_k^2)``; E-step: each particle votes for
+    satellite k with ``exp(-z_k^2 / 2)`` normalised over the satellites (squared-normal
+    voting); M-step: the votes pooled over the set by weight with a Dirichlet prior (MAP):
+    ``gamma_k = (sum_p w_p v_pk + alpha - 1) / (1 + k (alpha - 1))``.
 
     Attributes:
-        dirichlet_alpha: Dirichlet concentration of the EM pooling.
+        dirichlet_alpha: Dirichlet concentration (> 1 keeps every satellite possible).
     """
 
     dirichlet_alpha: float
@@ -384,16 +319,26 @@ class ParticleRaimLikelihood:
     def from_config(cls, config) -> 'ParticleRaimLikelihood':
         return cls(dirichlet_alpha=config.dirichlet_alpha)
 
-    def log_likelihood(self, z, log_sigma, prior_log_w) -> GnssLikelihood:
-        return particle_raim_log_likelihood(z, log_sigma, prior_log_w, self.dirichlet_alpha)
+    def joint(self, sets, prep, clock_weights, evidence, prior_log_w) -> GnssLikelihood:
+        sets = _sets(sets)
+        joint = np.empty(sets.shape[:2])
+        gamma = np.empty((sets.shape[0], prep.pr_m.shape[0]))
+        total = gnss_kernels.particle_raim_joint(
+            sets, prep.sv_enu_m, prep.pr_m, 1.0 / prep.sigma_m, prep.sys_index,
+            clock_weights, prep.n_systems, float(self.dirichlet_alpha), float(evidence),
+            np.ascontiguousarray(prior_log_w, dtype=float), joint, gamma)
+        return GnssLikelihood(joint=joint, total=total, gamma=gamma)
 
-    def mixture_weights(self, lik, z, log_sigma, chosen) -> np.ndarray:
+    def mixture_weights(self, lik, chosen, inlier_share) -> np.ndarray:
         return lik.gamma[chosen]                 # the EM weights, computed for every set
 
 
 @dataclass(frozen=True)
 class RobustLikelihood:
-    """Gaussian with a uniform outlier floor per satellite (:func:`robust_log_likelihood`).
+    """Product over satellites of a Gaussian with a uniform outlier floor.
+
+    ``log L = sum_k log((1 - eps) N(e_k; 0, sigma_k) + eps / range_out)``: every healthy
+    satellite contributes evidence, while a faulty one costs at most a constant.
 
     Attributes:
         outlier_prob: Outlier probability eps.
@@ -407,15 +352,19 @@ class RobustLikelihood:
     def from_config(cls, config) -> 'RobustLikelihood':
         return cls(outlier_prob=config.outlier_prob, outlier_range_m=config.outlier_range_m)
 
-    def log_likelihood(self, z, log_sigma, prior_log_w) -> GnssLikelihood:
-        # The inlier shares cost one more pass over all M * N particles: only the chosen
-        # set's are reported (mixture_weights).
-        return robust_log_likelihood(z, log_sigma, self.outlier_prob, self.outlier_range_m,
-                                     inlier_share=False)
+    def joint(self, sets, prep, clock_weights, evidence, prior_log_w) -> GnssLikelihood:
+        sets = _sets(sets)
+        joint = np.empty(sets.shape[:2])
+        log_scale, floor, group = robust_scale(prep.sigma_m, self.outlier_prob,
+                                               self.outlier_range_m)
+        total = gnss_kernels.robust_joint(
+            sets, prep.sv_enu_m, prep.pr_m, 1.0 / prep.sigma_m, prep.sys_index,
+            clock_weights, prep.n_systems, log_scale, float(floor), group, float(evidence),
+            np.ascontiguousarray(prior_log_w, dtype=float), joint)
+        return GnssLikelihood(joint=joint, total=total)
 
-    def mixture_weights(self, lik, z, log_sigma, chosen) -> np.ndarray:
-        return robust_log_likelihood(z[chosen:chosen + 1], log_sigma, self.outlier_prob,
-                                     self.outlier_range_m).gamma[0]
+    def mixture_weights(self, lik, chosen, inlier_share) -> np.ndarray:
+        return inlier_share                      # the chosen set's inlier share
 
 
 #: The likelihood of each value of the ``likelihood`` parameter.

@@ -13,7 +13,8 @@ where ``q_max`` is the largest empirical risk whose bound is still the target
 (:func:`max_empirical_risk`, one scalar bisection), and the protection level, the smallest
 ``r`` with ``B(r) <= target``, is the radius beyond which at most ``q_max`` of the pooled
 posterior mass lies: a weighted quantile of the pooled distances
-(:func:`PosteriorSet.protection_level`, one sort of the M * N distances). With the exact
+(:meth:`PosteriorSet.risk_and_level`: a weighted histogram of the M * N distances finds
+the crossing, only the particles of that bin are sorted). With the exact
 inverse ``q_max`` is 0 when ``eps >= -log(1 - target)`` (even an empirical risk of 0 has a
 bound ``1 - exp(-eps)`` above the target): no radius certifies and the level is infinite.
 """
@@ -21,9 +22,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Protocol
 
 import numpy as np
+
+from .kernels import posterior as posterior_kernels
 
 # Inverses of the Bernoulli KL: the values of the ``inverse_bernoulli`` parameter, each
 # the name of one :class:`InverseBernoulli` (``INVERSE_BERNOULLI``).
@@ -42,10 +46,11 @@ def bernoulli_kl(q: np.ndarray, p: np.ndarray) -> np.ndarray:
 
 
 def inverse_bernoulli_exact(q, eps, iterations: int = 64) -> np.ndarray:
-    """``t >= 0`` with ``kl(q || q + t) = eps``, by bisection on ``[q, 1]`` (vectorised).
+    """``t >= 0`` with ``kl(q || q + t) = eps``, by bisection on ``[q, 1]``.
 
     ``kl(q || p)`` increases with ``p`` on ``[q, 1)`` and diverges at 1, so the root is
-    unique; 64 halvings reach double precision.
+    unique; 64 halvings reach double precision. A compiled scalar bisection per element
+    (``core.kernels.posterior.bernoulli_gap``): the epoch's arrays hold 1-3 values.
 
     Args:
         q: Empirical risk(s) in [0, 1].
@@ -54,15 +59,20 @@ def inverse_bernoulli_exact(q, eps, iterations: int = 64) -> np.ndarray:
     Returns:
         The gap(s) t, so that ``q + t`` is the upper confidence bound on the risk.
     """
-    q, eps = np.broadcast_arrays(np.asarray(q, dtype=float), np.asarray(eps, dtype=float))
-    lo = q.copy()
-    hi = np.ones_like(q)
-    for _ in range(iterations):
-        mid = 0.5 * (lo + hi)
-        above = bernoulli_kl(q, mid) > eps
-        hi = np.where(above, mid, hi)
-        lo = np.where(above, lo, mid)
-    return 0.5 * (lo + hi) - q
+    q, eps = np.asarray(q, dtype=float), np.asarray(eps, dtype=float)
+    shape = q.shape if eps.ndim == 0 else np.broadcast_shapes(q.shape, eps.shape)
+    out = np.empty(shape)
+    posterior_kernels.bernoulli_gap(_flat(q, shape), _flat(eps, shape if eps.ndim else ()),
+                                    int(iterations), out.reshape(-1))
+    return out if shape else out[()]
+
+
+def _flat(values: np.ndarray, shape: tuple) -> np.ndarray:
+    """``values`` broadcast to ``shape`` as a writable contiguous 1-D array (a view when it
+    already is one): one kernel signature for every caller."""
+    if values.shape == shape and values.flags.c_contiguous and values.flags.writeable:
+        return values.reshape(-1)
+    return np.array(np.broadcast_to(values, shape)).reshape(-1)
 
 
 def inverse_bernoulli_approx(q, eps) -> np.ndarray:
@@ -94,7 +104,7 @@ class ExactInverse:
 
     Attributes:
         iterations: Halvings of the threshold's scalar bisection (60 reach double
-            precision; the vectorised margin always takes 64).
+            precision; the margin, :func:`inverse_bernoulli_exact`, always takes 64).
     """
 
     iterations: int = 60
@@ -105,17 +115,8 @@ class ExactInverse:
     def max_empirical_risk(self, target: float, eps: float) -> float:
         # The bound is at most the target exactly when kl(q || target) >= eps (see
         # max_empirical_risk), and kl(q || target) falls as q rises to the target.
-        t = target
-        if -math.log1p(-t) < eps:
-            return 0.0
-        lo, hi = 0.0, t
-        for _ in range(self.iterations):
-            mid = 0.5 * (lo + hi)
-            if _bernoulli_kl_scalar(mid, t) >= eps:
-                lo = mid
-            else:
-                hi = mid
-        return lo
+        return float(posterior_kernels.max_empirical_risk(float(target), float(eps),
+                                                          int(self.iterations)))
 
 
 @dataclass(frozen=True)
@@ -159,12 +160,6 @@ def upper_risk(q, eps, method: str = EXACT) -> np.ndarray:
     return np.minimum(np.asarray(q, dtype=float) + inverse_bernoulli(q, eps, method), 1.0)
 
 
-def _bernoulli_kl_scalar(q: float, p: float) -> float:
-    """``kl(q || p)`` for scalars in [0, 1) [nats] (the per-epoch path: no numpy)."""
-    out = q * math.log(q / p) if q > 0.0 else 0.0
-    return out + ((1.0 - q) * math.log((1.0 - q) / (1.0 - p)) if q < 1.0 else 0.0)
-
-
 def max_empirical_risk(target: float, eps: float, method: str = EXACT,
                        iterations: int = 60) -> float:
     """Largest empirical risk ``q`` whose bound ``q + D_Ber^-1(q, eps)`` is at most ``target``.
@@ -194,7 +189,7 @@ def max_empirical_risk(target: float, eps: float, method: str = EXACT,
 
 def divergence_budget(kl_nats: float, n_posteriors: int, delta: float) -> float:
     """``eps = (KL + log((M + 1) / delta)) / M`` [nats] (paper §6)."""
-    return float((max(kl_nats, 0.0) + np.log((n_posteriors + 1) / delta)) / n_posteriors)
+    return (max(float(kl_nats), 0.0) + math.log((n_posteriors + 1) / delta)) / n_posteriors
 
 
 def certifiable_target(n_posteriors: int, delta: float, kl_nats: float = 0.0) -> float:
@@ -290,6 +285,11 @@ def risk_bound(empirical: np.ndarray, kl_nats: float, n_posteriors: int, delta: 
                      epsilon=float(eps))
 
 
+def _vector3(value) -> np.ndarray:
+    """A (3,) contiguous float64 copy or view (one kernel signature for every caller)."""
+    return np.ascontiguousarray(np.asarray(value, dtype=float).reshape(-1)[:3])
+
+
 @dataclass(frozen=True)
 class PosteriorSet:
     """The M posteriors of one epoch, as the risk bound sees them.
@@ -319,25 +319,72 @@ class PosteriorSet:
     def n_posteriors(self) -> int:
         return int(self.motion_index.shape[0])
 
+    @cached_property
+    def weights(self) -> np.ndarray:
+        """Linear weights ``exp(log_w)``: (S, N), or (1, N) when every sample has the
+        same row (``log_w`` broadcast from one row, as the priors are)."""
+        log_w = np.asarray(self.log_w, dtype=float)
+        if log_w.shape[0] > 1 and log_w.strides[0] == 0:
+            log_w = log_w[:1]
+        if not log_w.flags.writeable:
+            log_w = log_w.copy()          # a read-only view would be another signature
+        out = np.empty(log_w.shape)
+        posterior_kernels.exp_weights(log_w, out)
+        return out
+
+    def _xyz(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """East, north, up as (S, N) strided views: one kernel signature whatever the
+        layout of ``positions_m``."""
+        pos = self.positions_m
+        return pos[..., 0], pos[..., 1], pos[..., 2]
+
+    def _index(self) -> np.ndarray:
+        return np.asarray(self.motion_index, dtype=np.int64)
+
+    def _offsets(self) -> np.ndarray:
+        return np.ascontiguousarray(self.offsets_m, dtype=float)
+
+    def _dims(self) -> int:
+        return 2 if self.horizontal else 3
+
     def distances(self, centre_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distances (M, N) of every posterior's particles from ``centre_m`` and their
-        weights (M, N), each row summing to one."""
-        dims = 2 if self.horizontal else 3
-        # Particles of posterior j sit at x - o_j, so with r = x - centre:
-        # |r - o_j|^2 = |r|^2 - 2 r.o_j + |o_j|^2, one small matrix product per motion
-        # sample instead of an (M, N, d) copy. Relative coordinates are small: single
-        # precision is ample for the M * N result.
-        rel = self.positions_m[..., :dims] - np.asarray(centre_m, dtype=float)[:dims]
-        offsets = self.offsets_m[:, :dims]
-        dist = np.empty((self.motion_index.shape[0], rel.shape[1]), dtype=np.float32)
-        r2 = np.einsum('snd,snd->sn', rel, rel)
-        o2 = np.einsum('md,md->m', offsets, offsets)
-        for s in range(rel.shape[0]):
-            rows = np.flatnonzero(self.motion_index == s)
-            if rows.size:
-                d2 = r2[s][None, :] - 2.0 * (offsets[rows] @ rel[s].T) + o2[rows][:, None]
-                dist[rows] = np.sqrt(np.maximum(d2, 0.0))
-        return dist, np.exp(self.log_w[self.motion_index])
+        weights (M, N), each row summing to one.
+
+        Particles of posterior j sit at ``x - o_j``: with ``r = x - centre`` the distance
+        is ``|r - o_j|`` (horizontal or 3D), the arithmetic of :meth:`risk_and_level`.
+        """
+        out = np.empty((self.n_posteriors, self.positions_m.shape[1]))
+        posterior_kernels.distances(*self._xyz(), self._index(), self._offsets(),
+                                    _vector3(centre_m), self._dims(), out)
+        w = self.weights
+        return out, (w[self.motion_index] if w.shape[0] > 1
+                     else np.repeat(w, self.n_posteriors, axis=0))
+
+    def risk_and_level(self, centre_m: np.ndarray, radii_m, q_max: float
+                       ) -> tuple[np.ndarray, float]:
+        """Hazard masses at ``radii_m`` and the protection level for ``q_max``, in one
+        compiled pass over the M * N posterior particles.
+
+        Args:
+            centre_m: (3,) the estimate (or, for the reference risk, the truth) [m].
+            radii_m: (A,) alert radii [m].
+            q_max: Largest admissible empirical risk (:func:`max_empirical_risk`).
+
+        Returns:
+            ``(masses, level)``: (A,) the mean over the posteriors of the mass at or beyond
+            each radius (the empirical risk ``R_M``), and the smallest ``v`` in
+            ``{0} ∪ {distances}`` with at most ``q_max`` of the pooled mass strictly beyond
+            it [m]; inf when ``q_max`` is 0 (no radius can be certified).
+        """
+        radii = np.ascontiguousarray(radii_m, dtype=float).reshape(-1)
+        masses = np.empty(radii.shape[0])
+        want = bool(q_max > 0.0)
+        level = posterior_kernels.hazard_and_level(
+            *self._xyz(), self.weights, self._index(), self._offsets(),
+            _vector3(centre_m), self._dims(), radii,
+            float(q_max) * self.n_posteriors if want else 0.0, want, masses)
+        return masses, float(level)
 
     def hazard_mass(self, centre_m: np.ndarray, radii_m, dist_w: tuple | None = None
                     ) -> np.ndarray:
@@ -347,9 +394,10 @@ class PosteriorSet:
         position it is the reference risk (evaluation only). ``dist_w``: the result of
         :meth:`distances` for this centre, when already at hand.
         """
-        dist, w = self.distances(centre_m) if dist_w is None else dist_w
+        if dist_w is None:
+            return self.risk_and_level(centre_m, radii_m, 0.0)[0]
+        dist, w = dist_w
         radii = np.atleast_1d(np.asarray(radii_m, dtype=float))
-        # A is small (1-3): one weighted count per radius, no sort needed.
         masses = np.array([(w * (dist >= r)).sum() for r in radii]) / dist.shape[0]
         return np.clip(masses, 0.0, 1.0)
 
@@ -357,50 +405,46 @@ class PosteriorSet:
                          dist_w: tuple | None = None) -> float:
         """Smallest radius around ``centre_m`` with at most ``q_max`` pooled mass beyond it.
 
+        The level is the smallest ``v`` in ``{0} ∪ {distances}`` whose pooled mass
+        strictly beyond ``v`` is at most ``q_max``: a value, so tied distances (frequent
+        after resampling) give the same level in any order.
+
         Args:
             centre_m: (3,) the estimate [m].
             q_max: Largest admissible empirical risk (:func:`max_empirical_risk`).
             dist_w: The result of :meth:`distances` for this centre, when at hand.
 
         Returns:
-            The radius [m]; ``inf`` when ``q_max`` is 0 and the posteriors do not all sit
-            at the centre, i.e. when no radius can be certified.
+            The radius [m]; ``inf`` when ``q_max`` is 0, i.e. when no radius can be
+            certified.
         """
         if not q_max > 0.0:
             return float('inf')
-        dist, w = self.distances(centre_m) if dist_w is None else dist_w
-        dist, w = dist.ravel(), w.ravel() / dist.shape[0]
-        # Only the far tail matters (q_max is a few per cent): partition off the farthest
-        # candidates, check that they hold more than q_max, and sort just those.
-        n = dist.shape[0]
-        count = min(n, int(8 * q_max * n) + 256)
-        while True:
-            if count < n:
-                part = np.argpartition(dist, n - count)[n - count:]
-                d_tail, w_tail = dist[part], w[part]
-                if w_tail.sum() <= q_max:     # too few (heavy weights in the tail): widen
-                    count = min(n, 4 * count)
-                    continue
-            else:
-                d_tail, w_tail = dist, w
-            break
-        order = np.argsort(d_tail)
-        d, w = d_tail[order], w_tail[order]
-        # tail[k] = mass at or beyond d[k]; R_M(r) for d[k-1] < r <= d[k] is tail[k]. The
-        # level is the smallest d[k-1] whose strict tail (tail[k]) is within q_max.
-        tail = np.cumsum(w[::-1])[::-1]
-        k = int(np.searchsorted(-tail, -q_max, side='left'))
-        return float(d[k - 1]) if k > 0 else 0.0
+        if dist_w is None:
+            return self.risk_and_level(centre_m, np.zeros(0), q_max)[1]
+        dist, w = (np.ascontiguousarray(a, dtype=float) for a in dist_w)
+        return float(posterior_kernels.tail_level(
+            dist, w, np.arange(dist.shape[0], dtype=np.int64), float(q_max) * dist.shape[0],
+            -1.0))
 
     def pooled_moments(self) -> tuple[np.ndarray, np.ndarray]:
         """Mean (3,) and covariance (3, 3) of the pooled (equal-share) mixture of the M
-        posteriors, from the per-sample moments (no M * N copy)."""
-        w = np.exp(self.log_w)
-        means = np.einsum('sn,snd->sd', w, self.positions_m)
-        centred = self.positions_m - means[:, None, :]
-        covs = np.einsum('sn,snd,sne->sde', w, centred, centred)
-        component_means = means[self.motion_index] - self.offsets_m
-        mean = component_means.mean(axis=0)
-        spread = component_means - mean
-        cov = covs[self.motion_index].mean(axis=0) + spread.T @ spread / len(spread)
+        posteriors, from the per-sample moments (one compiled pass, no M * N copy)."""
+        mean, cov, _, _, _ = posterior_kernels.pooled_moments(
+            *self._xyz(), self.weights, self._index(), self._offsets(), self.weights,
+            self._index(), self._offsets(), False, 0.0)
         return mean, cov
+
+    def divergence_from(self, priors: 'PosteriorSet', floor_m2: float = 1e-2) -> float:
+        """KL(N_post || N_prior) [nats] between Gaussian fits of the pooled mixtures of
+        these posteriors and of ``priors`` (:func:`gaussian_kl` with ``floor_m2``).
+
+        When ``priors`` holds the same particles (other weights and offsets), both sets of
+        moments come from one compiled pass.
+        """
+        if priors.positions_m is not self.positions_m:
+            return gaussian_kl(*self.pooled_moments(), *priors.pooled_moments(), floor_m2)
+        *_, kl = posterior_kernels.pooled_moments(
+            *self._xyz(), self.weights, self._index(), self._offsets(), priors.weights,
+            priors._index(), priors._offsets(), True, float(floor_m2))
+        return float(kl)

@@ -9,7 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import logsumexp
+from .kernels import motion as motion_kernels
+from .kernels import weights as weight_kernels
 
 STATE_DIM = 4
 POS = slice(0, 3)
@@ -52,14 +53,27 @@ class MotionIncrement:
                    dyaw_var_rad2=0.0, unknown_s=max(dt_s, 0.0))
 
 
+def log_sum_exp_rows(log_w: np.ndarray) -> np.ndarray:
+    """``log sum exp`` over the last axis, keeping it (numpy max shift; scipy's
+    ``logsumexp`` costs tens of microseconds of checks on the small arrays of an epoch)."""
+    top = log_w.max(axis=-1, keepdims=True)
+    top = np.where(np.isfinite(top), top, 0.0)
+    with np.errstate(divide='ignore'):
+        return top + np.log(np.exp(log_w - top).sum(axis=-1, keepdims=True))
+
+
 def normalize_log_weights(log_w: np.ndarray) -> np.ndarray:
     """Return log-weights shifted so that ``exp`` of each row sums to one."""
-    return log_w - logsumexp(log_w, axis=-1, keepdims=True)
+    if log_w.ndim == 1:
+        return weight_kernels.normalised(np.ascontiguousarray(log_w, dtype=float))
+    return log_w - log_sum_exp_rows(log_w)
 
 
 def effective_sample_size(log_w: np.ndarray) -> np.ndarray:
     """Effective sample size ``1 / sum w^2`` of normalised log-weights (last axis)."""
-    return np.exp(-logsumexp(2.0 * log_w, axis=-1))
+    if log_w.ndim == 1:
+        return weight_kernels.effective_sample_size(np.ascontiguousarray(log_w, dtype=float))
+    return np.exp(-log_sum_exp_rows(2.0 * log_w)[..., 0])
 
 
 @dataclass(frozen=True)
@@ -174,7 +188,7 @@ def propagate(particles: np.ndarray, distance_m: np.ndarray, dyaw_rad: np.ndarra
     """Move one particle set by each of M motion samples, with per-particle process noise.
 
     The position advances along the mid-interval heading (second-order accurate for a
-    constant turn rate).
+    constant turn rate); the compiled kernel is ``core.kernels.motion.propagate_sets``.
 
     Args:
         particles: (N, 4) set to propagate.
@@ -191,26 +205,17 @@ def propagate(particles: np.ndarray, distance_m: np.ndarray, dyaw_rad: np.ndarra
     m, n = distance_m.shape[0], particles.shape[0]
     # Single-precision draws are twice as fast and ample for process noise.
     noise = rng.standard_normal((m, n, STATE_DIM), dtype=np.float32)
-    # cos(yaw + d) = cos(yaw) cos(d) - sin(yaw) sin(d): the trigonometry runs on the N
-    # headings once, not on all M * N.
-    cos_n, sin_n = np.cos(particles[:, YAW]), np.sin(particles[:, YAW])
-    half = 0.5 * dyaw_rad
-    step_c = (distance_m * np.cos(half))[:, None]
-    step_s = (distance_m * np.sin(half))[:, None]
     out = np.empty((m, n, STATE_DIM))
-    out[..., 0] = particles[None, :, 0] + step_c * cos_n - step_s * sin_n
-    out[..., 1] = particles[None, :, 1] + step_c * sin_n + step_s * cos_n
-    out[..., 2] = particles[None, :, 2] + dup_m
-    out[..., :3] += np.sqrt(pos_var_m2) * noise[..., :3]
-    out[..., YAW] = particles[None, :, YAW] + dyaw_rad[:, None] + np.sqrt(yaw_var_rad2) * noise[
-        ..., YAW]
+    motion_kernels.propagate_sets(np.ascontiguousarray(particles, dtype=float),
+                                  np.asarray(distance_m, dtype=float),
+                                  np.asarray(dyaw_rad, dtype=float), float(dup_m),
+                                  np.sqrt(np.asarray(pos_var_m2, dtype=float)),
+                                  float(np.sqrt(yaw_var_rad2)), noise, out)
     return out
 
 
 def weighted_mean_cov(points: np.ndarray, log_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted mean (d,) and covariance (d, d) of (N, d) points with normalised log-weights."""
-    w = np.exp(log_w)
-    mean = w @ points
-    centred = points - mean
-    cov = (centred * w[:, None]).T @ centred
-    return mean, cov
+    """Weighted mean (3,) and covariance (3, 3) of (N, >= 3) points (their first three
+    columns) with normalised log-weights (one compiled pass)."""
+    return motion_kernels.weighted_moments(np.ascontiguousarray(points, dtype=float),
+                                           np.ascontiguousarray(log_w, dtype=float))

@@ -498,7 +498,7 @@ class GnssCamNode(Node):
         """
         gate = self.inputs[topic].gate
         try:
-            verdict = gate.admit(stamp_ns)
+            verdict = gate.admit(stamp_ns, time.monotonic())
         except MessageError as err:
             self.warn_rejected(topic, err.reason, str(err))
             return None
@@ -509,7 +509,8 @@ class GnssCamNode(Node):
             self.stats.count('time_base_changed')
             self.get_logger().warning(
                 f'{topic}: new time base adopted at {stamp_ns} ns ({gate.confirm} consistent '
-                f'messages away from the stream before): state of the old one reset')
+                f'messages over {gate.span_s:g} s away from the stream before): state of the '
+                'old one reset')
             self.on_time_base_changed(topic, stamp_ns)
         return verdict
 

@@ -70,6 +70,7 @@ from gnsscam_ros.core.frames import LocalFrame
 from gnsscam_ros.core.motion import OUT_OF_ORDER, RESET
 from gnsscam_ros.core.particles import SYSTEMATIC
 from gnsscam_ros.core.types import GnssEpoch
+from gnsscam_ros.core.warmup import warm_up_kernels
 from msg_adapters import (ERROR, OK, STALE, WARN, GeodeticFix, GlobalOdometry,
                           IntegrityRisk, MessageError, PoseEstimate, check_serialized_gnss,
                           check_serialized_matches, check_serialized_size, fix_to_navsatfix,
@@ -231,6 +232,9 @@ class FusionNode(GnssCamNode):
         self.engine = EpochEngine(config, frame=frame, rng=rng, timing=InputTiming(
             **{field: self.param(name) for name, field in TIMING_PARAMETERS.items()}))
         self.filter = self.engine.filter
+        # Compile (or load from the cache) the epoch kernels now, before any input is
+        # subscribed to, so that the first epoch is not a compilation.
+        self.kernel_warm_up_s = warm_up_kernels(config)
         self._camera_count = 0
         self._started = time.monotonic()
         self._last_gnss_receipt: float | None = None
@@ -273,7 +277,7 @@ class FusionNode(GnssCamNode):
         return {'n_particles': cfg.n_particles, 'likelihood': cfg.likelihood,
                 'alert_limit_m': cfg.alert_limit_m, 'target_risk': cfg.target_risk,
                 'satellite_limit': cfg.satellite_limit, 'map_origin': origin,
-                'seed': self.param('seed')}
+                'seed': self.param('seed'), 'kernels_ready_s': round(self.kernel_warm_up_s, 2)}
 
     def reset_time_base(self, reason: str) -> None:
         """The inputs adopt a new time base (their stamps jumped on purpose): drop what is

@@ -4,5 +4,5 @@
 hierarchical k-majority tree, ``database`` scores a query image against geotagged database
 images (Nister & Stewenius, CVPR 2006), ``synthetic`` draws street images for tests and
 benchmarks, and ``mapdb_cli`` is the ``gnsscam_mapdb`` command. This package uses OpenCV;
-the particle-side camera distribution is in ``core.fusion`` (``camera_log_q``).
+the particle-side camera distribution is in ``core.fusion`` (``camera_fusion``).
 """

@@ -1,0 +1,59 @@
+"""Compiled per-particle kernels of the epoch (numba).
+
+Everything an epoch does per particle or per particle and satellite runs here, fused into
+few passes over the arrays: propagation (``motion``), receiver clock and GNSS likelihood
+(``gnss``), camera distributions and their mixture (``camera``), posterior moments,
+hazard mass and protection level (``posterior``). The modules of ``core`` call these; the
+plain numpy forms they replaced survive only as test oracles (``test/oracles.py``).
+
+Kernels are compiled on first use and cached on disk (``cache=True``: the next process
+loads them instead of compiling); ``core.warmup`` runs each once on a tiny input so that a
+node's first epoch is not a compilation. numba checks a cached kernel against its own
+source file only, not against the helpers it inlines from another module
+(``elementary.exp``): :func:`drop_stale_caches` removes, at import, every cached kernel of
+this package older than any of its sources, so an edited helper is compiled again.
+
+Kernels run on the calling thread only (no numba threading layer, no BLAS), so an epoch
+costs the same whatever was imported before.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numba
+
+#: Options of every kernel: compiled once and cached on disk; no Python objects inside
+#: (``nopython``); released GIL so that a node's executor threads keep running; numpy's
+#: error model (a division by zero gives inf/NaN as numpy would, never an exception from
+#: inside a kernel: the filter's state checks catch non-finite results).
+KERNEL_OPTIONS = dict(cache=True, nogil=True, error_model='numpy')
+
+
+def kernel(function):
+    """Compile ``function`` as an epoch kernel (:data:`KERNEL_OPTIONS`)."""
+    return numba.njit(**KERNEL_OPTIONS)(function)
+
+
+def drop_stale_caches(package_dir: Path = Path(__file__).parent) -> int:
+    """Remove the cached kernels (numba's ``__pycache__/*.nbi`` index and ``*.nbc`` code
+    files) of this package that are older than its newest source file; returns how many
+    files went. Best effort: a cache that cannot be read or removed is left alone (an
+    installed package's sources do not change after installation)."""
+    removed = 0
+    try:
+        newest = max(f.stat().st_mtime for f in package_dir.glob('*.py'))
+        cached = list((package_dir / '__pycache__').glob('*.nb[ic]'))
+    except (OSError, ValueError):
+        return 0
+    for path in cached:
+        try:
+            if path.stat().st_mtime < newest:
+                os.remove(path)
+                removed += 1
+        except OSError:
+            pass
+    return removed
+
+
+drop_stale_caches()

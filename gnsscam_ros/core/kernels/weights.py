@@ -1,0 +1,129 @@
+"""Weighted particle sets: normalisation, effective size and the summary of one set.
+
+The summary (mean, covariance, circular mean heading, effective sample size) is what an
+epoch reports of its chosen set: one pass over it instead of five numpy reductions.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from . import kernel
+
+
+@kernel
+def log_sum_exp(values):
+    """``log sum exp(values)`` of a (N,) array, shifted by its maximum (-inf when every
+    value is -inf or the array is empty; NaN propagates)."""
+    top = -np.inf
+    for i in range(values.shape[0]):
+        v = values[i]
+        if v > top or v != v:
+            top = v
+    if not top > -np.inf:
+        return top                                   # -inf, or NaN
+    acc = 0.0
+    for i in range(values.shape[0]):
+        acc += math.exp(values[i] - top)
+    return top + math.log(acc)
+
+
+@kernel
+def add_and_sum_rows(joint, extra):
+    """``joint += extra`` in place, (S, N) each; returns the (S,) log-sum-exp of each row
+    of the result (one pass for the sum, one for the shift)."""
+    totals = np.empty(joint.shape[0])
+    for s in range(joint.shape[0]):
+        for i in range(joint.shape[1]):
+            joint[s, i] += extra[s, i]
+        totals[s] = log_sum_exp(joint[s])
+    return totals
+
+
+@kernel
+def normalised(log_w):
+    """Log-weights (N,) shifted so that their exponentials sum to one (a new array)."""
+    return log_w - log_sum_exp(log_w)
+
+
+@kernel
+def effective_sample_size(log_w):
+    """``1 / sum w^2`` of normalised log-weights (N,)."""
+    acc = 0.0
+    for i in range(log_w.shape[0]):
+        acc += math.exp(2.0 * log_w[i])
+    return 1.0 / acc
+
+
+@kernel
+def set_summary(particles, log_w):
+    """Weighted mean (3,), covariance (3, 3), circular mean heading and effective sample
+    size of one set (N, 4) with normalised log-weights (N,), in one pass.
+
+    Moments are taken about the first particle (relative coordinates are small, so the
+    one-pass formula loses nothing to cancellation).
+    """
+    n = particles.shape[0]
+    ref = np.empty(3)
+    for a in range(3):
+        ref[a] = particles[0, a]
+    m = np.zeros(3)
+    c = np.zeros((3, 3))
+    d = np.empty(3)
+    w_sum = 0.0
+    w_sq = 0.0
+    sin_sum = 0.0
+    cos_sum = 0.0
+    for i in range(n):
+        w = math.exp(log_w[i])
+        w_sum += w
+        w_sq += w * w
+        sin_sum += w * math.sin(particles[i, 3])
+        cos_sum += w * math.cos(particles[i, 3])
+        for a in range(3):
+            d[a] = particles[i, a] - ref[a]
+        for a in range(3):
+            wd = w * d[a]
+            m[a] += wd
+            for b in range(a, 3):
+                c[a, b] += wd * d[b]
+    mean = np.empty(3)
+    for a in range(3):
+        m[a] /= w_sum
+    for a in range(3):
+        mean[a] = ref[a] + m[a]
+        for b in range(a, 3):
+            c[a, b] = c[a, b] / w_sum - m[a] * m[b]
+            c[b, a] = c[a, b]
+    return mean, c, math.atan2(sin_sum, cos_sum), w_sum * w_sum / w_sq
+
+
+#: What :func:`set_problem` finds, by code (0: nothing).
+SET_PROBLEMS = ('non-finite particles', 'particles beyond the bound',
+                'particle weights are not a distribution')
+
+
+@kernel
+def set_problem(particles, log_w, bound):
+    """0 when the set (N, 4) is finite and within ``bound`` in every coordinate and its
+    log-weights (N,) are a distribution (no NaN, no +inf, at least one finite); else 1 +
+    the index in ``SET_PROBLEMS`` of the first problem (one pass)."""
+    n = particles.shape[0]
+    for i in range(n):
+        for a in range(particles.shape[1]):
+            v = particles[i, a]
+            if not math.isfinite(v):
+                return 1
+            if abs(v) > bound:
+                return 2
+    if log_w.shape[0] != n:
+        return 3
+    finite = False
+    for i in range(n):
+        v = log_w[i]
+        if v != v or v == np.inf:
+            return 3
+        if v > -np.inf:
+            finite = True
+    return 0 if finite else 3

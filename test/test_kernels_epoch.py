@@ -1,0 +1,103 @@
+"""One filter epoch through the compiled kernels against the same epoch through the numpy
+oracles (test/oracles.py), from the same state and the same random stream.
+
+The propagated sets are bit-identical; the joint log-weights agree to 1e-6 nats (ranges
+by another formula, see test_kernels_gnss), so the choice of motion sample is the same
+and the estimate agrees to 1e-6 m. The risk bound and protection level of the epoch are
+held to the oracles on the posteriors the filter kept (test_kernels_posterior).
+"""
+import copy
+from dataclasses import replace
+
+import numpy as np
+import oracles
+import pytest
+from synthetic import FRAME, epoch_at, sky
+
+from gnsscam_ros.core import gnss
+from gnsscam_ros.core.filter import UPDATED, FilterConfig, ParticleFilter
+from gnsscam_ros.core.fusion import CameraMeasurement
+from gnsscam_ros.core.particles import MotionIncrement, motion_samples
+from gnsscam_ros.core.types import GLONASS, GPS
+
+S_NS = 1_000_000_000
+SYSTEMS = np.array([GPS] * 6 + [GLONASS] * 4)
+
+
+def drive_epoch(k: int, rng) -> tuple:
+    """Epoch k of a vehicle driving east at 8 m/s, pseudoranges with 3 m noise and one
+    NLOS-like fault; the motion since epoch k - 1."""
+    truth = np.array([8.0 * k, 2.0, 0.0])
+    epoch = epoch_at(truth, clock_m=[500.0, 540.0], sv_ecef=sky(10, seed=5),
+                     stamp_ns=k * S_NS, system=SYSTEMS)
+    pr = epoch.pr_m + rng.normal(scale=3.0, size=10)
+    pr[3] += 40.0
+    motion = MotionIncrement(dt_s=1.0, distance_m=8.0, dyaw_rad=0.0, distance_var_m2=0.01,
+                             dyaw_var_rad2=1e-5)
+    return replace(epoch, pr_m=pr), motion, truth
+
+
+def oracle_choice(filt: ParticleFilter, epoch, motion, camera):
+    """The motion samples, their joint log-weights and totals, by the numpy oracles, from
+    ``filt``'s state and random stream (``filt`` is a copy: its generator advances)."""
+    cfg = filt.config
+    distance, dyaw = motion_samples(motion, cfg.motion_sample_count,
+                                    cfg.motion_perturbation_scale, filt.rng)
+    pos_var = np.array([cfg.propagation_var_m2, cfg.propagation_var_m2,
+                        cfg.vertical_propagation_var_m2]) * motion.dt_s
+    priors = oracles.propagate(filt.particles, distance, dyaw, motion.dup_m, pos_var,
+                               cfg.yaw_propagation_var_rad2 * motion.dt_s, filt.rng)
+    centre, cov = oracles.weighted_mean_cov(priors[0, :, :3], filt.log_w)
+    check = gnss.check_epoch(epoch)
+    prep = gnss.prepare_epoch(epoch.subset(check.keep), filt.frame, centre,
+                              cfg.measurement_var_m2, cfg.use_reported_variance)
+    residual = prep.pr_m - oracles.ranges(centre[None], prep.sv_enu_m)[0]
+    spread = min(float(np.sqrt(np.trace(cov))), cfg.clock_kernel_max_m)
+    clock_w = oracles.clock_inlier_weights(residual, prep.sigma_m, prep.sys_index,
+                                           prep.n_systems, spread)
+    m, n = priors.shape[:2]
+    z = (oracles.clock_corrected_residuals(priors[..., :3].reshape(-1, 3), prep, clock_w)
+         / prep.sigma_m).reshape(m, n, -1)
+    log_lik = oracles.robust_log_likelihood(z, np.log(prep.sigma_m), cfg.outlier_prob,
+                                            cfg.outlier_range_m).log_lik
+    joint = filt.log_w + filt._evidence_weight(motion.dt_s) * log_lik
+    if camera:
+        total = np.log(np.exp(joint).sum(axis=1))
+        matches = np.array([c.position_enu_m for c in camera])
+        log_q = oracles.camera_log_q(priors[..., :3], matches, cfg.camera_temperature_m,
+                                     cfg.camera_gate_m)
+        joint = joint + oracles.fuse_camera(joint - total[:, None], log_q,
+                                            cfg.camera_kl_threshold_nats,
+                                            cfg.camera_elsewhere_prob).log_q_mix
+    top = joint.max(axis=1, keepdims=True)
+    total = top[:, 0] + np.log(np.exp(joint - top).sum(axis=1))
+    return priors, joint - total[:, None], total
+
+
+@pytest.mark.parametrize('with_camera', [False, True])
+def test_an_epoch_through_the_kernels_is_the_epoch_through_the_oracles(with_camera):
+    rng = np.random.default_rng(2)
+    config = FilterConfig(n_particles=400, acquisition_particles=0, n_posteriors=12,
+                          n_motion_samples=6, heading_acquisition_m=16.0)
+    filt = ParticleFilter(config, frame=FRAME, rng=np.random.default_rng(7))
+    for k in range(6):
+        epoch, motion, _ = drive_epoch(k, rng)
+        assert filt.step(epoch, motion if k else None).status == UPDATED
+    epoch, motion, truth = drive_epoch(6, rng)
+    camera = ([CameraMeasurement(6 * S_NS - 100_000_000 * j,
+                                 truth + rng.normal(scale=2.0, size=3), 1.0, j)
+               for j in range(3)] if with_camera else None)
+    reference = copy.deepcopy(filt)
+    result = filt.step(epoch, motion, camera)
+    priors, post_log_w, total = oracle_choice(reference, epoch, motion, camera)
+
+    np.testing.assert_array_equal(filt.posteriors, priors)
+    np.testing.assert_allclose(result.total_log_lik, total, atol=1e-6)
+    assert result.chosen == int(np.argmax(total))
+    np.testing.assert_allclose(filt.posterior_log_w, post_log_w, atol=1e-6)
+    mean, cov = oracles.weighted_mean_cov(priors[result.chosen, :, :3],
+                                          post_log_w[result.chosen])
+    np.testing.assert_allclose(result.position_enu_m, mean, atol=1e-6)
+    np.testing.assert_allclose(result.covariance_m2, cov, atol=1e-6)
+    if with_camera:
+        assert result.camera_alpha is not None and not result.camera_excluded

@@ -1,0 +1,159 @@
+"""The compiled epoch kernels against their numpy oracles (test/oracles.py).
+
+Tolerances: ranges are taken directly as |s - p| in the kernels and as
+|s|^2 - 2 p.s + |p|^2 in the oracle (whose rounding is up to ~1e-6 m at 2e7 m), so
+residuals agree to 1e-5 m and joint log-weights to 1e-6 nats; everything else is the
+same arithmetic in another order (1e-9 and below).
+"""
+from dataclasses import replace
+
+import numpy as np
+import oracles
+import pytest
+from synthetic import FRAME, epoch_at, sky
+
+from gnsscam_ros.core import gnss
+from gnsscam_ros.core.particles import propagate, weighted_mean_cov
+from gnsscam_ros.core.types import GLONASS, GPS
+
+TRUTH_ENU = np.array([12.0, -7.0, 3.0])
+
+
+def faulty_two_system_epoch(seed: int):
+    system = np.array([GPS] * 7 + [GLONASS] * 5)
+    epoch = epoch_at(TRUTH_ENU, clock_m=[3_000.0, 3_050.0], sv_ecef=sky(12, seed=seed),
+                     system=system)
+    rng = np.random.default_rng(seed)
+    pr = epoch.pr_m + rng.normal(scale=3.0, size=12)
+    pr[[2, 9]] += [60.0, 25.0]                         # an NLOS-like fault per system
+    return gnss.prepare_epoch(replace(epoch, pr_m=pr), FRAME, TRUTH_ENU, 10.0, False)
+
+
+@pytest.fixture(params=[1, 2])
+def case(request):
+    rng = np.random.default_rng(request.param)
+    prep = faulty_two_system_epoch(request.param)
+    # S = 3 sets of N = 517 particles (not a multiple of the kernels' block), spread 30 m.
+    sets = TRUTH_ENU + rng.normal(scale=30.0, size=(3, 517, 3))
+    prior = rng.normal(size=517)
+    prior -= np.log(np.exp(prior).sum())
+    clock_w = gnss.clock_weights(prep, TRUTH_ENU + 5.0, 3.0)
+    z = (oracles.clock_corrected_residuals(sets.reshape(-1, 3), prep, clock_w)
+         / prep.sigma_m).reshape(3, 517, -1)
+    return prep, sets, prior, clock_w, z
+
+
+def test_clock_weights_match_the_oracle(case):
+    prep, *_ = case
+    centre = TRUTH_ENU + 5.0
+    residual = prep.pr_m - oracles.ranges(centre[None], prep.sv_enu_m)[0]
+    expected = oracles.clock_inlier_weights(residual, prep.sigma_m, prep.sys_index,
+                                            prep.n_systems, 3.0)
+    np.testing.assert_allclose(gnss.clock_weights(prep, centre, 3.0), expected, atol=1e-12)
+
+
+def test_residuals_match_the_oracle(case):
+    prep, sets, _, clock_w, z = case
+    residual = gnss.clock_corrected_residuals(sets.reshape(-1, 3), prep, clock_w)
+    np.testing.assert_allclose(residual / prep.sigma_m, z.reshape(-1, z.shape[-1]),
+                               atol=1e-5)
+
+
+@pytest.mark.parametrize('evidence', [1.0, 0.2])
+def test_robust_joint_matches_the_oracle(case, evidence):
+    prep, sets, prior, clock_w, z = case
+    lik = gnss.RobustLikelihood(0.3, 300.0).joint(sets, prep, clock_w, evidence, prior)
+    expected = prior + evidence * oracles.robust_log_likelihood(
+        z, np.log(prep.sigma_m), 0.3, 300.0).log_lik
+    np.testing.assert_allclose(lik.joint, expected, atol=1e-6)
+    np.testing.assert_allclose(lik.total, np.log(np.exp(expected).sum(axis=1)), atol=1e-6)
+
+
+@pytest.mark.parametrize('evidence', [1.0, 0.2])
+def test_particle_raim_joint_matches_the_oracle(case, evidence):
+    prep, sets, prior, clock_w, z = case
+    lik = gnss.ParticleRaimLikelihood(1.05).joint(sets, prep, clock_w, evidence, prior)
+    expected = oracles.particle_raim_log_likelihood(z, np.log(prep.sigma_m), prior, 1.05)
+    np.testing.assert_allclose(lik.joint, prior + evidence * expected.log_lik, atol=1e-6)
+    np.testing.assert_allclose(lik.gamma, expected.gamma, atol=1e-9)
+
+
+def test_robust_inlier_shares_match_the_oracle(case):
+    prep, sets, prior, clock_w, z = case
+    probability, share = gnss.robust_inlier_shares(sets[1], prior, prep, clock_w, 0.3, 300.0)
+    log_sigma = np.log(prep.sigma_m)
+    np.testing.assert_allclose(
+        probability, oracles.robust_inlier_probability(z[1], log_sigma, 0.3, 300.0, prior),
+        atol=1e-9)
+    np.testing.assert_allclose(
+        share, oracles.robust_log_likelihood(z[1:2], log_sigma, 0.3, 300.0).gamma[0],
+        atol=1e-9)
+
+
+def test_robust_joint_keeps_a_tiny_outlier_floor_finite():
+    # eps / range of 1e-12 over 64 satellites: the product of the floors (1e-768) would
+    # underflow; the kernel takes a log per group of satellites instead.
+    rng = np.random.default_rng(4)
+    sky_64 = sky(64, seed=7)
+    epoch = epoch_at(TRUTH_ENU, clock_m=0.0, sv_ecef=sky_64)
+    prep = gnss.prepare_epoch(epoch, FRAME, TRUTH_ENU, 10.0, False)
+    far = TRUTH_ENU + rng.normal(scale=5_000.0, size=(1, 50, 3))  # every satellite an outlier
+    clock_w = gnss.clock_weights(prep, TRUTH_ENU, 3.0)
+    lik = gnss.RobustLikelihood(1e-9, 1e3).joint(far, prep, clock_w, 1.0, np.zeros(50))
+    assert np.isfinite(lik.joint).all()
+    z = (oracles.clock_corrected_residuals(far[0], prep, clock_w) / prep.sigma_m)[None]
+    expected = oracles.robust_log_likelihood(z, np.log(prep.sigma_m), 1e-9, 1e3).log_lik
+    np.testing.assert_allclose(lik.joint, expected, rtol=1e-9)
+
+
+def test_propagation_is_the_oracle_bit_for_bit(rng):
+    particles = np.c_[rng.normal(scale=20.0, size=(300, 3)), rng.uniform(-3, 3, 300)]
+    args = (np.array([8.0, 8.4, 7.5]), np.array([0.1, 0.13, 0.06]), 0.4,
+            np.array([0.3, 0.3, 0.2]), 3e-4)
+    moved = propagate(particles, *args, np.random.default_rng(9))
+    np.testing.assert_array_equal(moved,
+                                  oracles.propagate(particles, *args, np.random.default_rng(9)))
+    log_w = rng.normal(size=300)
+    log_w -= np.log(np.exp(log_w).sum())
+    mean, cov = weighted_mean_cov(moved[0], log_w)
+    ref_mean, ref_cov = oracles.weighted_mean_cov(moved[0, :, :3], log_w)
+    np.testing.assert_allclose(mean, ref_mean, atol=1e-9)
+    np.testing.assert_allclose(cov, ref_cov, atol=1e-9)
+
+
+def test_satellite_checks_match_the_oracle():
+    # Random epochs with every kind of bad satellite, several in one epoch and one
+    # satellite failing several checks (the first reason counts).
+    rng = np.random.default_rng(11)
+    specials = [np.nan, np.inf, -np.inf, 0.0, -5.0, 1e160, 2e8, 1e13]
+    for trial in range(300):
+        k = int(rng.integers(1, 40))
+        epoch = epoch_at(TRUTH_ENU, clock_m=0.0, sv_ecef=sky(k, seed=trial))
+        arrays = {name: getattr(epoch, name).astype(float).copy()
+                  for name in ('pr_m', 'var_m2', 'elevation_deg', 'cn0_dbhz')}
+        sv = epoch.sv_pos_ecef_m.copy()
+        sv_id = rng.integers(1, 6, k) if trial % 3 == 0 else epoch.sv_id
+        for _ in range(int(rng.integers(0, 6))):
+            i = int(rng.integers(k))
+            target = rng.choice(['pr_m', 'var_m2', 'elevation_deg', 'cn0_dbhz', 'sv'])
+            value = rng.choice(specials + [rng.uniform(-90, 90)])
+            if target == 'sv':
+                sv[i, int(rng.integers(3))] = value
+            else:
+                arrays[target][i] = value
+        bad = replace(epoch, sv_pos_ecef_m=sv, sv_id=sv_id, **arrays)
+        masks = {'elevation_mask_deg': 10.0, 'cn0_mask_dbhz': 20.0} if trial % 2 else {}
+        check = gnss.check_epoch(bad, **masks)
+        keep, rejected = oracles.satellite_rejections(bad, **masks)
+        np.testing.assert_array_equal(check.keep, keep)
+        assert check.rejected == rejected
+
+
+def test_constellations_of_one_satellite_are_set_aside_in_system_order():
+    system = np.array([GLONASS, GPS, 5, GLONASS, GPS, GPS, 7])
+    epoch = epoch_at(TRUTH_ENU, clock_m=0.0, sv_ecef=sky(7, seed=2), system=system)
+    prep = gnss.prepare_epoch(epoch, FRAME, TRUTH_ENU, 10.0, False)
+    assert prep.n_systems == 2
+    # GPS (1) before GLONASS (4); systems 5 and 7 have one satellite each.
+    np.testing.assert_array_equal(prep.sys_index, [1, 0, 1, 0, 0])
+    np.testing.assert_array_equal(prep.sv_key // 1000, [GLONASS, GPS, GLONASS, GPS, GPS])

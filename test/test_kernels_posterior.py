@@ -1,0 +1,201 @@
+"""The compiled posterior statistics (``core.kernels.posterior``) against the numpy oracles:
+distances, hazard masses, protection level, pooled moments and their KL, the inverse
+Bernoulli; and the fast exponential they use (``core.kernels.elementary``)."""
+import numpy as np
+import oracles
+import pytest
+from synthetic import FRAME, epoch_at
+
+from gnsscam_ros.core import integrity
+from gnsscam_ros.core.filter import UPDATED, FilterConfig, ParticleFilter
+from gnsscam_ros.core.kernels import kernel
+from gnsscam_ros.core.kernels import posterior as posterior_kernels
+from gnsscam_ros.core.kernels.elementary import exp
+from gnsscam_ros.core.particles import MotionIncrement
+
+SECOND = 1_000_000_000
+# Risks that are no sum of the test clouds' equal weights: a comparison with q_max never
+# hinges on the last bit of a sum (the kernel and the oracle add in different orders).
+Q_MAX = (1e-4, 0.01234567, 0.0503217, 0.1111, 0.2718281, 0.5, 0.97531)
+
+
+@kernel
+def _exp_array(x, out):
+    for i in range(x.shape[0]):
+        out[i] = exp(x[i])
+
+
+def test_fast_exp_is_within_two_ulp_and_flushes_below_the_normals():
+    x = np.concatenate([np.random.default_rng(0).uniform(-708.0, 709.0, 200_000),
+                        np.linspace(-1.0, 1.0, 2001), [0.0, -0.0, 1e-300, -707.9]])
+    out = np.empty_like(x)
+    _exp_array(x, out)
+    np.testing.assert_allclose(out, np.exp(x), rtol=4.5e-16, atol=0)
+    special = np.array([-np.inf, -800.0, -708.5, np.inf, 710.0, np.nan])
+    out = np.empty_like(special)
+    _exp_array(special, out)
+    np.testing.assert_array_equal(out[:5], [0.0, 0.0, 0.0, np.inf, np.inf])
+    assert np.isnan(out[5])
+
+
+def cloud(rng, s, n, m, ties=False, zeros=False, horizontal=True, shared=False,
+          view=True):
+    """M posteriors over S samples of N particles 3 km from the origin. ``ties``: rounded
+    coordinates and duplicated particles (as after resampling); ``zeros``: some zero
+    weights; ``shared``: one weight row broadcast over the samples (the priors);
+    ``view``: positions a view of (S, N, 4) particles (the filter's layout)."""
+    particles = np.empty((s, n, 4))
+    particles[..., :3] = [3000.0, -2000.0, 40.0] + rng.normal(0.0, 5.0, (s, n, 3))
+    particles[..., 3] = rng.uniform(-3.0, 3.0, (s, n))
+    if ties:
+        particles[:, n // 2:] = particles[:, :n - n // 2]
+        particles[..., :3] = np.round(particles[..., :3])
+    log_w = np.log(rng.dirichlet(np.full(n, 0.5), 1 if shared else s))
+    if zeros:
+        log_w[:, ::7] = -np.inf
+        log_w -= np.log(np.exp(log_w).sum(axis=1, keepdims=True))
+    if shared:
+        log_w = np.broadcast_to(log_w, (s, n))
+    positions = particles[..., :3] if view else np.ascontiguousarray(particles[..., :3])
+    offsets = rng.normal(0.0, 2.0, (m, 3))
+    return integrity.PosteriorSet(positions, log_w, np.arange(m) % s, offsets, horizontal)
+
+
+CASES = [dict(s=1, n=1, m=1), dict(s=3, n=5, m=7), dict(s=10, n=1000, m=10),
+         dict(s=20, n=300, m=200), dict(s=4, n=500, m=10, ties=True),
+         dict(s=4, n=500, m=10, ties=True, zeros=True),
+         dict(s=3, n=400, m=9, horizontal=False),
+         dict(s=5, n=400, m=10, shared=True, ties=True, view=False),
+         dict(s=2, n=4000, m=4, zeros=True, view=False)]
+
+
+@pytest.mark.parametrize('case', CASES)
+def test_hazard_level_and_distances_equal_the_oracles(rng, case):
+    posteriors = cloud(rng, **case)
+    centre = np.array([3000.5, -2000.2, 40.3])
+    radii = np.array([8.0, 3.0, 12.5, 0.0])
+    dist, w = oracles.posterior_distances(posteriors, centre)
+    got_dist, got_w = posteriors.distances(centre)
+    np.testing.assert_array_equal(got_dist, dist)        # the same arithmetic, bit for bit
+    np.testing.assert_allclose(got_w, w, rtol=1e-15, atol=0)
+    reference = oracles.hazard_mass(dist, w, radii)
+    for q_max in Q_MAX:
+        masses, level = posteriors.risk_and_level(centre, radii, q_max)
+        np.testing.assert_allclose(masses, reference, rtol=0, atol=1e-12)
+        assert level == oracles.protection_level(dist, w, q_max), q_max
+        assert posteriors.protection_level(centre, q_max) == level
+        assert posteriors.protection_level(centre, q_max, (dist, w)) == level
+    np.testing.assert_allclose(posteriors.hazard_mass(centre, radii), reference, atol=1e-12)
+    assert posteriors.risk_and_level(centre, radii, 0.0)[1] == np.inf
+
+
+def test_level_when_one_far_particle_crowds_the_histogram(rng):
+    # Particles 1,000 and 10^6 km out stretch the bins: the crossing bin holds nearly all
+    # particles and is split again before its sort.
+    posteriors = cloud(rng, 4, 3000, 8)
+    posteriors.positions_m[0, 0, 0] += 1e6
+    posteriors.positions_m[1, 0, 0] += 1e9
+    centre = np.array([3000.0, -2000.0, 40.0])
+    dist, w = oracles.posterior_distances(posteriors, centre)
+    for q_max in Q_MAX:
+        assert posteriors.risk_and_level(centre, [8.0], q_max)[1] == oracles.protection_level(
+            dist, w, q_max)
+
+
+def test_level_of_ties_is_a_value_and_zero_when_all_mass_fits():
+    # Every posterior particle at 5 m: mass 1 strictly beyond 0, none beyond 5.
+    sharp = integrity.PosteriorSet(np.zeros((1, 10, 3)), np.full((1, 10), -np.log(10)),
+                                   np.zeros(4, int), np.array([[3.0, 4.0, 0.0]] * 4))
+    assert sharp.risk_and_level(np.zeros(3), [5.0], 0.5)[1] == 5.0
+    # All at the centre: nothing beyond 0.
+    centred = integrity.PosteriorSet(np.zeros((1, 10, 3)), np.full((1, 10), -np.log(10)),
+                                     np.zeros(2, int), np.zeros((2, 3)))
+    assert centred.risk_and_level(np.zeros(3), [5.0], 0.01) == (pytest.approx([0.0]), 0.0)
+    # Half the mass at 2 m, half at 6 m: q_max 0.6 admits 2 m; 0.4 only 6 m.
+    pos = np.zeros((1, 4, 3))
+    pos[0, :2, 0], pos[0, 2:, 0] = 2.0, 6.0
+    half = integrity.PosteriorSet(pos, np.full((1, 4), -np.log(4)), np.zeros(1, int),
+                                  np.zeros((1, 3)))
+    assert half.protection_level(np.zeros(3), 0.6) == 2.0
+    assert half.protection_level(np.zeros(3), 0.4) == 6.0
+    assert half.protection_level(np.zeros(3), 1.0) == 0.0
+
+
+def test_walk_reports_when_the_level_lies_below_the_values():
+    values, weights = np.array([3.0, 1.0, 2.0, 2.0]), np.array([0.1, 0.2, 0.3, 0.4])
+    assert posterior_kernels._walk(values.copy(), weights.copy(), 0.0, 0.35) == (2.0, False)
+    assert posterior_kernels._walk(values.copy(), weights.copy(), 0.0, 0.05) == (3.0, False)
+    assert posterior_kernels._walk(values.copy(), weights.copy(), 0.0, 0.85) == (1.0, False)
+    assert posterior_kernels._walk(values.copy(), weights.copy(), 0.0, 1.0) == (1.0, True)
+
+
+@pytest.mark.parametrize('case', CASES)
+def test_pooled_moments_and_their_divergence_equal_the_oracles(rng, case):
+    posteriors = cloud(rng, **case)
+    mean, cov = posteriors.pooled_moments()
+    ref_mean, ref_cov = oracles.pooled_moments(posteriors)
+    scale = max(np.abs(ref_cov).max(), 1.0)
+    np.testing.assert_allclose(mean, ref_mean, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(cov, ref_cov, rtol=0, atol=1e-9 * scale)
+    # Priors: the same particles with one shared weight row and other offsets.
+    m, n = posteriors.n_posteriors, posteriors.positions_m.shape[1]
+    prior_log_w = np.log(rng.dirichlet(np.full(n, 2.0)))
+    priors = integrity.PosteriorSet(posteriors.positions_m,
+                                    np.broadcast_to(prior_log_w, posteriors.log_w.shape),
+                                    posteriors.motion_index,
+                                    posteriors.offsets_m + rng.normal(0.0, 1.0, (m, 1)),
+                                    posteriors.horizontal)
+    kl = posteriors.divergence_from(priors)
+    reference = integrity.gaussian_kl(*oracles.pooled_moments(posteriors),
+                                      *oracles.pooled_moments(priors))
+    assert kl == pytest.approx(reference, rel=1e-9, abs=1e-9)
+    # Other particles (a copy): two passes, the same divergence.
+    copied = integrity.PosteriorSet(posteriors.positions_m.copy(), priors.log_w,
+                                    priors.motion_index, priors.offsets_m)
+    assert posteriors.divergence_from(copied) == pytest.approx(kl, rel=1e-12, abs=1e-12)
+
+
+def test_gaussian_kl_kernel_equals_the_numpy_form(rng):
+    for _ in range(20):
+        a, b = rng.normal(size=(2, 3, 3))
+        cov0, cov1 = a @ a.T, b @ b.T * 3.0
+        mean0, mean1 = rng.normal(size=(2, 3)) * 4.0
+        for floor in (0.0, 1e-2):
+            assert posterior_kernels.gaussian_kl(mean0, cov0, mean1, cov1, floor) == (
+                pytest.approx(integrity.gaussian_kl(mean0, cov0, mean1, cov1, floor),
+                              rel=1e-10, abs=1e-12))
+
+
+def test_inverse_bernoulli_equals_the_vectorised_oracle(rng):
+    q = np.concatenate([[0.0, 1e-12, 0.5, 0.999], rng.uniform(0.0, 1.0, 200)])
+    eps = np.concatenate([[0.3, 1e-4, 2.0, 0.01], rng.uniform(1e-4, 5.0, 200)])
+    np.testing.assert_allclose(integrity.inverse_bernoulli_exact(q, eps),
+                               oracles.inverse_bernoulli_exact(q, eps), rtol=0, atol=1e-15)
+    grid = integrity.inverse_bernoulli_exact(q[:5, None], eps[None, :3])
+    assert grid.shape == (5, 3)
+    np.testing.assert_allclose(grid, oracles.inverse_bernoulli_exact(q[:5, None],
+                                                                     eps[None, :3]),
+                               atol=1e-15)
+    scalar = integrity.inverse_bernoulli_exact(0.05, 0.24)
+    assert np.ndim(scalar) == 0 and scalar == pytest.approx(
+        float(oracles.inverse_bernoulli_exact(0.05, 0.24)), abs=1e-15)
+
+
+def test_filter_bound_and_level_equal_the_oracles_on_its_posteriors():
+    """A filter epoch's empirical risk and protection level are those of the numpy
+    oracles on the posteriors it kept, for the q_max of its divergence budget."""
+    cfg = FilterConfig(n_particles=500, acquisition_particles=0, init_position_sd_m=5.0,
+                       init_vertical_sd_m=5.0, n_posteriors=100, alert_limit_m=25.0,
+                       error_correlation_time_s=1.0, heading_acquisition_m=0.0,
+                       integrity_settling_s=0.0)
+    filt = ParticleFilter(cfg, frame=FRAME, rng=np.random.default_rng(3))
+    for i in range(6):
+        epoch = epoch_at(np.zeros(3), clock_m=100.0, stamp_ns=i * SECOND)
+        result = filt.step(epoch, None if i == 0 else MotionIncrement.stationary(1.0))
+        assert result.status == UPDATED
+        dist, w = oracles.posterior_distances(filt.posterior_set, result.position_enu_m)
+        np.testing.assert_allclose(result.risk.empirical_risk,
+                                   oracles.hazard_mass(dist, w, cfg.alert_limits_m),
+                                   rtol=0, atol=1e-12)
+        q_max = integrity.max_empirical_risk(cfg.target_risk, result.risk.epsilon)
+        assert result.protection_level_m == oracles.protection_level(dist, w, q_max)
