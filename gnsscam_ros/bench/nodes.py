@@ -76,7 +76,7 @@ def _env(domain: int, log_dir: str) -> dict:
 # ============================================================================ latency
 def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: float = 0.0,
                   acquisition_particles: int = 0, domain: int = 61, seed: int = 3,
-                  log=print) -> dict:
+                  log=print, posteriors: int | None = 10) -> dict:
     """Pseudoranges -> integrity_risk latency through pipeline_node in another process.
 
     Args:
@@ -84,6 +84,8 @@ def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: f
         acquisition_particles: ``acquisition_particles`` of the filter; 0 (default)
             keeps N particles from the start, so every epoch measures the steady state
             (the filter default 10,000 enlarges sets smaller than that for ~100 m).
+        posteriors: ``n_posteriors`` M of the filter (default 10, the yardstick of
+            ``gnsscam_bench``'s rows); None: the filter default.
         duration_s: Length of the emulated drive replayed [s] (GNSS at 1 Hz).
         period_s: Wall time between epochs [s]; 0 = send the next epoch as soon as the
             previous verdict arrived (plus the dead reckoning of the interval).
@@ -98,8 +100,9 @@ def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: f
     drive = make_emulated_drive(seed, faults=2, duration_s=duration_s)
     log_dir = tempfile.mkdtemp(prefix='gnsscam_bench_')
     params = Path(log_dir) / 'params.yaml'
+    m_line = '' if posteriors is None else f'    n_posteriors: {posteriors}\n'
     params.write_text(f'fusion_node:\n  ros__parameters:\n    n_particles: {particles}\n'
-                      f'    acquisition_particles: {acquisition_particles}\n'
+                      f'    acquisition_particles: {acquisition_particles}\n{m_line}'
                       '    gnss_timeout_s: 30.0\n    odometry_wait_s: 0.5\n'
                       'imu_node:\n  ros__parameters:\n    input_queue_depth: 2000\n'
                       '    source_timeout_s: 30.0\n')
@@ -187,7 +190,7 @@ def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: f
             if st.name == 'fusion_node: status':
                 fusion = ma.status_values(st)
     return {'particles': particles, 'acquisition_particles': acquisition_particles,
-            'epochs': len(lat), 'median_ms': float(np.median(lat)),
+            'posteriors': posteriors, 'epochs': len(lat), 'median_ms': float(np.median(lat)),
             'p90_ms': float(np.percentile(lat, 90)), 'max_ms': float(np.max(lat)),
             'fusion_processing_p50_ms': float(fusion.get('processing_p50_ms', 'nan')),
             'pipeline_exit_code': rc}
@@ -311,6 +314,9 @@ def main(argv=None) -> int:
     parser.add_argument('--particles', type=int, default=10_000)
     parser.add_argument('--acquisition-particles', type=int, default=0,
                         help='acquisition_particles of the filter (default 0)')
+    parser.add_argument('--posteriors', type=int, default=10,
+                        help='n_posteriors M of the filter (default 10; 0: the filter '
+                             'default)')
     parser.add_argument('--duration-s', type=float, default=30.0,
                         help='emulated drive replayed for the latency [s]')
     parser.add_argument('--fps', type=float, default=30.0)
@@ -325,9 +331,10 @@ def main(argv=None) -> int:
     if not args.skip_latency:
         results['latency'] = bench_latency(args.particles, args.duration_s,
                                            acquisition_particles=args.acquisition_particles,
-                                           log=log)
+                                           log=log, posteriors=args.posteriors or None)
         lat = results['latency']
-        print(f"latency pseudoranges -> integrity_risk, N = {args.particles} (x M = 10 "
+        m = args.posteriors or 'the default'
+        print(f"latency pseudoranges -> integrity_risk, N = {args.particles} (x M = {m} "
               f"posteriors): median {lat['median_ms']:.1f} ms, p90 {lat['p90_ms']:.1f} ms "
               f"over {lat['epochs']} epochs; fusion_node processing p50 "
               f"{lat['fusion_processing_p50_ms']:.1f} ms")
