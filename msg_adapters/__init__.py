@@ -14,7 +14,8 @@ from .checks import check_serialized_size
 from .errors import MessageError
 from .gate import ADVANCE, BEHIND, NEW_BASE, StampGate
 from .geometry import (GeodeticFix, PoseEstimate, fix_to_navsatfix, msg_to_pose,
-                       navsatfix_to_fix, particles_to_posearray, pose_covariance, pose_stamped,
+                       navsatfix_to_fix, particles_to_posearray,
+                       particles_to_posearray_cdr, pose_covariance, pose_stamped,
                        pose_to_msg, posearray_to_particles, quaternion_to_yaw,
                        yaw_to_quaternion)
 from .image import (ENCODINGS, array_to_image, check_image, check_image_size,
@@ -47,6 +48,7 @@ __all__ = [
     'make_status', 'matches_to_pointcloud2', 'message_class', 'msg_to_pose',
     'navsatfix_to_fix', 'ns_to_stamp', 'numpy_kit', 'odometry_to_dead_reckoning',
     'odometry_to_global', 'parse_integrity_risk', 'particles_to_posearray',
+    'particles_to_posearray_cdr',
     'pointcloud2_to_gnss_epoch', 'pointcloud2_to_matches', 'pointcloud2_to_structured',
     'pose_covariance', 'pose_stamped', 'pose_to_msg', 'posearray_to_particles',
     'quaternion_to_yaw', 'sample_to_imu', 'sample_to_twist', 'service_bits', 'stamp_to_ns',

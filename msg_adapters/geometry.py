@@ -13,14 +13,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from geometry_msgs.msg import Pose, PoseArray, PoseWithCovarianceStamped, Quaternion
+from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped, Quaternion
+from rclpy.serialization import deserialize_message
 from std_msgs.msg import Header
 
 from .errors import MessageError
 from .kit import RCLPY, MessageKit
 from .stamps import make_header, ns_to_stamp, stamp_to_ns
 from .wire import (ANTENNA_FRAME, COVARIANCE_TYPE_KNOWN, COVARIANCE_TYPE_UNKNOWN, FIX,
-                   MAP_FRAME, POSE, SERVICE_GPS, STATUS_FIX)
+                   MAP_FRAME, POSE, SERVICE_GPS, STATUS_FIX, split_ns)
 
 UNESTIMATED_VAR = 1e6     # variance of the pose axes the filter does not estimate [rad^2]
 
@@ -116,25 +117,44 @@ def msg_to_pose(msg: PoseWithCovarianceStamped, what: str = POSE) -> PoseEstimat
 
 
 # ------------------------------------------------------------------------- particles
+#: CDR encapsulation header of a little-endian plain-CDR message (what rmw publishes).
+_CDR_LE = b'\x00\x01\x00\x00'
+
+
+def particles_to_posearray_cdr(particles: np.ndarray, stamp_ns: int,
+                               frame_id: str = MAP_FRAME) -> bytes:
+    """(N, 4) particles (east, north, up, yaw) -> the serialised ``PoseArray`` (CDR bytes).
+
+    Written with numpy in one go: a publisher takes the bytes as they are
+    (``Publisher.publish`` of bytes), where building N Python ``Pose`` objects would cost
+    ~6-17 us per particle, more than the filter epoch at N = 1,000. Byte-identical to
+    rclpy's serialisation of :func:`particles_to_posearray`'s message (tested).
+
+    Raises:
+        MessageError: A stamp that does not fit ``builtin_interfaces/Time``.
+    """
+    sec, nanosec = split_ns(stamp_ns)
+    p = np.asarray(particles, dtype=float).reshape(-1, 4)
+    name = frame_id.encode('utf-8') + b'\x00'
+    # Offsets count from the end of the encapsulation header (CDR alignment).
+    head = np.array([sec, nanosec, len(name)], dtype='<u4').tobytes() + name
+    head += b'\x00' * (-len(head) % 4)
+    head += np.array([p.shape[0]], dtype='<u4').tobytes()
+    head += b'\x00' * (-len(head) % 8)
+    poses = np.zeros((p.shape[0], 7), dtype='<f8')
+    poses[:, :3] = p[:, :3]
+    half = 0.5 * p[:, 3]
+    poses[:, 5] = np.sin(half)
+    poses[:, 6] = np.cos(half)
+    return _CDR_LE + head + poses.tobytes()
+
+
 def particles_to_posearray(particles: np.ndarray, stamp_ns: int,
                            frame_id: str = MAP_FRAME) -> PoseArray:
-    """(N, 4) particles (east, north, up, yaw) -> PoseArray.
-
-    Building the Python message costs ~6 us per particle; nodes subsample large sets.
-    """
-    p = np.asarray(particles, dtype=float).reshape(-1, 4)
-    half = 0.5 * p[:, 3]
-    cols = (p[:, 0].tolist(), p[:, 1].tolist(), p[:, 2].tolist(), np.sin(half).tolist(),
-            np.cos(half).tolist())
-    poses = []
-    for x, y, z, qz, qw in zip(*cols):
-        pose = Pose()
-        pose.position.x, pose.position.y, pose.position.z = x, y, z
-        pose.orientation.z, pose.orientation.w = qz, qw
-        poses.append(pose)
-    msg = PoseArray(header=Header(stamp=ns_to_stamp(stamp_ns), frame_id=frame_id))
-    msg.poses = poses
-    return msg
+    """(N, 4) particles (east, north, up, yaw) -> PoseArray (the message object, from
+    :func:`particles_to_posearray_cdr`'s bytes)."""
+    return deserialize_message(particles_to_posearray_cdr(particles, stamp_ns, frame_id),
+                               PoseArray)
 
 
 def posearray_to_particles(msg: PoseArray) -> np.ndarray:

@@ -75,7 +75,7 @@ from msg_adapters import (ERROR, OK, STALE, WARN, GeodeticFix, GlobalOdometry,
                           IntegrityRisk, MessageError, PoseEstimate, check_serialized_gnss,
                           check_serialized_matches, check_serialized_size, fix_to_navsatfix,
                           global_odometry_to_msg, integrity_risk_to_msg, make_status,
-                          odometry_to_dead_reckoning, particles_to_posearray,
+                          odometry_to_dead_reckoning, particles_to_posearray_cdr,
                           pointcloud2_to_gnss_epoch, pointcloud2_to_matches, pose_covariance,
                           pose_to_msg, service_bits)
 from msg_adapters.geometry import UNESTIMATED_VAR
@@ -523,7 +523,9 @@ class FusionNode(GnssCamNode):
                 service=service_bits(epoch.system), frame_id=self.param('fix_frame_id'))))
         cloud = published_particles(filt.particles, filt.log_w,
                                     self.param('max_published_particles'))
-        self.pub_particles.publish(particles_to_posearray(cloud, result.stamp_ns, map_frame))
+        # Serialised with numpy: building N Pose objects would cost more than the epoch.
+        self.pub_particles.publish(particles_to_posearray_cdr(cloud, result.stamp_ns,
+                                                              map_frame))
 
     def diagnostic_summary(self):
         now = time.monotonic()
