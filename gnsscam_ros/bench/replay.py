@@ -26,6 +26,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from ..core.config import FilterConfig
 from ..bags.convert import convert_drive
 from ..datasets.emulated.camera import with_camera
 from ..datasets.emulated.drive import make_emulated_drive
@@ -45,7 +46,8 @@ def bench_once(particles: int = 10_000, duration_s: float = 120.0, seed: int = 3
     """One replay of an emulated drive through the nodes; returns the figures.
 
     Args:
-        particles: Filter particles per posterior N (x M = 10 posteriors).
+        particles: Filter particles per posterior N (the other filter parameters: the
+            package defaults, M = ``FilterConfig().n_posteriors`` posteriors).
         duration_s: Length of the drive [s].
         seed: Drive (and filter) seed.
         layout: Where the nodes run (:data:`gnsscam_ros.live.launch.LAYOUTS`).
@@ -91,7 +93,8 @@ def bench_once(particles: int = 10_000, duration_s: float = 120.0, seed: int = 3
         if work_dir is None:
             shutil.rmtree(folder, ignore_errors=True)
     fusion = summary.node_diagnostics.get('fusion_node: status', {})
-    return {'particles': particles, 'posteriors': 10, 'duration_s': duration_s,
+    return {'particles': particles, 'posteriors': FilterConfig().n_posteriors,
+            'duration_s': duration_s,
             'layout': layout, 'camera': camera, 'topics': topics,
             'acquisition_particles': acquisition_particles,
             'speed_x_real_time': summary.speed, 'replay_wall_s': summary.wall_s,
