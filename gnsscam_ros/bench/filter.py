@@ -36,8 +36,10 @@ BENCH_POSTERIORS = 10
 CAMERA_MATCHES = 10
 
 
-def _median_ms(fn, repeats: int) -> float:
-    fn()                                   # warm-up: allocations, caches
+def median_ms(fn, repeats: int) -> float:
+    """Median wall time of ``fn`` over ``repeats`` calls after a first one (warm-up:
+    allocations, caches, kernel compilation or cache load) [ms]."""
+    fn()
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
@@ -118,7 +120,7 @@ def _bare_ms(filt, epoch, frame: LocalFrame, config: FilterConfig, evaluations: 
     positions = np.ascontiguousarray(np.resize(positions, (evaluations, 3)))
     prep = prepare_epoch(epoch, frame, positions.mean(0), config.measurement_var_m2, False)
     reps = _repeats(evaluations, repeats)
-    return _median_ms(lambda: bare_likelihood(positions, prep), reps)
+    return median_ms(lambda: bare_likelihood(positions, prep), reps)
 
 
 def bench(counts=DEFAULT_COUNTS, n_posteriors: int = BENCH_POSTERIORS,
@@ -148,12 +150,12 @@ def bench(counts=DEFAULT_COUNTS, n_posteriors: int = BENCH_POSTERIORS,
         evaluations = n * config.motion_sample_count
         reps = _repeats(evaluations, repeats)
         engine, one_epoch = _timed_engine(config, epochs, frame, seed, 0)
-        epoch_ms = _median_ms(one_epoch, reps)
+        epoch_ms = median_ms(one_epoch, reps)
         bare_ms = _bare_ms(engine.filter, epochs[1], frame, config, evaluations, repeats)
         camera_ms = float('nan')
         if camera_matches:
             _, one_camera_epoch = _timed_engine(config, epochs, frame, seed, camera_matches)
-            camera_ms = _median_ms(one_camera_epoch, reps)
+            camera_ms = median_ms(one_camera_epoch, reps)
         rows[n] = {'epoch_ms': epoch_ms, 'camera_epoch_ms': camera_ms,
                    'bare_likelihood_ms': bare_ms, 'ratio': epoch_ms / bare_ms,
                    'camera_ratio': camera_ms / bare_ms, 'evaluations': evaluations,
@@ -180,7 +182,7 @@ def _default_config(config: FilterConfig, epochs: list, frame: LocalFrame, seed:
     config = replace(config, acquisition_particles=0)
     n, m, s = config.n_particles, config.n_posteriors, config.motion_sample_count
     engine, one_epoch = _timed_engine(config, epochs, frame, seed, 0)
-    epoch_ms = _median_ms(one_epoch, _repeats(n * s, repeats))
+    epoch_ms = median_ms(one_epoch, _repeats(n * s, repeats))
     bare_mn = _bare_ms(engine.filter, epochs[1], frame, config, m * n, repeats)
     bare_sn = _bare_ms(engine.filter, epochs[1], frame, config, s * n, repeats)
     return {'n_particles': n, 'n_posteriors': m, 'motion_samples': s,

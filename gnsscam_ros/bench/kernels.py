@@ -20,12 +20,12 @@ import os
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 from scipy.special import logsumexp
 
+from .filter import median_ms as _median_ms
 from ..core import integrity
 from ..core.fusion import camera_fusion
 
@@ -35,16 +35,6 @@ _WARM_UP = ('import time; t0 = time.perf_counter(); '
             't1 = time.perf_counter(); camera.warm_up(); t2 = time.perf_counter(); '
             'posterior.warm_up(); t3 = time.perf_counter(); '
             'print(t1 - t0, t2 - t1, t3 - t2)')
-
-
-def _median_ms(fn, repeats: int) -> float:
-    fn()                                   # first call: compilation or cache load
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return float(np.median(times) * 1e3)
 
 
 def _oracles():

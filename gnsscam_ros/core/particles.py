@@ -217,5 +217,5 @@ def propagate(particles: np.ndarray, distance_m: np.ndarray, dyaw_rad: np.ndarra
 def weighted_mean_cov(points: np.ndarray, log_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Weighted mean (3,) and covariance (3, 3) of (N, >= 3) points (their first three
     columns) with normalised log-weights (one compiled pass)."""
-    return motion_kernels.weighted_moments(np.ascontiguousarray(points, dtype=float),
+    return weight_kernels.weighted_moments(np.ascontiguousarray(points, dtype=float),
                                            np.ascontiguousarray(log_w, dtype=float))

@@ -30,9 +30,20 @@ import numba
 KERNEL_OPTIONS = dict(cache=True, nogil=True, error_model='numpy')
 
 
+#: Options of inlined helpers: the kernel options, inlined into the caller so that its
+#: loops vectorise (a call would keep them scalar).
+INLINE_OPTIONS = dict(KERNEL_OPTIONS, inline='always')
+
+
 def kernel(function):
     """Compile ``function`` as an epoch kernel (:data:`KERNEL_OPTIONS`)."""
     return numba.njit(**KERNEL_OPTIONS)(function)
+
+
+def inline_kernel(function):
+    """Compile ``function`` as a helper inlined into the kernels calling it
+    (:data:`INLINE_OPTIONS`)."""
+    return numba.njit(**INLINE_OPTIONS)(function)
 
 
 def drop_stale_caches(package_dir: Path = Path(__file__).parent) -> int:

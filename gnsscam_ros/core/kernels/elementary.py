@@ -14,13 +14,12 @@ its sources at import (``kernels.drop_stale_caches``), so a change here recompil
 """
 from __future__ import annotations
 
-import numba
 import numpy as np
 from llvmlite import ir
 from numba import types
 from numba.extending import intrinsic
 
-from . import KERNEL_OPTIONS
+from . import inline_kernel
 
 _LOG2E = 1.4426950408889634
 _LN2_HI = 6.93147180369123816490e-01       # ln 2 to 32 bits: k * _LN2_HI is exact
@@ -28,10 +27,6 @@ _LN2_LO = 1.90821492927058770002e-10
 _ROUND = 6755399441055744.0                # 1.5 * 2^52: adding it rounds to an integer
 _LOWEST = -708.0                           # exp(-708) = 3.3e-308, above the smallest normal
 _HIGHEST = 709.0
-
-#: Options of inlined helpers: the kernel options, inlined into the caller so that its
-#: loops vectorise (a call would keep them scalar).
-INLINE_OPTIONS = dict(KERNEL_OPTIONS, inline='always')
 
 
 @intrinsic
@@ -59,7 +54,7 @@ def _float_to_bits(typingctx, value):
 _ROUND_BITS = 0x4338000000000000           # the bits of _ROUND
 
 
-@numba.njit(**INLINE_OPTIONS)
+@inline_kernel
 def exp(x):
     """``e^x`` (float64), vectorisable; 0 below ``exp(-708)``, inf above ``exp(709)``."""
     y = x if x > _LOWEST else _LOWEST

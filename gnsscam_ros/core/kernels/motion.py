@@ -1,8 +1,6 @@
 """Propagation of a particle set by S motion samples, and weighted moments (paper §2, §7).
 
-One pass writes the S propagated sets; one more gives the weighted mean and covariance of
-a set (of the first, the measured motion: the epoch's reference point for the satellites
-and the clock).
+One pass writes the S propagated sets.
 """
 from __future__ import annotations
 
@@ -52,41 +50,3 @@ def propagate_sets(particles, distance_m, dyaw_rad, dup_m, position_sd_m, yaw_sd
             out[s, i, 2] = particles[i, 2] + dup_m + sd2 * np.float64(noise[s, i, 2])
             out[s, i, 3] = (particles[i, 3] + dyaw_rad[s]
                             + yaw_sd_rad * np.float64(noise[s, i, 3]))
-
-
-@kernel
-def weighted_moments(points, log_w):
-    """Weighted mean (3,) and covariance (3, 3) of the first three columns of ``points``
-    (N, >= 3) under normalised log-weights ``log_w`` (N,).
-
-    One pass about a reference point (the first point): coordinates relative to it are
-    small, so the one-pass formula loses nothing to cancellation.
-    """
-    n = points.shape[0]
-    ref0, ref1, ref2 = points[0, 0], points[0, 1], points[0, 2]
-    w_sum = 0.0
-    m = np.zeros(3)
-    c = np.zeros((3, 3))
-    d = np.empty(3)
-    for i in range(n):
-        w = math.exp(log_w[i])
-        d[0] = points[i, 0] - ref0
-        d[1] = points[i, 1] - ref1
-        d[2] = points[i, 2] - ref2
-        w_sum += w
-        for a in range(3):
-            wd = w * d[a]
-            m[a] += wd
-            for b in range(a, 3):
-                c[a, b] += wd * d[b]
-    mean = np.empty(3)
-    for a in range(3):
-        m[a] /= w_sum
-    for a in range(3):
-        for b in range(a, 3):
-            c[a, b] = c[a, b] / w_sum - m[a] * m[b]
-            c[b, a] = c[a, b]
-    mean[0] = ref0 + m[0]
-    mean[1] = ref1 + m[1]
-    mean[2] = ref2 + m[2]
-    return mean, c

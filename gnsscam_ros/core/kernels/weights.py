@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from . import kernel
+from . import inline_kernel, kernel
 
 
 @kernel
@@ -56,18 +56,52 @@ def effective_sample_size(log_w):
     return 1.0 / acc
 
 
+@inline_kernel
+def _moments_about(ref, m, c, w_sum):
+    """Mean (3,) and covariance (3, 3) from the weighted sums about ``ref``: ``m`` (3,)
+    of ``w d`` and the upper triangle of ``c`` (3, 3) of ``w d d^T`` (``c`` is
+    completed in place)."""
+    mean = np.empty(3)
+    for a in range(3):
+        m[a] /= w_sum
+    for a in range(3):
+        mean[a] = ref[a] + m[a]
+        for b in range(a, 3):
+            c[a, b] = c[a, b] / w_sum - m[a] * m[b]
+            c[b, a] = c[a, b]
+    return mean, c
+
+
+@kernel
+def weighted_moments(points, log_w):
+    """Weighted mean (3,) and covariance (3, 3) of the first three columns of ``points``
+    (N, >= 3) under normalised log-weights ``log_w`` (N,), in one pass about the first
+    point (relative coordinates are small: the one-pass formula loses nothing to
+    cancellation)."""
+    ref = points[0, :3].copy()
+    m = np.zeros(3)
+    c = np.zeros((3, 3))
+    d = np.empty(3)
+    w_sum = 0.0
+    for i in range(points.shape[0]):
+        w = math.exp(log_w[i])
+        w_sum += w
+        for a in range(3):
+            d[a] = points[i, a] - ref[a]
+        for a in range(3):
+            wd = w * d[a]
+            m[a] += wd
+            for b in range(a, 3):
+                c[a, b] += wd * d[b]
+    return _moments_about(ref, m, c, w_sum)
+
+
 @kernel
 def set_summary(particles, log_w):
     """Weighted mean (3,), covariance (3, 3), circular mean heading and effective sample
-    size of one set (N, 4) with normalised log-weights (N,), in one pass.
-
-    Moments are taken about the first particle (relative coordinates are small, so the
-    one-pass formula loses nothing to cancellation).
-    """
-    n = particles.shape[0]
-    ref = np.empty(3)
-    for a in range(3):
-        ref[a] = particles[0, a]
+    size of one set (N, 4) with normalised log-weights (N,), in one pass (moments about
+    the first particle, as :func:`weighted_moments`)."""
+    ref = particles[0, :3].copy()
     m = np.zeros(3)
     c = np.zeros((3, 3))
     d = np.empty(3)
@@ -75,7 +109,7 @@ def set_summary(particles, log_w):
     w_sq = 0.0
     sin_sum = 0.0
     cos_sum = 0.0
-    for i in range(n):
+    for i in range(particles.shape[0]):
         w = math.exp(log_w[i])
         w_sum += w
         w_sq += w * w
@@ -88,15 +122,8 @@ def set_summary(particles, log_w):
             m[a] += wd
             for b in range(a, 3):
                 c[a, b] += wd * d[b]
-    mean = np.empty(3)
-    for a in range(3):
-        m[a] /= w_sum
-    for a in range(3):
-        mean[a] = ref[a] + m[a]
-        for b in range(a, 3):
-            c[a, b] = c[a, b] / w_sum - m[a] * m[b]
-            c[b, a] = c[a, b]
-    return mean, c, math.atan2(sin_sum, cos_sum), w_sum * w_sum / w_sq
+    mean, cov = _moments_about(ref, m, c, w_sum)
+    return mean, cov, math.atan2(sin_sum, cos_sum), w_sum * w_sum / w_sq
 
 
 #: What :func:`set_problem` finds, by code (0: nothing).
