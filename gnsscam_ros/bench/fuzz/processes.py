@@ -13,9 +13,10 @@ and is started again. Measured per kill:
   published match); also split into the node's own start-up (until its first
   ``diagnostics``) and what the graph adds after it;
 * **integrity while an input is missing or reset**: every ``integrity_risk`` OK whose
-  epoch falls between the kill and one epoch after the node is back (gnss_node,
-  imu_node: the verdict needs their input; after an imu_node restart the dead reckoning
-  starts again from zero), or, for fusion_node, before the restarted filter could have
+  epoch falls between the kill and the node being back (gnss_node: the verdict needs its
+  input; an epoch it passes once back is a valid one) or one epoch after that (imu_node:
+  after a restart the dead reckoning starts again from zero, so the motion of that
+  epoch's interval spans the reset), or, for fusion_node, before the restarted filter could have
   settled (``integrity_settling_s`` after its first verdict) is a violation; the camera
   is not needed for a verdict (OK verdicts while it is down are counted, not failed);
 * **collateral**: any other node that exits meanwhile; the exit status of every node
