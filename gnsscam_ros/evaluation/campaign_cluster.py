@@ -3,8 +3,10 @@ existing one.
 
 * ``CaseRunner()`` starts an embedded :class:`distributed.LocalCluster`: one worker
   process per core (``workers``), one thread each (the filter is single-threaded numpy;
-  ``OPENBLAS_NUM_THREADS=1`` is inherited from ``./run``), nannies that restart a worker
-  that dies.
+  the nannies set ``OPENBLAS_NUM_THREADS=1``), nannies that restart a worker that dies,
+  without ``MALLOC_TRIM_THRESHOLD_`` (see :meth:`CaseRunner.__enter__`; a ``dask worker``
+  started by hand wants ``DASK_DISTRIBUTED__NANNY__PRE_SPAWN_ENVIRON__MALLOC_TRIM_THRESHOLD_=None``
+  in its environment for the same speed).
 * ``CaseRunner(scheduler='tcp://host:8786')`` connects to a running scheduler (``dask
   scheduler`` and ``dask worker`` processes on machines that have the package installed).
 * ``CaseRunner(sequential=True)`` runs every case here, one after the other, without Dask
@@ -81,9 +83,14 @@ class CaseRunner:
             if self.scheduler:
                 self.client = Client(self.scheduler, timeout=CONNECT_TIMEOUT_S)
             else:
-                self.cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1,
-                                            processes=True, dashboard_address=None,
-                                            silence_logs=40)
+                # Dask's nannies set MALLOC_TRIM_THRESHOLD_ in their workers, which turns
+                # off glibc's dynamic mmap threshold: every large numpy temporary is then
+                # mapped and unmapped again, and the filter runs ~1.4x slower.
+                with dask.config.set(
+                        {'distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_': None}):
+                    self.cluster = LocalCluster(n_workers=self.workers, threads_per_worker=1,
+                                                processes=True, dashboard_address=None,
+                                                silence_logs=40)
                 self.client = Client(self.cluster)
         except (OSError, TimeoutError) as err:
             self.__exit__(None, None, None)
@@ -145,12 +152,12 @@ class CaseRunner:
             camera[seed] = client.submit(
                 camera_matches_for_seed, seed, self.cache_dir, duration_s,
                 key=f'camera-{camera_cache_key(seed, duration_s)}', pure=False)
-        # The configuration goes to the workers once, not pickled into every task.
-        base_future = client.scatter(base, broadcast=False, hash=True)
+        # Every task carries the configuration (a few kB): scattered data would be lost
+        # with the worker holding it, whereas a task's arguments are resent on a retry.
         futures = {}
         for key in todo:
             cam = camera.get(key.seed) if uses_camera(key.method, base) else None
-            fut = client.submit(_case_on_worker, key, base_future, cam, duration_s,
+            fut = client.submit(_case_on_worker, key, base, cam, duration_s,
                                 want_epochs, key=f'case-{key.tag}-{id(self):x}', pure=False)
             futures[fut] = key
         try:

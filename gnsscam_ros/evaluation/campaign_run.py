@@ -82,6 +82,9 @@ def run_campaign(seeds=(1, 2, 3), base: FilterConfig | None = None, methods=METH
                     failed.append({**key.as_dict(), 'error': error})
                     bar.write(f'[campaign] {key.tag} failed: {error}')
                     continue
+                # Where and how long it ran: bookkeeping, not a result of the case.
+                result['metrics'].update(worker=result['worker'],
+                                         wall_seconds=result['wall_seconds'])
                 _keep(key, result, store, series, epochs_dir)
                 metrics[key] = result['metrics']
                 workers_used.add(result['worker'])
@@ -160,8 +163,7 @@ def make_plots(keys: list[CaseKey], load, plots_dir: Path, base: FilterConfig,
     over every seed and case (alert limit of the flag), and trajectory, risk and error/PL
     figures of the first seed of every case (``load(key)`` gives a case's series)."""
     # matplotlib takes ~0.7 s to import: only when figures are asked for.
-    from .plots import (error_pl_timeline, interval_plot, risk_plot, stanford_diagram,
-                        trajectory_plot)
+    from . import plots as figures
     paths = []
     limit = float(base.alert_limit_m)
     for method in dict.fromkeys(k.method for k in keys):
@@ -175,12 +177,13 @@ def make_plots(keys: list[CaseKey], load, plots_dir: Path, base: FilterConfig,
         if mi['ci95'] is not None:
             title += (f"\nMI rate {mi['rate']:.4f}, 95 % CI [{mi['ci95'][0]:.4f}, "
                       f"{mi['ci95'][1]:.4f}] ({mi['count']}/{mi['n']})")
-        stanford_diagram(path, title, err, pl, limit)
+        figures.stanford_diagram(path, title, err, pl, limit)
         paths.append(path)
         groups = [g for g in intervals['by_case'] if g['method'] == method]
-        paths.append(interval_plot(plots_dir / f'intervals_{method}_al{limit:g}.png',
-                                   f'{method}: rates with 95 % intervals', groups,
-                                   intervals['by_method'][method], f'{limit:g}'))
+        paths.append(figures.interval_plot(
+            plots_dir / f'intervals_{method}_al{limit:g}.png',
+            f'{method}: rates with 95 % intervals', groups, intervals['by_method'][method],
+            f'{limit:g}'))
     first_seed = min(k.seed for k in keys)
     by_case: dict[tuple, dict] = {}
     for k in keys:
@@ -190,16 +193,16 @@ def make_plots(keys: list[CaseKey], load, plots_dir: Path, base: FilterConfig,
         tag = case_tag(faults, bias)
         name = f'{faults} faults, {bias:g} m bias' if faults else 'NLOS only'
         any_series = next(iter(series.values()))
-        paths.append(trajectory_plot(plots_dir / f'trajectory_{tag}.png',
-                                     f'{name} (seed {first_seed})', any_series['truth'],
-                                     {k: v['estimate'] for k, v in series.items()}))
+        paths.append(figures.trajectory_plot(
+            plots_dir / f'trajectory_{tag}.png', f'{name} (seed {first_seed})',
+            any_series['truth'], {k: v['estimate'] for k, v in series.items()}))
         for method, s in series.items():
             for a, al in enumerate(base.alert_limits_m):
-                paths.append(risk_plot(
+                paths.append(figures.risk_plot(
                     plots_dir / f'risk_{tag}_{method}_al{al:g}.png',
                     f'{method}, {name}', s['t_s'], s['bound'][:, a], s['reference'][:, a],
                     al, base.target_risk))
-            paths.append(error_pl_timeline(
+            paths.append(figures.error_pl_timeline(
                 plots_dir / f'error_pl_{tag}_{method}.png',
                 f'{method}, {name} (seed {first_seed})', s['t_s'], s['error_m'],
                 s['protection_level_m'], base.alert_limit_m, s['integrity']))
