@@ -112,7 +112,7 @@ def fmt_between(entry: dict | None) -> str:
     """The between-seed interval and design effect of an entry."""
     between = None if entry is None else entry.get('between_seeds')
     if between is None:
-        return '- (1 seed)'
+        return '- (< 2 seeds)'
     lo, hi = between['ci95']
     deff = between['design_effect']
     return f"[{lo:.4f}, {hi:.4f}] deff {deff:.1f}" if deff else f'[{lo:.4f}, {hi:.4f}]'

@@ -322,5 +322,5 @@ def interval_plot(path: Path, title: str, groups: list[dict], pooled: dict,
         plt.Line2D([], [], color='tab:orange', lw=1, label='95 % between seeds'),
         plt.Line2D([], [], color='0.6', marker='o', ls='', ms=3, label='per seed')],
         loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=7)
-    fig.suptitle(title)
+    fig.suptitle(title, y=0.93)
     return _save(fig, Path(path))
