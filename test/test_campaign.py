@@ -80,27 +80,38 @@ def test_embedded_cluster_equals_the_sequential_run_case_by_case(tmp_path, seque
     assert 'between_low' in (tmp_path / 'intervals.csv').read_text().splitlines()[0]
 
 
-def test_interrupted_campaign_resumes_without_recomputing(tmp_path, sequential):
+def test_campaign_interrupted_by_ctrl_c_resumes_without_recomputing(tmp_path, sequential):
+    """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) while the
+    embedded cluster runs: exit 130, the finished cases kept whole; the same campaign run
+    again computes only the others."""
     _, seq = sequential
-    done = []
-
-    def interrupt_after_two(key, metrics):
-        done.append(key)
-        if len(done) == 2:
-            raise KeyboardInterrupt            # Ctrl-C between two cases
-
-    with pytest.raises(KeyboardInterrupt):
-        run_campaign(base=base(), out_dir=tmp_path, sequential=True,
-                     on_case=interrupt_after_two, **GRID)
     cases = tmp_path / 'cases'
-    finished = sorted(p.stem for p in cases.glob('*.json'))
-    assert finished == sorted(k.tag for k in done)
+    cmd = [sys.executable, '-m', 'gnsscam_ros.evaluation', 'campaign', '--seeds', '1-2',
+           '--faults', '0', '4', '--bias-m', '200', '--methods', 'gnss_robust',
+           '--particles', '200', '--duration-s', '15', '--workers', '2', '--quiet',
+           '--out', str(tmp_path)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        deadline = time.monotonic() + 180
+        while not list(cases.glob('*.json')) and time.monotonic() < deadline:
+            assert proc.poll() is None, proc.communicate()
+            time.sleep(0.1)
+        os.killpg(proc.pid, signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, err
+    assert 'interrupted' in err and 'resumes' in err
+    done = sorted(p.stem for p in cases.glob('*.json'))
+    assert 1 <= len(done) < 4
     assert not [p for p in cases.iterdir() if p.name.startswith('.')]   # no partial file
     stamps = {p.name: p.stat().st_mtime_ns for p in cases.iterdir()}
     computed = []
     out = run_campaign(base=base(), out_dir=tmp_path, sequential=True,
-                       on_case=lambda key, m: computed.append(key), **GRID)
-    assert out['resumed'] == 2 and out['computed'] == 2
+                       on_case=lambda key, m: computed.append(key.tag), **GRID)
+    assert out['resumed'] == len(done) and out['computed'] == 4 - len(done)
     assert not set(computed) & set(done)                       # nothing recomputed
     assert all((cases / name).stat().st_mtime_ns == ns for name, ns in stamps.items())
     assert results(out) == results(seq)

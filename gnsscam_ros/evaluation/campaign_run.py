@@ -72,7 +72,8 @@ def run_campaign(seeds=(1, 2, 3), base: FilterConfig | None = None, methods=METH
     bar = tqdm(total=len(keys), initial=resumed, unit='case', disable=not progress,
                file=sys.stderr, dynamic_ncols=True, desc='campaign')
     try:
-        with CaseRunner(scheduler, workers, sequential,
+        # Nothing left to compute (a finished campaign run again): no cluster to start.
+        with CaseRunner(None if not todo else scheduler, workers, sequential or not todo,
                         None if cache_dir is None else str(cache_dir)) as runner:
             bar.set_postfix_str(f"{runner.info['kind']}, {runner.info['workers']} workers")
             ready = time.monotonic()
@@ -94,7 +95,9 @@ def run_campaign(seeds=(1, 2, 3), base: FilterConfig | None = None, methods=METH
                 bar.set_postfix_str(f'{rate:.1f} epochs/s, {runner.info["workers"]} workers')
                 if on_case is not None:
                     on_case(key, result['metrics'])
-            cluster = dict(runner.info)
+            cluster = dict(runner.info) if todo else {
+                'kind': 'none', 'scheduler': None, 'workers': 0, 'threads_per_worker': 0,
+                'dask': None}
             running = time.monotonic() - ready
     finally:
         bar.close()

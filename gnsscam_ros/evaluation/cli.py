@@ -308,7 +308,8 @@ def run_campaign_command(args: argparse.Namespace) -> int:
     cluster = result['cluster']
     where = {'sequential': 'in this process (sequential)',
              'embedded': f"on an embedded cluster ({cluster['workers']} workers)",
-             'scheduler': f"on {cluster['scheduler']} ({cluster['workers']} workers)"}
+             'scheduler': f"on {cluster['scheduler']} ({cluster['workers']} workers)",
+             'none': '(every case was finished before)'}
     rate = result['epochs_per_second']
     print(f"\ncampaign: {len(result['cases'])} runs, {result['epochs']} epochs "
           f"({result['computed']} runs computed, {result['resumed']} resumed) in "
