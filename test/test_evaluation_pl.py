@@ -162,9 +162,11 @@ def test_cli_smartloc_excerpt_csv_stamps_are_the_files_seconds(tmp_path, smartlo
 # ---------------------------------------------------------------------------- campaign
 @pytest.mark.slow
 def test_campaign_records_config_pl_and_writes_plots_and_csvs(tmp_path):
-    from gnsscam_ros.evaluation.campaign import campaign_config, campaign_tables, run_campaign
+    from gnsscam_ros.evaluation.campaign import campaign_config
+    from gnsscam_ros.evaluation.campaign_run import run_campaign
+    from gnsscam_ros.evaluation.campaign_summary import campaign_tables
     result = run_campaign(seeds=(1,), base=campaign_config(n_particles=200),
-                          methods=('gnss_robust',), cases=[(0, 0.0)], workers=1,
+                          methods=('gnss_robust',), cases=[(0, 0.0)], sequential=True,
                           plots_dir=tmp_path / 'plots', progress=False,
                           epochs_dir=tmp_path / 'epochs', duration_s=15)
     assert result['config']['inverse_bernoulli'] == 'exact'
@@ -177,7 +179,8 @@ def test_campaign_records_config_pl_and_writes_plots_and_csvs(tmp_path):
     rows = _read_csv(case['epochs_csv'])
     assert len(rows) == case['gnss_epochs']
     names = {p.name for p in (tmp_path / 'plots').iterdir()}
-    assert {'stanford_gnss_robust_al8.png', 'error_pl_nlos_gnss_robust.png'} <= names
+    assert {'stanford_gnss_robust_al8.png', 'error_pl_nlos_gnss_robust.png',
+            'intervals_gnss_robust_al8.png'} <= names
     assert 'Protection level' in campaign_tables(result['cases'])
     write_json_atomic(tmp_path / 'c.json', result)          # JSON-ready (inf included)
 

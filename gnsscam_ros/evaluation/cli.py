@@ -29,12 +29,20 @@ from ..io.atomic import (OutputExistsError, check_writable, write_csv_atomic,
                          write_json_atomic)
 from ..io.tables import format_table
 from .bag_eval import evaluate_result_bag_epochs
-from .campaign import campaign_config, campaign_tables, run_campaign
+from .campaign import GNSS_CASES, METHODS, campaign_config
+from .campaign_cluster import ClusterError
+from .campaign_grid import gnss_cases, parse_seeds
+from .campaign_run import run_campaign
+from .campaign_store import CampaignStoreError
+from .campaign_summary import campaign_tables
 from .evaluate import evaluate_drive_record
 from .report import (INTEGRITY_HEADERS, integrity_rows, protection_level_headers,
                      protection_level_rows, stanford_line)
 
 EXIT_OK, EXIT_USAGE, EXIT_INPUT, EXIT_OUTPUT = 0, 2, 3, 4
+#: Some campaign cases failed (the others are written; a rerun retries them).
+EXIT_CASES_FAILED = 1
+EXIT_INTERRUPTED = 130
 DEFAULT_ALERT_LIMITS_M = (8.0, 16.0)
 
 
@@ -100,6 +108,49 @@ def print_result(label: str, result: dict, out=None) -> None:
         print(stanford_line(pl), file=out)
 
 
+def add_campaign_arguments(camp: argparse.ArgumentParser) -> None:
+    """Options of ``gnsscam_eval campaign``: the grid, the cluster, the outputs."""
+    grid = camp.add_argument_group('grid')
+    grid.add_argument('--seeds', nargs='+', default=['1-3'], metavar='SEEDS',
+                      help='drive seeds: N, ranges A-B and comma lists, e.g. 1-200 or '
+                           '1-10,20 (default %(default)s)')
+    grid.add_argument('--faults', type=int, nargs='+',
+                      default=sorted({f for f, _ in GNSS_CASES}),
+                      help='faulty satellites of 12; 0 is the NLOS-only case '
+                           '(default %(default)s)')
+    grid.add_argument('--bias-m', type=float, nargs='+',
+                      default=sorted({b for f, b in GNSS_CASES if f}),
+                      help='fault biases [m] of the cases with faults (default %(default)s)')
+    grid.add_argument('--methods', nargs='+', default=list(METHODS), choices=list(METHODS))
+    grid.add_argument('--particles', type=int, default=FilterConfig().n_particles)
+    grid.add_argument('--duration-s', type=float, default=None,
+                      help='cut every drive short (quick looks; default: whole drives)')
+    where = camp.add_argument_group('cluster (Dask)')
+    where.add_argument('--scheduler', metavar='ADDRESS',
+                       help='run on an existing Dask cluster, e.g. tcp://host:8786 (default: '
+                            'an embedded LocalCluster on this machine)')
+    where.add_argument('--workers', type=int, default=None,
+                       help='worker processes of the embedded cluster (default: cores)')
+    where.add_argument('--sequential', action='store_true',
+                       help='run every case in this process, without Dask')
+    where.add_argument('--cache', type=Path, default=None,
+                       help='where workers cache map databases and camera matches, a path '
+                            "on every worker (default: .cache/gnsscam here; with "
+                            "--scheduler each worker's $GNSSCAM_CACHE_DIR or "
+                            '~/.cache/gnsscam_ros)')
+    out = camp.add_argument_group('outputs')
+    out.add_argument('--out', type=Path, default=Path('out/campaign'),
+                     help='campaign folder: each case is written there as it finishes, '
+                          'the same command resumes an interrupted campaign, the summary '
+                          '(campaign.json, runs.csv, intervals.csv) is written at the end '
+                          '(default %(default)s)')
+    out.add_argument('--restart', action='store_true',
+                     help='discard the finished cases in --out first')
+    out.add_argument('--plots', type=Path, help='folder for the PNG figures')
+    out.add_argument('--epochs-csv', type=Path, metavar='DIR',
+                     help='write one per-epoch CSV per run (seed, case, method) into DIR')
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog='gnsscam_eval', description='Evaluate the GNSS(-camera) particle filter '
@@ -126,16 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
     for p in (smart, emu):
         add_filter_arguments(p)
     camp = sub.add_parser('campaign', help="the paper's campaign on the emulated drive "
-                          '(Tables 2-4, Figures 4-11)')
-    camp.add_argument('--seeds', type=int, nargs='+', default=[1, 2, 3],
-                      help='drive seeds (default %(default)s)')
-    camp.add_argument('--particles', type=int, default=FilterConfig().n_particles)
-    camp.add_argument('--plots', type=Path, help='folder for the PNG figures')
-    camp.add_argument('--workers', type=int, default=None, help='processes (default: cores)')
-    camp.add_argument('--cache', type=Path, default=Path('.cache/gnsscam'),
-                      help='cache of map databases and camera matches')
-    camp.add_argument('--methods', nargs='+', default=['particle_raim', 'gnss_robust', 'fused'],
-                      choices=['particle_raim', 'fused', 'gnss_robust'])
+                          '(Tables 2-4, Figures 4-11) with confidence intervals, on Dask')
+    add_campaign_arguments(camp)
     bag = sub.add_parser('bag', help='metrics of a recorded result bag (pose/fix, '
                          'integrity_risk) against ground truth')
     bag.add_argument('result_bag', type=Path, help='bag recorded from the nodes')
@@ -150,8 +193,6 @@ def build_parser() -> argparse.ArgumentParser:
                        'level, risk bound, integrity OK/ERROR/STALE, error)')
         p.add_argument('--plots', type=Path, metavar='DIR',
                        help='write the Stanford diagram and the error/PL timeline here')
-    camp.add_argument('--epochs-csv', type=Path, metavar='DIR',
-                      help='write one per-epoch CSV per run (seed, case, method) into DIR')
     for p in (smart, emu, camp, bag):
         p.add_argument('--json', type=Path, help='write the metrics as JSON')
         p.add_argument('--force', action='store_true', help='replace an existing --json')
@@ -221,25 +262,60 @@ def run_bag_command(args: argparse.Namespace) -> int:
 
 
 def run_campaign_command(args: argparse.Namespace) -> int:
-    """``gnsscam_eval campaign``: run, print Tables 2-4, write JSON and plots."""
+    """``gnsscam_eval campaign``: run (or resume) the grid, print the tables, write the
+    summary, the JSON and the plots."""
+    try:
+        if args.sequential and args.scheduler:
+            raise ValueError('--sequential and --scheduler exclude each other')
+        if args.workers is not None and args.workers < 1:
+            raise ValueError(f'--workers must be at least 1, got {args.workers}')
+        seeds = parse_seeds(args.seeds)
+        cases = gnss_cases(args.faults, args.bias_m)
+        base = campaign_config(n_particles=args.particles)
+    except ValueError as err:
+        print(f'gnsscam_eval: {err}', file=sys.stderr)
+        return EXIT_USAGE
     if args.epochs_csv is not None and args.epochs_csv.exists() and any(
-            args.epochs_csv.iterdir()) and not args.force:
+            args.epochs_csv.iterdir()) and not (args.force or _resuming(args.out)):
         print(f'gnsscam_eval: {args.epochs_csv} is not empty; pass --force to write into it',
               file=sys.stderr)
         return EXIT_OUTPUT
-    result = run_campaign(seeds=tuple(args.seeds),
-                          base=campaign_config(n_particles=args.particles),
-                          methods=tuple(args.methods), workers=args.workers,
-                          cache_dir=args.cache, plots_dir=args.plots,
-                          progress=not args.quiet, epochs_dir=args.epochs_csv,
-                          force=args.force)
-    print(campaign_tables(result['cases']))
+    cache = args.cache
+    if cache is None and args.scheduler is None:
+        cache = Path('.cache/gnsscam').resolve()   # this machine's workers share it
+    try:
+        result = run_campaign(seeds=seeds, base=base, methods=tuple(args.methods),
+                              cases=cases, out_dir=args.out, restart=args.restart,
+                              scheduler=args.scheduler, workers=args.workers,
+                              sequential=args.sequential, cache_dir=cache,
+                              plots_dir=args.plots, epochs_dir=args.epochs_csv,
+                              progress=not args.quiet, duration_s=args.duration_s)
+    except CampaignStoreError as err:
+        print(f'gnsscam_eval: {err}', file=sys.stderr)
+        return EXIT_OUTPUT
+    except ClusterError as err:
+        print(f'gnsscam_eval: {err}', file=sys.stderr)
+        return EXIT_INPUT
+    except KeyboardInterrupt:
+        print(f'\ngnsscam_eval: interrupted; the finished cases are in {args.out}/cases: '
+              'the same command resumes the campaign', file=sys.stderr)
+        return EXIT_INTERRUPTED
+    print(campaign_tables(result['cases'], result['intervals']))
     alpha = result['camera_mean_alpha']
     if alpha:
         print('\nmean camera mixture weight by frame fault: '
               + ', '.join(f'{k} {v:.4f}' for k, v in sorted(alpha.items())))
-    print(f"\ncampaign: {len(result['cases'])} runs in {result['seconds']:.0f} s "
-          f"on {result['workers']} processes")
+    cluster = result['cluster']
+    where = {'sequential': 'in this process (sequential)',
+             'embedded': f"on an embedded cluster ({cluster['workers']} workers)",
+             'scheduler': f"on {cluster['scheduler']} ({cluster['workers']} workers)",
+             'none': '(every case was finished before)'}
+    rate = result['epochs_per_second']
+    print(f"\ncampaign: {len(result['cases'])} runs, {result['epochs']} epochs "
+          f"({result['computed']} runs computed, {result['resumed']} resumed) in "
+          f"{result['seconds']:.0f} s {where[cluster['kind']]}"
+          + (f', {rate:.1f} epochs/s' if rate else ''))
+    print(f"wrote {args.out}/campaign.json, runs.csv, intervals.csv")
     if args.json is not None:
         try:
             write_json_atomic(args.json, result, force=args.force)
@@ -247,7 +323,18 @@ def run_campaign_command(args: argparse.Namespace) -> int:
             print(f'gnsscam_eval: cannot write {args.json}: {err}', file=sys.stderr)
             return EXIT_OUTPUT
         print(f'wrote {args.json}')
+    if result['failed']:
+        print(f"gnsscam_eval: {len(result['failed'])} cases failed (listed in "
+              f"{args.out}/campaign.json); the same command runs them again",
+              file=sys.stderr)
+        return EXIT_CASES_FAILED
     return EXIT_OK
+
+
+def _resuming(out: Path) -> bool:
+    """A campaign folder with finished cases (its epoch CSVs are its own)."""
+    cases = Path(out) / 'cases'
+    return cases.is_dir() and any(cases.glob('*.json'))
 
 
 def load_drive(args: argparse.Namespace):

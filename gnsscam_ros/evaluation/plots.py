@@ -265,3 +265,62 @@ def integrity_plots(folder: Path, name: str, title: str, stamp_ns: np.ndarray,
         paths.append(error_pl_timeline(folder / f'error_pl_{name}.png', title, t_s, err, pl,
                                        alert_limit_m, levels))
     return paths
+
+
+#: Rates of :func:`interval_plot`: ``(key, with an alert limit, label)``.
+INTERVAL_PANELS = (('mi_rate', False, 'MI rate (error > PL)'),
+                   ('availability', True, 'availability (PL <= AL)'),
+                   ('p_fa', True, 'P_FA'), ('p_mi', True, 'P_MI'),
+                   ('failure_ratio', True, 'failure ratio'))
+
+
+def interval_plot(path: Path, title: str, groups: list[dict], pooled: dict,
+                  alert_limit: str) -> Path:
+    """The integrity rates of a method per GNSS case, with their 95 % intervals.
+
+    One panel per rate (:data:`INTERVAL_PANELS`, at ``alert_limit``); per case the pooled
+    rate with its Clopper-Pearson interval (thick, epochs taken as independent), the
+    between-seed interval (thin, offset; each seed one cluster) and the per-seed rates
+    (grey dots); the last column pools every case.
+
+    Args:
+        path: Output PNG.
+        title: Figure title.
+        groups: ``intervals['by_case']`` entries of one method.
+        pooled: ``intervals['by_method'][method]``.
+        alert_limit: Alert limit key ("8").
+    """
+    columns = [(f"{g['bias_m']:g} m\n{g['faults']} f" if g['faults'] else 'NLOS', g)
+               for g in groups] + [('all', pooled)]
+    fig, axes = plt.subplots(len(INTERVAL_PANELS), 1, sharex=True,
+                             figsize=(max(6.0, 0.9 * len(columns) + 2), 11))
+    x = np.arange(len(columns))
+    for ax, (key, limited, label) in zip(axes, INTERVAL_PANELS):
+        for i, (_, g) in enumerate(columns):
+            entry = g['rates'].get(key)
+            if limited and entry is not None:
+                entry = entry.get(alert_limit)
+            if entry is None or entry['rate'] is None:
+                continue
+            seeds = [k / n for _, k, n in entry['per_seed'] if n]
+            ax.scatter(np.full(len(seeds), i - 0.18), seeds, s=6, color='0.6', zorder=1)
+            lo, hi = entry['ci95']
+            ax.errorbar(i, entry['rate'], yerr=[[entry['rate'] - lo], [hi - entry['rate']]],
+                        fmt='o', color='tab:blue', lw=2.5, capsize=3, zorder=3)
+            between = entry.get('between_seeds')
+            if between is not None:
+                b_lo, b_hi = between['ci95']
+                ax.errorbar(i + 0.18, entry['rate'], fmt='none', color='tab:orange', lw=1,
+                            capsize=3, yerr=[[max(entry['rate'] - b_lo, 0)],
+                                             [max(b_hi - entry['rate'], 0)]], zorder=2)
+        ax.set_ylabel(label + (f'\nAL {alert_limit} m' if limited else ''), fontsize=8)
+        ax.grid(axis='y', lw=0.3)
+    axes[-1].set_xticks(x, [c[0] for c in columns], fontsize=7)
+    axes[0].legend(handles=[
+        plt.Line2D([], [], color='tab:blue', marker='o', lw=2.5,
+                   label='pooled rate, 95 % Clopper-Pearson'),
+        plt.Line2D([], [], color='tab:orange', lw=1, label='95 % between seeds'),
+        plt.Line2D([], [], color='0.6', marker='o', ls='', ms=3, label='per seed')],
+        loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=7)
+    fig.suptitle(title, y=0.93)
+    return _save(fig, Path(path))
