@@ -69,6 +69,12 @@ def tune_malloc() -> bool:
     return _malloc_tuned
 
 
+def _camera_on_worker(seed, cache_dir, duration_s):
+    """:func:`.campaign.camera_matches_for_seed` on a worker (its disk cache)."""
+    tune_malloc()
+    return camera_matches_for_seed(seed, cache_dir, duration_s)
+
+
 def _case_on_worker(key, base, camera, duration_s, want_epochs):
     """:func:`.campaign.case_task` and where it ran (the worker's address)."""
     from distributed import get_worker      # only on workers (Dask is imported there)
@@ -182,7 +188,7 @@ class CaseRunner:
             # The key names the content: the same seed is made once per campaign, and a
             # worker's disk cache (same content key) makes a recomputation cheap.
             camera[seed] = client.submit(
-                camera_matches_for_seed, seed, self.cache_dir, duration_s,
+                _camera_on_worker, seed, self.cache_dir, duration_s,
                 key=f'camera-{camera_cache_key(seed, duration_s)}', pure=False)
         # Every task carries the configuration (a few kB): scattered data would be lost
         # with the worker holding it, whereas a task's arguments are resent on a retry.
