@@ -83,12 +83,14 @@ def test_embedded_cluster_equals_the_sequential_run_case_by_case(tmp_path, seque
 def test_campaign_interrupted_by_ctrl_c_resumes_without_recomputing(tmp_path, sequential):
     """Ctrl-C (SIGINT to the whole process group, as a terminal sends it) while the
     embedded cluster runs: exit 130, the finished cases kept whole; the same campaign run
-    again computes only the others."""
+    again computes only the others. One worker: the cases run one after the other, so the
+    signal sent when the first is written finds the next one running (with two workers
+    the last cases could all finish before it arrived, and the run exited 0)."""
     _, seq = sequential
     cases = tmp_path / 'cases'
     cmd = [sys.executable, '-m', 'gnsscam_ros.evaluation', 'campaign', '--seeds', '1-2',
            '--faults', '0', '4', '--bias-m', '200', '--methods', 'gnss_robust',
-           '--particles', '200', '--duration-s', '15', '--workers', '2', '--quiet',
+           '--particles', '200', '--duration-s', '15', '--workers', '1', '--quiet',
            '--out', str(tmp_path)]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
