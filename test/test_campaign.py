@@ -92,8 +92,12 @@ def test_campaign_interrupted_by_ctrl_c_resumes_without_recomputing(tmp_path, se
            '--faults', '0', '4', '--bias-m', '200', '--methods', 'gnss_robust',
            '--particles', '200', '--duration-s', '15', '--workers', '1', '--quiet',
            '--out', str(tmp_path)]
+    # SIGINT as a terminal's process has it, whatever the test runner inherited (a runner
+    # started in the background of a non-interactive shell ignores it, and so would the
+    # campaign).
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            start_new_session=True)
+                            start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 180
         while not list(cases.glob('*.json')) and time.monotonic() < deadline:

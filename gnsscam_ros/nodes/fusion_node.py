@@ -161,7 +161,12 @@ class FusionNode(GnssCamNode):
     """
 
     def __init__(self, node_name: str = 'fusion_node', **kwargs):
+        # Compile (or load from the cache) the epoch kernels before the node exists: it
+        # appears in the graph ready, and its first epoch is not a compilation (the
+        # warm-up runs every likelihood, so the parameters are not needed yet).
+        kernel_warm_up_s = warm_up_kernels()
         super().__init__(node_name, **kwargs)
+        self.kernel_warm_up_s = kernel_warm_up_s
         for spec in _FILTER_SPECS:
             # ROS ranges are closed and finite: FilterConfig refuses an open bound itself.
             about = f' Admissible: {spec.constraint}.' if spec.constraint else ''
@@ -232,9 +237,6 @@ class FusionNode(GnssCamNode):
         self.engine = EpochEngine(config, frame=frame, rng=rng, timing=InputTiming(
             **{field: self.param(name) for name, field in TIMING_PARAMETERS.items()}))
         self.filter = self.engine.filter
-        # Compile (or load from the cache) the epoch kernels now, before any input is
-        # subscribed to, so that the first epoch is not a compilation.
-        self.kernel_warm_up_s = warm_up_kernels(config)
         self._camera_count = 0
         self._started = time.monotonic()
         self._last_gnss_receipt: float | None = None
