@@ -485,7 +485,10 @@ def pass_figures(cfg: MessagesConfig, stream: ValidStream, res: PassResult) -> d
     n_tail = min(cfg.block_epochs, len(stream.gnss_stamps))
     permanent = set(stream.gnss_stamps[-n_tail:]) <= set(res.unanswered)
     rss = [r for _, r, _ in res.rss if math.isfinite(r)]
-    peaks = [p for _, _, p in res.rss] + [c.get('peak_rss_mb', 0.0) for c in res.crashes]
+    # The watchdog samples the peak on its own clock; a sample taken here can be the
+    # larger one, so the peak is the largest of everything seen.
+    peaks = ([p for _, _, p in res.rss] + rss
+             + [c.get('peak_rss_mb', 0.0) for c in res.crashes])
     return {
         'epochs': res.epochs, 'answered': len(res.answered & valid),
         'unanswered': len(res.unanswered), 'permanent_block': bool(permanent),
