@@ -18,35 +18,46 @@ import math
 
 import numpy as np
 
-from . import elementary, kernel
+from . import contracted_kernel, elementary, inline_kernel, kernel
 
 #: Particles per block (see the module docstring).
 BLOCK = 64
 LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 
 
-@kernel
-def _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems, r, clock):
+@inline_kernel
+def _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems, xyz, r, clock):
     """Clock-corrected residuals ``r[j, b]`` of the points ``start .. start + m`` of
     ``points`` (P, >= 3): each point's own per-constellation clock (``clock`` scratch,
-    (n_systems, BLOCK)) removed [m]."""
+    (n_systems, BLOCK)) removed [m].
+
+    The block's coordinates are first copied into the contiguous rows of ``xyz`` (3,
+    BLOCK): the loop over satellites then reads unit-stride vectors (the rows of
+    ``points`` hold 4 or more values, a strided gather that keeps the loop slow)."""
     k = pr.shape[0]
+    px, py, pz = xyz[0], xyz[1], xyz[2]
+    for b in range(m):
+        px[b] = points[start + b, 0]
+        py[b] = points[start + b, 1]
+        pz[b] = points[start + b, 2]
     for c in range(n_systems):
+        clock_c = clock[c]
         for b in range(m):
-            clock[c, b] = 0.0
+            clock_c[b] = 0.0
     for j in range(k):
-        sx, sy, sz, p, w, c = sv[j, 0], sv[j, 1], sv[j, 2], pr[j], clock_w[j], sys_index[j]
+        sx, sy, sz, p, w = sv[j, 0], sv[j, 1], sv[j, 2], pr[j], clock_w[j]
+        r_j, clock_c = r[j], clock[sys_index[j]]
         for b in range(m):
-            dx = sx - points[start + b, 0]
-            dy = sy - points[start + b, 1]
-            dz = sz - points[start + b, 2]
+            dx = sx - px[b]
+            dy = sy - py[b]
+            dz = sz - pz[b]
             rj = p - math.sqrt(dx * dx + dy * dy + dz * dz)
-            r[j, b] = rj
-            clock[c, b] += w * rj
+            r_j[b] = rj
+            clock_c[b] += w * rj
     for j in range(k):
-        c = sys_index[j]
+        r_j, clock_c = r[j], clock[sys_index[j]]
         for b in range(m):
-            r[j, b] -= clock[c, b]
+            r_j[b] -= clock_c[b]
 
 
 @kernel
@@ -63,24 +74,26 @@ def _log_sum_exp(values):
     return top + math.log(acc)
 
 
-@kernel
+@contracted_kernel
 def residuals_of_points(points, sv, pr, sys_index, clock_w, n_systems):
     """Clock-corrected residuals (P, k) of (P, >= 3) points [m]."""
     n = points.shape[0]
     k = pr.shape[0]
     out = np.empty((n, k))
     r = np.empty((k, BLOCK))
+    xyz = np.empty((3, BLOCK))
     clock = np.empty((max(n_systems, 1), BLOCK))
     for start in range(0, n, BLOCK):
         m = min(BLOCK, n - start)
-        _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems, r, clock)
+        _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems, xyz, r,
+                         clock)
         for b in range(m):
             for j in range(k):
                 out[start + b, j] = r[j, b]
     return out
 
 
-@kernel
+@contracted_kernel
 def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_scale, floor,
                  group, evidence, prior_log_w, joint):
     """Joint log-weights under the robust likelihood, for S sets of N particles.
@@ -111,6 +124,7 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
     s_count, n = sets.shape[0], sets.shape[1]
     k = pr.shape[0]
     r = np.empty((k, BLOCK))
+    xyz = np.empty((3, BLOCK))
     clock = np.empty((max(n_systems, 1), BLOCK))
     prod = np.empty(BLOCK)
     log_sum = np.empty(BLOCK)
@@ -119,8 +133,8 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
         points = sets[s]
         for start in range(0, n, BLOCK):
             m = min(BLOCK, n - start)
-            _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems, r,
-                             clock)
+            _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems, xyz,
+                             r, clock)
             for b in range(m):
                 prod[b] = 1.0
                 log_sum[b] = 0.0
@@ -143,7 +157,7 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
     return total
 
 
-@kernel
+@contracted_kernel
 def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
                         dirichlet_alpha, evidence, prior_log_w, joint, gamma):
     """Joint log-weights under the Particle RAIM mixture, weights by one EM step.
@@ -165,6 +179,7 @@ def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
     s_count, n = sets.shape[0], sets.shape[1]
     k = pr.shape[0]
     r = np.empty((k, BLOCK))
+    xyz = np.empty((3, BLOCK))
     clock = np.empty((max(n_systems, 1), BLOCK))
     a_max = np.empty(BLOCK)
     acc = np.empty(BLOCK)
@@ -178,7 +193,7 @@ def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
             for start in range(0, n, BLOCK):
                 m = min(BLOCK, n - start)
                 _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems,
-                                 r, clock)
+                                 xyz, r, clock)
                 # a = -z^2 / 2 in place; the largest per particle is the shift.
                 for b in range(m):
                     a_max[b] = -np.inf
@@ -217,7 +232,7 @@ def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
     return total
 
 
-@kernel
+@contracted_kernel
 def robust_inlier_shares(points, log_w, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
                          log_scale, floor):
     """Per-satellite inlier probabilities of one set under the robust model.
@@ -232,13 +247,15 @@ def robust_inlier_shares(points, log_w, sv, pr, inv_sigma, sys_index, clock_w, n
     n = points.shape[0]
     k = pr.shape[0]
     r = np.empty((k, BLOCK))
+    xyz = np.empty((3, BLOCK))
     clock = np.empty((max(n_systems, 1), BLOCK))
     w = np.empty(BLOCK)
     weighted = np.zeros(k)
     share = np.zeros(k)
     for start in range(0, n, BLOCK):
         m = min(BLOCK, n - start)
-        _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems, r, clock)
+        _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems, xyz, r,
+                         clock)
         for b in range(m):
             w[b] = math.exp(log_w[start + b])
         for j in range(k):
