@@ -1,10 +1,12 @@
 """One filter epoch through the compiled kernels against the same epoch through the numpy
 oracles (test/oracles.py), from the same state and the same random stream.
 
-The propagated sets are bit-identical; the joint log-weights agree to 1e-6 nats (ranges
-by another formula, see test_kernels_gnss), so the choice of motion sample is the same
-and the estimate agrees to 1e-6 m. The risk bound and protection level of the epoch are
-held to the oracles on the posteriors the filter kept (test_kernels_posterior).
+The propagated sets are bit-identical; the joint log-weights agree to 1e-4 nats (the
+filter's robust likelihood runs in float32 on relative coordinates; test_kernels_gnss
+holds its float64 path to 1e-6), so the choice of motion sample is the same and the
+estimate agrees to 1e-4 m (covariance to a relative 1e-5). The risk bound and protection
+level of the epoch are held to the oracles on the posteriors the filter kept
+(test_kernels_posterior).
 """
 import copy
 from dataclasses import replace
@@ -92,12 +94,12 @@ def test_an_epoch_through_the_kernels_is_the_epoch_through_the_oracles(with_came
     priors, post_log_w, total = oracle_choice(reference, epoch, motion, camera)
 
     np.testing.assert_array_equal(filt.posteriors, priors)
-    np.testing.assert_allclose(result.total_log_lik, total, atol=1e-6)
+    np.testing.assert_allclose(result.total_log_lik, total, atol=1e-4)
     assert result.chosen == int(np.argmax(total))
-    np.testing.assert_allclose(filt.posterior_log_w, post_log_w, atol=1e-6)
+    np.testing.assert_allclose(filt.posterior_log_w, post_log_w, atol=1e-4)
     mean, cov = oracles.weighted_mean_cov(priors[result.chosen, :, :3],
                                           post_log_w[result.chosen])
-    np.testing.assert_allclose(result.position_enu_m, mean, atol=1e-6)
-    np.testing.assert_allclose(result.covariance_m2, cov, atol=1e-6)
+    np.testing.assert_allclose(result.position_enu_m, mean, atol=1e-4)
+    np.testing.assert_allclose(result.covariance_m2, cov, rtol=1e-5, atol=1e-6)
     if with_camera:
         assert result.camera_alpha is not None and not result.camera_excluded

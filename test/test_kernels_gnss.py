@@ -3,7 +3,8 @@
 Tolerances: ranges are taken directly as |s - p| in the kernels and as
 |s|^2 - 2 p.s + |p|^2 in the oracle (whose rounding is up to ~1e-6 m at 2e7 m), so
 residuals agree to 1e-5 m and joint log-weights to 1e-6 nats; everything else is the
-same arithmetic in another order (1e-9 and below).
+same arithmetic in another order (1e-9 and below). The robust likelihood's float32 path
+(relative coordinates) is held to 1e-4 nats, of the oracle and of its float64 path.
 """
 from dataclasses import replace
 
@@ -59,14 +60,48 @@ def test_residuals_match_the_oracle(case):
                                atol=1e-5)
 
 
+@pytest.mark.parametrize('single, tolerance', [(False, 1e-6), (True, 1e-4)])
 @pytest.mark.parametrize('evidence', [1.0, 0.2])
-def test_robust_joint_matches_the_oracle(case, evidence):
+def test_robust_joint_matches_the_oracle(case, evidence, single, tolerance):
     prep, sets, prior, clock_w, z = case
-    lik = gnss.RobustLikelihood(0.3, 300.0).joint(sets, prep, clock_w, evidence, prior)
+    lik = gnss.RobustLikelihood(0.3, 300.0, single_precision=single).joint(
+        sets, prep, clock_w, evidence, prior)
     expected = prior + evidence * oracles.robust_log_likelihood(
         z, np.log(prep.sigma_m), 0.3, 300.0).log_lik
-    np.testing.assert_allclose(lik.joint, expected, atol=1e-6)
-    np.testing.assert_allclose(lik.total, np.log(np.exp(expected).sum(axis=1)), atol=1e-6)
+    np.testing.assert_allclose(lik.joint, expected, atol=tolerance)
+    np.testing.assert_allclose(lik.total, np.log(np.exp(expected).sum(axis=1)),
+                               atol=tolerance)
+
+
+@pytest.mark.parametrize('spread_m', [3.0, 30.0, 300.0])
+def test_single_precision_robust_joint_is_within_1e4_nats_of_float64(spread_m):
+    """Clouds from 3 m to 300 m (offsets past the float32 path's 1 km bound included:
+    their blocks take the float64 residuals), GPS + GLONASS with a fault each, clock
+    offsets of 3 km."""
+    rng = np.random.default_rng(7)
+    prep = faulty_two_system_epoch(7)
+    sets = TRUTH_ENU + rng.normal(scale=spread_m, size=(10, 2000, 3))
+    sets[4, 100] += [4000.0, -2500.0, 10.0]           # far out: an exact block
+    prior = np.full(2000, -np.log(2000.0))
+    clock_w = gnss.clock_weights(prep, TRUTH_ENU, 3.0)
+    double = gnss.RobustLikelihood(0.3, 300.0, single_precision=False).joint(
+        sets, prep, clock_w, 1.0, prior)
+    single = gnss.RobustLikelihood(0.3, 300.0).joint(sets, prep, clock_w, 1.0, prior)
+    np.testing.assert_allclose(single.joint, double.joint, atol=1e-4)
+    np.testing.assert_allclose(single.total, double.total, atol=1e-5)
+    geometry = gnss.relative_geometry(sets, prep, clock_w)
+    assert geometry is not None and 500.0 < geometry.max_offset_m <= 1000.0
+    assert np.linalg.norm(sets[4, 100] - geometry.centre_m) > geometry.max_offset_m
+
+
+def test_single_precision_is_not_used_where_a_density_leaves_its_range(case):
+    """No outlier floor (eps = 0): a density underflows float32 long before float64, so
+    the joint is the float64 one, bit for bit."""
+    prep, sets, prior, clock_w, _ = case
+    single = gnss.RobustLikelihood(0.0, 300.0).joint(sets, prep, clock_w, 1.0, prior)
+    double = gnss.RobustLikelihood(0.0, 300.0, single_precision=False).joint(
+        sets, prep, clock_w, 1.0, prior)
+    np.testing.assert_array_equal(single.joint, double.joint)
 
 
 @pytest.mark.parametrize('evidence', [1.0, 0.2])
@@ -90,20 +125,24 @@ def test_robust_inlier_shares_match_the_oracle(case):
         atol=1e-9)
 
 
-def test_robust_joint_keeps_a_tiny_outlier_floor_finite():
+@pytest.mark.parametrize('single', [False, True])
+def test_robust_joint_keeps_a_tiny_outlier_floor_finite(single):
     # eps / range of 1e-12 over 64 satellites: the product of the floors (1e-768) would
-    # underflow; the kernel takes a log per group of satellites instead.
+    # underflow; the kernel takes a log per group of satellites instead (float32: a log
+    # per 2 satellites, each within a float32 ulp of ~55 nats: 1e-4 over the 32).
     rng = np.random.default_rng(4)
     sky_64 = sky(64, seed=7)
     epoch = epoch_at(TRUTH_ENU, clock_m=0.0, sv_ecef=sky_64)
     prep = gnss.prepare_epoch(epoch, FRAME, TRUTH_ENU, 10.0, False)
     far = TRUTH_ENU + rng.normal(scale=5_000.0, size=(1, 50, 3))  # every satellite an outlier
     clock_w = gnss.clock_weights(prep, TRUTH_ENU, 3.0)
-    lik = gnss.RobustLikelihood(1e-9, 1e3).joint(far, prep, clock_w, 1.0, np.zeros(50))
+    lik = gnss.RobustLikelihood(1e-9, 1e3, single_precision=single).joint(
+        far, prep, clock_w, 1.0, np.zeros(50))
     assert np.isfinite(lik.joint).all()
     z = (oracles.clock_corrected_residuals(far[0], prep, clock_w) / prep.sigma_m)[None]
     expected = oracles.robust_log_likelihood(z, np.log(prep.sigma_m), 1e-9, 1e3).log_lik
-    np.testing.assert_allclose(lik.joint, expected, rtol=1e-9)
+    np.testing.assert_allclose(lik.joint, expected, rtol=0.0 if single else 1e-9,
+                               atol=1e-4 if single else 0.0)
 
 
 def test_propagation_is_the_oracle_bit_for_bit(rng):

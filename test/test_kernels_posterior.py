@@ -10,7 +10,7 @@ from gnsscam_ros.core import integrity
 from gnsscam_ros.core.filter import UPDATED, FilterConfig, ParticleFilter
 from gnsscam_ros.core.kernels import kernel
 from gnsscam_ros.core.kernels import posterior as posterior_kernels
-from gnsscam_ros.core.kernels.elementary import exp
+from gnsscam_ros.core.kernels.elementary import exp, exp32
 from gnsscam_ros.core.particles import MotionIncrement
 
 SECOND = 1_000_000_000
@@ -34,6 +34,28 @@ def test_fast_exp_is_within_two_ulp_and_flushes_below_the_normals():
     special = np.array([-np.inf, -800.0, -708.5, np.inf, 710.0, np.nan])
     out = np.empty_like(special)
     _exp_array(special, out)
+    np.testing.assert_array_equal(out[:5], [0.0, 0.0, 0.0, np.inf, np.inf])
+    assert np.isnan(out[5])
+
+
+@kernel
+def _exp32_array(x, out):
+    for i in range(x.shape[0]):
+        out[i] = exp32(x[i])
+
+
+def test_single_precision_exp_is_within_two_ulp_and_flushes_below_the_normals():
+    x = np.concatenate([np.random.default_rng(0).uniform(-86.99, 87.99, 200_000),
+                        np.linspace(-1.0, 1.0, 2001), [0.0, -0.0, 1e-30, -86.99]]
+                       ).astype(np.float32)
+    out = np.empty_like(x)
+    _exp32_array(x, out)
+    exact = np.exp(x.astype(np.float64))
+    ulp = np.spacing(exact.astype(np.float32)).astype(np.float64)
+    assert np.max(np.abs(out - exact) / ulp) <= 2.0
+    special = np.array([-np.inf, -100.0, -87.0, np.inf, 88.0, np.nan], dtype=np.float32)
+    out = np.empty_like(special)
+    _exp32_array(special, out)
     np.testing.assert_array_equal(out[:5], [0.0, 0.0, 0.0, np.inf, np.inf])
     assert np.isnan(out[5])
 

@@ -230,19 +230,77 @@ def clock_corrected_residuals(positions_m: np.ndarray, prep: PreparedEpoch,
                                             clock_weights, prep.n_systems)
 
 
-def robust_scale(sigma_m: np.ndarray, outlier_prob: float, outlier_range_m: float
-                 ) -> tuple[np.ndarray, float, int]:
+def robust_scale(sigma_m: np.ndarray, outlier_prob: float, outlier_range_m: float,
+                 log_range: float = 690.0) -> tuple[np.ndarray, float, int]:
     """The robust model's per-satellite density ``scale_k exp(-z_k^2 / 2) + floor`` as the
     kernels take it: ``(log scale_k (k,), floor, group)`` with
     ``scale_k = (1 - eps) / (sigma_k sqrt(2 pi))``, ``floor = eps / range_out`` and
-    ``group`` the number of densities whose product stays within [1e-300, 1e300] (the
-    kernel takes one log per group)."""
+    ``group`` the number of densities whose product stays within ``exp(+-log_range)``
+    (the kernel takes one log per group; 690: float64, 80: float32); 0 when a single
+    density may already lie outside it (a zero floor)."""
     log_scale = np.log1p(-outlier_prob) - np.log(sigma_m) - LOG_SQRT_2PI
     floor = outlier_prob / outlier_range_m
     # Every density lies between the floor and the largest scale plus the floor.
-    log_largest = float(np.logaddexp(log_scale.max(initial=-np.inf), np.log(floor)))
-    per_term = max(abs(float(np.log(floor))), abs(log_largest), 1e-3)
-    return log_scale, floor, max(1, int(690.0 / per_term))
+    with np.errstate(divide='ignore'):                  # no floor: log 0 = -inf
+        log_floor = float(np.log(floor))
+    log_largest = float(np.logaddexp(log_scale.max(initial=-np.inf), log_floor))
+    per_term = max(abs(log_floor), abs(log_largest), 1e-3)
+    return log_scale, floor, int(log_range / per_term) if np.isfinite(per_term) else 0
+
+
+#: Largest distance of a particle from the cloud centre of the float32 likelihood [m]:
+#: float32 offsets of up to 1 km are exact to 6e-5 m (a particle farther out takes the
+#: exact float64 residuals, :func:`core.kernels.gnss.robust_joint_single`).
+SINGLE_MAX_OFFSET_M = 1000.0
+#: Largest error of the second-order range expansion the float32 likelihood allows [m]
+#: (``|d|^3 / (2 rho0^2)``: at 2e7 m, offsets up to 2 km).
+SINGLE_EXPANSION_TOLERANCE_M = 1e-5
+#: Densities of the float32 likelihood stay within exp(+-80) (float32: 1e-38 to 3e38).
+SINGLE_LOG_RANGE = 80.0
+
+
+@dataclass(frozen=True)
+class RelativeGeometry:
+    """Satellites seen from a centre near the particle cloud, for the float32 likelihood
+    (:func:`core.kernels.gnss.robust_joint_single` says how they are used).
+
+    Attributes:
+        centre_m: (3,) the centre [m].
+        unit: (k, 3) unit vectors from the centre to the satellites.
+        base_m: (k,) pseudorange minus range from the centre minus a common clock per
+            constellation [m].
+        half_inv_range: (k,) 1 / (2 range from the centre) [1/m].
+        max_offset_m: Farthest a particle may be from the centre on the float32 path [m].
+    """
+
+    centre_m: np.ndarray
+    unit: np.ndarray
+    base_m: np.ndarray
+    half_inv_range: np.ndarray
+    max_offset_m: float
+
+
+def relative_geometry(sets: np.ndarray, prep: PreparedEpoch, clock_weights: np.ndarray
+                      ) -> RelativeGeometry | None:
+    """The float32 likelihood's view of an epoch from the centre of (S, N, >= 3) sets,
+    or None where float32 would not be exact enough (no finite centre)."""
+    step = max(1, sets.shape[1] // 32)
+    centre = sets[:, ::step, :3].reshape(-1, 3).mean(axis=0)
+    if not np.all(np.isfinite(centre)):
+        return None
+    offset = prep.sv_enu_m - centre
+    rho0 = np.sqrt(np.einsum('ij,ij->i', offset, offset))
+    unit = offset / rho0[:, None]
+    base = prep.pr_m - rho0
+    # A common clock per constellation (the clock weights sum to one in each): removed
+    # again by every particle's own clock, it keeps the float32 residuals small.
+    clock0 = np.bincount(prep.sys_index, weights=clock_weights * base,
+                         minlength=prep.n_systems)
+    base = base - clock0[prep.sys_index]
+    expansion = np.cbrt(2.0 * SINGLE_EXPANSION_TOLERANCE_M * float(rho0.min()) ** 2)
+    return RelativeGeometry(centre_m=centre, unit=unit, base_m=base,
+                            half_inv_range=0.5 / rho0,
+                            max_offset_m=float(min(SINGLE_MAX_OFFSET_M, expansion)))
 
 
 def robust_inlier_shares(positions_m: np.ndarray, log_w: np.ndarray, prep: PreparedEpoch,
@@ -352,15 +410,32 @@ class RobustLikelihood:
     def from_config(cls, config) -> 'RobustLikelihood':
         return cls(outlier_prob=config.outlier_prob, outlier_range_m=config.outlier_range_m)
 
+    single_precision: bool = True
+
     def joint(self, sets, prep, clock_weights, evidence, prior_log_w) -> GnssLikelihood:
+        """The joint in float32 (relative coordinates) where that is exact enough: densities
+        within the float32 range and a finite cloud centre; else in float64."""
         sets = _sets(sets)
         joint = np.empty(sets.shape[:2])
+        prior_log_w = np.ascontiguousarray(prior_log_w, dtype=float)
+        inv_sigma = 1.0 / prep.sigma_m
+        log_scale, floor, group = robust_scale(prep.sigma_m, self.outlier_prob,
+                                               self.outlier_range_m, SINGLE_LOG_RANGE)
+        geometry = (relative_geometry(sets, prep, clock_weights)
+                    if self.single_precision and group >= 1 else None)
+        if geometry is not None:
+            total = gnss_kernels.robust_joint_single(
+                sets, geometry.centre_m, geometry.unit, geometry.base_m,
+                geometry.half_inv_range, geometry.max_offset_m, prep.sv_enu_m, prep.pr_m,
+                inv_sigma, prep.sys_index, clock_weights, prep.n_systems, log_scale,
+                float(floor), group, float(evidence), prior_log_w, joint)
+            return GnssLikelihood(joint=joint, total=total)
         log_scale, floor, group = robust_scale(prep.sigma_m, self.outlier_prob,
                                                self.outlier_range_m)
         total = gnss_kernels.robust_joint(
-            sets, prep.sv_enu_m, prep.pr_m, 1.0 / prep.sigma_m, prep.sys_index,
-            clock_weights, prep.n_systems, log_scale, float(floor), group, float(evidence),
-            np.ascontiguousarray(prior_log_w, dtype=float), joint)
+            sets, prep.sv_enu_m, prep.pr_m, inv_sigma, prep.sys_index,
+            clock_weights, prep.n_systems, log_scale, float(floor), max(group, 1),
+            float(evidence), prior_log_w, joint)
         return GnssLikelihood(joint=joint, total=total)
 
     def mixture_weights(self, lik, chosen, inlier_share) -> np.ndarray:

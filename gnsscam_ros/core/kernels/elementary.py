@@ -1,4 +1,4 @@
-"""Elementary functions for the kernels' inner loops: an exponential that vectorises.
+"""Elementary functions for the kernels' inner loops: exponentials that vectorise.
 
 A loop calling ``math.exp`` stays scalar (a libm call per element, 6-20 ns, slowest where
 the result underflows). :func:`exp` is branch-free arithmetic that LLVM turns into SIMD
@@ -7,6 +7,11 @@ reduction with a two-part ln 2), the degree-13 Taylor polynomial of ``exp(r)`` i
 form (short dependency chains), and ``2^k`` built from its bits. Relative error at most
 2 ulp; results below ``exp(-708)`` (under the smallest normal double) are 0, above
 ``exp(709)`` inf, NaN stays NaN.
+
+:func:`exp32` is the single-precision form for the float32 likelihood (degree-7
+polynomial, within 2 float32 ulp of the exact value; 0 below ``exp(-87)``, where float32
+results stop being normal numbers, inf from ``exp(88)``): twice the SIMD lanes of
+:func:`exp`.
 
 Inlined helpers are compiled into the kernels that call them, and numba's disk cache of a
 kernel depends on its own file only: the package drops cached kernels older than any of
@@ -74,4 +79,52 @@ def exp(x):
     out = p * _bits_to_float((_float_to_bits(shifted) - _ROUND_BITS + 1023) << 52)
     out = out if x > _LOWEST else 0.0
     out = out if x < _HIGHEST else np.inf
+    return out if x == x else x
+
+
+# ----------------------------------------------------------------------- float32
+_F32_LOG2E = np.float32(_LOG2E)
+_F32_LN2_HI = np.float32(0.693145751953125)        # ln 2 to 16 bits: k * it is exact
+_F32_LN2_LO = np.float32(1.428606765330187045e-06)
+_F32_ROUND = np.float32(12582912.0)                 # 1.5 * 2^23
+_F32_ROUND_BITS = 0x4B400000                        # its bits
+_F32_LOWEST = np.float32(-87.0)                     # exp(-87) = 1.6e-38, a normal float32
+_F32_HIGHEST = np.float32(88.0)
+_F32_ONE = np.float32(1.0)
+_F32_ZERO = np.float32(0.0)
+_F32_INF = np.float32(np.inf)
+_F32_TAYLOR = tuple(np.float32(1.0 / f) for f in (2.0, 6.0, 24.0, 120.0, 720.0, 5040.0))
+
+
+@intrinsic
+def _pow2_of_shifted32(typingctx, shifted):
+    """``2^k`` (float32) from ``shifted = k + 1.5 * 2^23`` (float32, exact): the low bits
+    of ``shifted`` hold k, moved into the exponent field in 32-bit integer arithmetic (in
+    numba, int32 arithmetic would widen to int64 and stop the loop vectorising)."""
+    sig = types.float32(types.float32)
+
+    def codegen(context, builder, signature, args):
+        i32 = ir.IntType(32)
+        k = builder.sub(builder.bitcast(args[0], i32), ir.Constant(i32, _F32_ROUND_BITS))
+        biased = builder.add(k, ir.Constant(i32, 127))
+        return builder.bitcast(builder.shl(biased, ir.Constant(i32, 23)), ir.FloatType())
+
+    return sig, codegen
+
+
+@inline_kernel
+def exp32(x):
+    """``e^x`` for a float32 ``x`` (float32), vectorisable; 0 below ``exp(-87)``, inf
+    from ``exp(88)`` on (1.7e38, half the float32 range), NaN stays NaN."""
+    y = x if x > _F32_LOWEST else _F32_LOWEST
+    y = y if y < _F32_HIGHEST else _F32_HIGHEST
+    shifted = y * _F32_LOG2E + _F32_ROUND
+    k = shifted - _F32_ROUND
+    r = (y - k * _F32_LN2_HI) - k * _F32_LN2_LO
+    r2 = r * r
+    c2, c3, c4, c5, c6, c7 = _F32_TAYLOR
+    p = (_F32_ONE + r) + r2 * ((c2 + r * c3) + r2 * ((c4 + r * c5) + r2 * (c6 + r * c7)))
+    out = p * _pow2_of_shifted32(shifted)
+    out = out if x > _F32_LOWEST else _F32_ZERO
+    out = out if x < _F32_HIGHEST else _F32_INF
     return out if x == x else x

@@ -158,6 +158,118 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
 
 
 @contracted_kernel
+def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, sv, pr,
+                        inv_sigma, sys_index, clock_w, n_systems, log_scale, floor, group,
+                        evidence, prior_log_w, joint):
+    """:func:`robust_joint` with the per-satellite arithmetic in float32 (twice the SIMD
+    lanes), on coordinates relative to a ``centre`` near the cloud.
+
+    Absolute ranges cannot be float32 (their spacing at 2e7 m is 2 m). Relative to the
+    centre ``c`` a point is ``c + d``, and with ``e = s - c``, ``rho0 = |e|``,
+    ``u = e / rho0``, ``a = u . d``: ``|s - c - d| = rho0 - a + (|d|^2 - a^2) / (2 rho0)``
+    up to ``|d|^3 / (2 rho0^2)``. The caller passes ``base = pr - rho0 - clock0`` per
+    satellite in float64 (``clock0`` a common clock per constellation: the particle's
+    own clock removes it again, and what stays in float32 is tens of metres), ``unit``
+    (u) and ``half_inv_range`` (1 / (2 rho0)); ``max_offset_m`` bounds ``|d|`` where the
+    expansion and the float32 offsets are exact enough (``core.gnss``). A block with a
+    particle farther out takes the exact float64 residuals (:func:`_block_residuals`).
+
+    Args:
+        sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_scale, floor, evidence,
+            prior_log_w, joint: As :func:`robust_joint` (``floor`` and the densities
+            within the float32 range, ``group`` for it).
+        centre: (3,) the centre c [m].
+        unit, base, half_inv_range: (k, 3), (k,), (k,) as above.
+        max_offset_m: Largest ``|d|`` of the float32 path [m].
+
+    Returns:
+        (S,) log-sum-exp of each set's joint.
+    """
+    s_count, n = sets.shape[0], sets.shape[1]
+    k = pr.shape[0]
+    f32 = np.float32
+    unit32 = unit.astype(f32)
+    base32 = base.astype(f32)
+    half32 = half_inv_range.astype(f32)
+    clock_w32 = clock_w.astype(f32)
+    inv_sigma32 = inv_sigma.astype(f32)
+    log_scale32 = log_scale.astype(f32)
+    floor32 = f32(floor)
+    half = f32(0.5)
+    one = f32(1.0)
+    zero = f32(0.0)
+    r = np.empty((k, BLOCK), dtype=f32)
+    clock = np.empty((max(n_systems, 1), BLOCK), dtype=f32)
+    d = np.empty((4, BLOCK), dtype=f32)            # offsets east, north, up; |d|^2
+    prod = np.empty(BLOCK, dtype=f32)
+    log_sum = np.empty(BLOCK)
+    exact_xyz = np.empty((3, BLOCK))
+    exact_r = np.empty((k, BLOCK))
+    exact_clock = np.empty((max(n_systems, 1), BLOCK))
+    total = np.empty(s_count)
+    cx, cy, cz = centre[0], centre[1], centre[2]
+    limit = f32(max_offset_m * max_offset_m)
+    dx32, dy32, dz32, q32 = d[0], d[1], d[2], d[3]
+    for s in range(s_count):
+        points = sets[s]
+        for start in range(0, n, BLOCK):
+            m = min(BLOCK, n - start)
+            for b in range(m):
+                dx = points[start + b, 0] - cx
+                dy = points[start + b, 1] - cy
+                dz = points[start + b, 2] - cz
+                dx32[b] = f32(dx)
+                dy32[b] = f32(dy)
+                dz32[b] = f32(dz)
+                q32[b] = f32(dx * dx + dy * dy + dz * dz)
+            far = False
+            for b in range(m):
+                far |= q32[b] > limit
+            for c in range(n_systems):
+                clock_c = clock[c]
+                for b in range(m):
+                    clock_c[b] = zero
+            if far:
+                # Residuals r - clock in float64, the clock already removed.
+                _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems,
+                                 exact_xyz, exact_r, exact_clock)
+                for j in range(k):
+                    for b in range(m):
+                        r[j, b] = f32(exact_r[j, b])
+            else:
+                for j in range(k):
+                    ux, uy, uz = unit32[j, 0], unit32[j, 1], unit32[j, 2]
+                    p, h, w = base32[j], half32[j], clock_w32[j]
+                    r_j, clock_c = r[j], clock[sys_index[j]]
+                    for b in range(m):
+                        a = ux * dx32[b] + uy * dy32[b] + uz * dz32[b]
+                        rj = p + a - (q32[b] - a * a) * h
+                        r_j[b] = rj
+                        clock_c[b] += w * rj
+            for b in range(m):
+                prod[b] = one
+                log_sum[b] = 0.0
+            count = 0
+            for j in range(k):
+                ls, isg = log_scale32[j], inv_sigma32[j]
+                r_j, clock_c = r[j], clock[sys_index[j]]
+                for b in range(m):
+                    zj = (r_j[b] - clock_c[b]) * isg
+                    prod[b] *= elementary.exp32(ls - half * zj * zj) + floor32
+                count += 1
+                if count == group:
+                    for b in range(m):
+                        log_sum[b] += math.log(prod[b])
+                        prod[b] = one
+                    count = 0
+            for b in range(m):
+                joint[s, start + b] = prior_log_w[start + b] + evidence * (
+                    log_sum[b] + math.log(prod[b]))
+        total[s] = _log_sum_exp(joint[s])
+    return total
+
+
+@contracted_kernel
 def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
                         dirichlet_alpha, evidence, prior_log_w, joint, gamma):
     """Joint log-weights under the Particle RAIM mixture, weights by one EM step.
