@@ -87,8 +87,9 @@ def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: f
         posteriors: ``n_posteriors`` M of the filter (default 10, the yardstick of
             ``gnsscam_bench``'s rows); None: the filter default.
         duration_s: Length of the emulated drive replayed [s] (GNSS at 1 Hz).
-        period_s: Wall time between epochs [s]; 0 = send the next epoch as soon as the
-            previous verdict arrived (plus the dead reckoning of the interval).
+        period_s: Wall time between the dead reckoning of an epoch's interval reaching
+            the probe and the epoch being sent [s]; 0 = at once (the epoch then queues
+            behind the interval's IMU and odometry, sent as one burst).
         domain: ROS domain id.
         seed: Emulated drive seed.
         log: Progress printer.
@@ -190,6 +191,7 @@ def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: f
             if st.name == 'fusion_node: status':
                 fusion = ma.status_values(st)
     return {'particles': particles, 'acquisition_particles': acquisition_particles,
+            'period_s': period_s,
             'posteriors': posteriors, 'epochs': len(lat), 'median_ms': float(np.median(lat)),
             'p90_ms': float(np.percentile(lat, 90)), 'max_ms': float(np.max(lat)),
             'fusion_processing_p50_ms': float(fusion.get('processing_p50_ms', 'nan')),
@@ -319,6 +321,11 @@ def main(argv=None) -> int:
                              'default)')
     parser.add_argument('--duration-s', type=float, default=30.0,
                         help='emulated drive replayed for the latency [s]')
+    parser.add_argument('--period-s', type=float, default=0.0,
+                        help='wall time between an epoch\'s dead reckoning reaching the probe '
+                             'and the epoch being sent (0, the default: at once, so the '
+                             'epoch queues behind the burst of the interval\'s IMU and '
+                             'odometry; a live receiver\'s epoch finds them processed) [s]')
     parser.add_argument('--fps', type=float, default=30.0)
     parser.add_argument('--camera-seconds', type=float, default=5.0)
     parser.add_argument('--skip-latency', action='store_true')
@@ -330,6 +337,7 @@ def main(argv=None) -> int:
     results = {}
     if not args.skip_latency:
         results['latency'] = bench_latency(args.particles, args.duration_s,
+                                           period_s=args.period_s,
                                            acquisition_particles=args.acquisition_particles,
                                            log=log, posteriors=args.posteriors or None)
         lat = results['latency']

@@ -131,8 +131,10 @@ class BiasHypotheses:
         sigma = self.model.sigma_m(cn0_dbhz, rms)
         tau = self.model.correlation_time_s
         out = np.empty((keys.shape[0], self.n))
+        # One call: the same stream as one draw of M per satellite, in order.
+        draws = self.rng.standard_normal((keys.shape[0], self.n))
         for i, key in enumerate(keys.tolist()):
-            draw = self.rng.standard_normal(self.n)
+            draw = draws[i]
             known = self._biases.get(key)
             if known is None or stamp_ns <= known[0]:
                 bias = sigma[i] * draw if known is None else known[1]
