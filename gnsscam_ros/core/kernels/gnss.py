@@ -60,6 +60,15 @@ def _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems, xy
             r_j[b] -= clock_c[b]
 
 
+@inline_kernel
+def _fold_logs(prod, log_sum, m):
+    """Add the log of each particle's running product of densities to its sum and start
+    the product again (one log per group of satellites)."""
+    for b in range(m):
+        log_sum[b] += math.log(prod[b])
+        prod[b] = 1.0
+
+
 @kernel
 def _log_sum_exp(values):
     """``log sum exp(values)`` of a (N,) array, shifted by its maximum."""
@@ -146,13 +155,11 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
                     prod[b] *= elementary.exp(ls - 0.5 * zj * zj) + floor
                 count += 1
                 if count == group:
-                    for b in range(m):
-                        log_sum[b] += math.log(prod[b])
-                        prod[b] = 1.0
+                    _fold_logs(prod, log_sum, m)
                     count = 0
+            _fold_logs(prod, log_sum, m)
             for b in range(m):
-                joint[s, start + b] = prior_log_w[start + b] + evidence * (
-                    log_sum[b] + math.log(prod[b]))
+                joint[s, start + b] = prior_log_w[start + b] + evidence * log_sum[b]
         total[s] = _log_sum_exp(joint[s])
     return total
 
@@ -258,13 +265,11 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
                     prod[b] *= elementary.exp32(ls - half * zj * zj) + floor32
                 count += 1
                 if count == group:
-                    for b in range(m):
-                        log_sum[b] += math.log(prod[b])
-                        prod[b] = one
+                    _fold_logs(prod, log_sum, m)
                     count = 0
+            _fold_logs(prod, log_sum, m)
             for b in range(m):
-                joint[s, start + b] = prior_log_w[start + b] + evidence * (
-                    log_sum[b] + math.log(prod[b]))
+                joint[s, start + b] = prior_log_w[start + b] + evidence * log_sum[b]
         total[s] = _log_sum_exp(joint[s])
     return total
 
