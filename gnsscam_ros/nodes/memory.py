@@ -86,8 +86,13 @@ def configure_node_memory(environ: MutableMapping[str, str] | None = None) -> st
     message's memory once it is gone (:data:`PROFILE`; see the module docstring).
 
     Returns:
-        The Fast DDS profile file in force (:func:`use_fastdds_profile`).
+        The Fast DDS profile file in force (:func:`use_fastdds_profile`); None also for an
+        install without :data:`PROFILE` (rmw_fastrtps's own settings then: with
+        ``RMW_FASTRTPS_USE_QOS_FROM_XML=1`` and no file, Fast DDS's defaults would replace
+        them).
     """
+    if not PROFILE.is_file():
+        return None
     return use_fastdds_profile(PROFILE, environ)
 
 
