@@ -16,7 +16,9 @@ writes them as a ``--params-file``.
 the shared-memory segment and travels as UDP fragments, and a best-effort subscriber
 (camera_node) loses most images sent from another process. :func:`use_dds_profile` points
 Fast DDS at :data:`DDS_PROFILE` (a 32 MB shared-memory segment; only the publishing
-process needs it) unless ``FASTRTPS_DEFAULT_PROFILES_FILE`` is set.
+process needs it) unless ``FASTRTPS_DEFAULT_PROFILES_FILE`` is set. The node processes
+inherit it instead of their own profile, so it carries the same history memory settings
+(:mod:`gnsscam_ros.nodes.memory`: memory given back after a large message).
 """
 from __future__ import annotations
 
@@ -33,6 +35,7 @@ import yaml
 from rclpy.parameter import Parameter
 
 from ..nodes.camera_node import CameraNode
+from ..nodes.memory import use_fastdds_profile
 from ..nodes.runtime import stop_process
 from ..nodes.fusion_node import FusionNode
 from ..nodes.gnss_node import GnssNode
@@ -109,8 +112,12 @@ def merge_parameters(*layers: dict[str, dict]) -> dict[str, dict]:
 #: QoS) drops the whole image when one fragment is lost, which loopback socket buffers
 #: make common: measured here, 17 of 50 images paced at 10 Hz arrived. A 32 MB segment
 #: carries whole images (50 of 50), and the GNSS epochs no longer compete with them for it.
+#: The node processes started by a replay read this file instead of their own
+#: (``nodes/fastdds_profile.xml``), so the participant's ``builtin`` and the
+#: ``data_writer``/``data_reader`` profiles repeat that file's (the same test checks both).
 DDS_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
-<!-- gnsscam_ros: shared memory large enough for camera images (see live/launch.py). -->
+<!-- gnsscam_ros: shared memory large enough for camera images (see live/launch.py), and
+     the node processes' history memory (see nodes/memory.py). -->
 <profiles xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
   <transport_descriptors>
     <transport_descriptor>
@@ -132,11 +139,33 @@ DDS_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
         <transport_id>gnsscam_udp</transport_id>
       </userTransports>
       <useBuiltinTransports>false</useBuiltinTransports>
+      <builtin>
+        <readerHistoryMemoryPolicy>PREALLOCATED_WITH_REALLOC</readerHistoryMemoryPolicy>
+        <writerHistoryMemoryPolicy>PREALLOCATED_WITH_REALLOC</writerHistoryMemoryPolicy>
+      </builtin>
     </rtps>
   </participant>
+  <data_writer profile_name="gnsscam_writer" is_default_profile="true">
+    <qos>
+      <publishMode>
+        <kind>SYNCHRONOUS</kind>
+      </publishMode>
+      <data_sharing>
+        <kind>OFF</kind>
+      </data_sharing>
+    </qos>
+    <historyMemoryPolicy>PREALLOCATED_WITH_REALLOC</historyMemoryPolicy>
+  </data_writer>
+  <data_reader profile_name="gnsscam_reader" is_default_profile="true">
+    <qos>
+      <data_sharing>
+        <kind>OFF</kind>
+      </data_sharing>
+    </qos>
+    <historyMemoryPolicy>DYNAMIC</historyMemoryPolicy>
+  </data_reader>
 </profiles>
 """
-PROFILE_ENV = 'FASTRTPS_DEFAULT_PROFILES_FILE'
 
 
 def write_dds_profile(path: str | Path) -> Path:
@@ -149,8 +178,9 @@ def write_dds_profile(path: str | Path) -> Path:
 
 
 def use_dds_profile(folder: str | Path) -> str | None:
-    """Point ``FASTRTPS_DEFAULT_PROFILES_FILE`` at :data:`DDS_PROFILE` (written into
-    ``folder``) unless the user set one or another RMW is used.
+    """Point Fast DDS at :data:`DDS_PROFILE` (written into ``folder``), with its history
+    memory settings in force, unless the user configures Fast DDS or another RMW is used
+    (:func:`gnsscam_ros.nodes.memory.use_fastdds_profile`).
 
     Fast DDS reads the file when a process creates its first participant, so call this
     before the first ``rclpy.init`` of the process; child processes inherit it.
@@ -158,12 +188,11 @@ def use_dds_profile(folder: str | Path) -> str | None:
     Returns:
         The profile file in force (None: not Fast DDS).
     """
-    rmw = os.environ.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
-    if not rmw.startswith('rmw_fastrtps'):
-        return None
-    if not os.environ.get(PROFILE_ENV):
-        os.environ[PROFILE_ENV] = str(write_dds_profile(Path(folder) / 'fastdds_profile.xml'))
-    return os.environ[PROFILE_ENV]
+    path = Path(folder) / 'fastdds_profile.xml'
+    in_force = use_fastdds_profile(path)
+    if in_force == str(path):
+        write_dds_profile(path)
+    return in_force
 
 
 # ------------------------------------------------------------------------ nodes

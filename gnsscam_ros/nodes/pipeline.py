@@ -22,6 +22,7 @@ from .common import EXIT_FAILED, EXIT_OK
 from .fusion_node import FusionNode
 from .gnss_node import GnssNode
 from .imu_node import ImuNode
+from .memory import configure_node_memory
 from .runtime import (NodeSpinner, failed, print_node_help, quiet_interrupted_rclpy_objects,
                       shut_down, start_nodes, wants_help)
 
@@ -40,6 +41,7 @@ def main(args=None) -> int:
                         ('gnss_node', 'imu_node', 'camera_node', 'fusion_node'))
         return EXIT_OK
     quiet_interrupted_rclpy_objects()
+    configure_node_memory()             # before the first participant of the process
     nodes, spinner, code = [], None, EXIT_OK
     try:
         try:

@@ -15,6 +15,7 @@ import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
 from .common import EXIT_FAILED, EXIT_OK, StartupError
+from .memory import configure_node_memory
 
 
 def wants_help(args=None) -> bool:
@@ -143,6 +144,7 @@ def run_node(node_class, args=None) -> int:
         print_node_help(name, sys.modules[node_class.__module__].__doc__, (name,))
         return EXIT_OK
     quiet_interrupted_rclpy_objects()
+    configure_node_memory()             # before the first participant of the process
     nodes: list = []
     executor = None
     code = EXIT_OK

@@ -1,0 +1,99 @@
+"""Memory after a large message: the node processes give it back.
+
+**Where it stayed.** rmw_fastrtps (Jazzy's default RMW, the one of this package's
+environment) creates every DataReader with the history memory policy
+``PREALLOCATED_WITH_REALLOC``: each slot of a reader's history keeps its payload buffer,
+grown to the largest sample it ever held and never shrunk. The nodes refuse an 8000x8000
+image (192 MB serialised) by its header fields, but Fast DDS has reassembled it in such a
+buffer before (also an image that lost a fragment on camera_node's best-effort
+subscription and is never delivered): the 192 MB stay resident for the life of the
+process. Measured on pipeline_node (two such images, then 20 valid 640x480 ones): RSS
+283 -> 493 MB with camera_node's best-effort subscription, 274 -> 464 MB with a reliable
+one (both images refused as too large); the buffer is a live allocation of Fast DDS
+(``malloc_info``: 195 MB in use in mmapped chunks), ``malloc_trim(0)`` gave back nothing.
+
+**The remedy.** :func:`configure_node_memory`, called by every node process before
+``rclpy.init``, points Fast DDS at :data:`PROFILE` with ``RMW_FASTRTPS_USE_QOS_FROM_XML=1``:
+the readers' history memory becomes ``DYNAMIC`` (each sample's payload allocated for it
+and freed once taken or dropped), everything else stays as rmw_fastrtps sets it without
+a file. Same measurements: 272 -> 280 MB and 272 -> 284 MB (the memory goes back once the
+incomplete image is dropped or the refused one taken).
+
+**Not the cause: glibc malloc.** A block above the largest dynamic mmap threshold (32 MB
+on 64-bit) is always mmapped and unmapped on free, so a big message that Python or rmw
+frees goes back at once; ``malloc_trim(0)`` after the garbage (with the profile) gave back
+3-6 MB, and 10,000-satellite clouds (480 kB each, below that threshold) left 2 MB. No
+``mallopt`` or trimming is needed.
+
+Fast DDS reads the profile file when the process creates its first participant, so the
+settings must be in the environment before that; child processes inherit them.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import MutableMapping
+
+#: The node processes' Fast DDS profile (package data next to this module).
+PROFILE = Path(__file__).with_name('fastdds_profile.xml')
+#: Fast DDS 2.x reads its XML profiles from this file (Jazzy); Fast DDS 3 renamed it.
+PROFILE_ENV = 'FASTRTPS_DEFAULT_PROFILES_FILE'
+PROFILE_ENV_V3 = 'FASTDDS_DEFAULT_PROFILES_FILE'
+#: Fast DDS also loads this file from the working directory.
+CWD_PROFILE = 'DEFAULT_FASTRTPS_PROFILES.xml'
+#: 1: rmw_fastrtps takes history memory, publication mode and data sharing from the XML.
+QOS_FROM_XML_ENV = 'RMW_FASTRTPS_USE_QOS_FROM_XML'
+#: Ignored by rmw_fastrtps with QOS_FROM_XML_ENV=1: set, the user's choice wins.
+PUBLICATION_MODE_ENV = 'RMW_FASTRTPS_PUBLICATION_MODE'
+
+
+def use_fastdds_profile(path: str | Path,
+                        environ: MutableMapping[str, str] | None = None) -> str | None:
+    """Make ``path`` the Fast DDS profile of this process and its children, with its
+    history memory and publication settings in force, unless the user configures Fast
+    DDS.
+
+    The user's configuration wins: a profile file of their own (``PROFILE_ENV``, its Fast
+    DDS 3 name, or ``DEFAULT_FASTRTPS_PROFILES.xml`` in the working directory) leaves the
+    environment alone; ``RMW_FASTRTPS_USE_QOS_FROM_XML`` or
+    ``RMW_FASTRTPS_PUBLICATION_MODE`` set keeps it as it is (``path`` then gives only what
+    rmw_fastrtps does not override, e.g. transports). Another RMW: nothing to do.
+
+    Args:
+        path: The XML profile file.
+        environ: The environment to change (default: this process's).
+
+    Returns:
+        The profile file in force (the user's or ``path``), None when there is none (not
+        Fast DDS).
+    """
+    env = os.environ if environ is None else environ
+    if not env.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp').startswith('rmw_fastrtps'):
+        return None
+    own = env.get(PROFILE_ENV) or env.get(PROFILE_ENV_V3)
+    if own:
+        return own
+    if Path(CWD_PROFILE).is_file():
+        return str(Path(CWD_PROFILE).resolve())
+    env[PROFILE_ENV] = str(path)
+    if QOS_FROM_XML_ENV not in env and not env.get(PUBLICATION_MODE_ENV):
+        env[QOS_FROM_XML_ENV] = '1'
+    return str(path)
+
+
+def configure_node_memory(environ: MutableMapping[str, str] | None = None) -> str | None:
+    """Start-up of a node process, before ``rclpy.init``: Fast DDS readers that free a
+    message's memory once it is gone (:data:`PROFILE`; see the module docstring).
+
+    Returns:
+        The Fast DDS profile file in force (:func:`use_fastdds_profile`); None also for an
+        install without :data:`PROFILE` (rmw_fastrtps's own settings then: with
+        ``RMW_FASTRTPS_USE_QOS_FROM_XML=1`` and no file, Fast DDS's defaults would replace
+        them).
+    """
+    if not PROFILE.is_file():
+        return None
+    return use_fastdds_profile(PROFILE, environ)
+
+
+__all__ = ['PROFILE', 'configure_node_memory', 'use_fastdds_profile']
