@@ -36,6 +36,7 @@ from sensor_msgs.msg import Image, Imu, PointCloud2
 
 import msg_adapters as ma
 from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
+from gnsscam_ros.live.launch import start_node_processes, write_params_file
 from gnsscam_ros.nodes.runtime import stop_process
 from gnsscam_ros.vision.database import MapDatabase, PositionTable
 from gnsscam_ros.vision.features import OrbExtractor, OrbParams
@@ -76,7 +77,7 @@ def _env(domain: int, log_dir: str) -> dict:
 # ============================================================================ latency
 def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: float = 0.0,
                   acquisition_particles: int = 0, domain: int = 61, seed: int = 3,
-                  log=print, posteriors: int | None = 10) -> dict:
+                  log=print, posteriors: int | None = 10, processes: bool = False) -> dict:
     """Pseudoranges -> integrity_risk latency through pipeline_node in another process.
 
     Args:
@@ -93,6 +94,9 @@ def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: f
         domain: ROS domain id.
         seed: Emulated drive seed.
         log: Progress printer.
+        processes: The four nodes as four processes (as ``ros2 run`` or a launch file
+            starts them) instead of one pipeline_node, whose nodes share one interpreter
+            lock.
 
     Returns:
         Latency statistics [ms], and fusion_node's own processing time per epoch (filter
@@ -100,16 +104,21 @@ def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: f
     """
     drive = make_emulated_drive(seed, faults=2, duration_s=duration_s)
     log_dir = tempfile.mkdtemp(prefix='gnsscam_bench_')
-    params = Path(log_dir) / 'params.yaml'
-    m_line = '' if posteriors is None else f'    n_posteriors: {posteriors}\n'
-    params.write_text(f'fusion_node:\n  ros__parameters:\n    n_particles: {particles}\n'
-                      f'    acquisition_particles: {acquisition_particles}\n{m_line}'
-                      '    gnss_timeout_s: 30.0\n    odometry_wait_s: 0.5\n'
-                      'imu_node:\n  ros__parameters:\n    input_queue_depth: 2000\n'
-                      '    source_timeout_s: 30.0\n')
-    proc = subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.nodes.pipeline', '--ros-args',
-                             '--params-file', str(params)], env=_env(domain, log_dir),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    fusion_params = {'n_particles': particles, 'acquisition_particles': acquisition_particles,
+                     'gnss_timeout_s': 30.0, 'odometry_wait_s': 0.5}
+    if posteriors is not None:
+        fusion_params['n_posteriors'] = posteriors
+    params = {'fusion_node': fusion_params,
+              'imu_node': {'input_queue_depth': 2000, 'source_timeout_s': 30.0}}
+    if processes:
+        procs = [proc for proc, _ in start_node_processes(params, domain, log_dir, False,
+                                                          '/')]
+    else:
+        params_file = write_params_file(Path(log_dir) / 'params.yaml', params)
+        procs = [subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.nodes.pipeline',
+                                   '--ros-args', '--params-file', str(params_file)],
+                                  env=_env(domain, log_dir), stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL)]
     probe = _Probe(domain)
     received: dict[int, float] = {}
     statuses: dict[int, str] = {}
@@ -183,7 +192,7 @@ def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: f
                                      for s in m.status), 5.0, 'fusion diagnostics')
     finally:
         probe.close()
-        rc = stop_process(proc, timeout_s=30.0)
+        rc = max(stop_process(proc, timeout_s=30.0) for proc in procs)
     lat = [1e3 * (received[s] - sent[s]) for s in sorted(sent)][1:]  # 0: initialisation
     fusion = {}
     for m in diagnostics:
@@ -195,7 +204,7 @@ def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: f
             'posteriors': posteriors, 'epochs': len(lat), 'median_ms': float(np.median(lat)),
             'p90_ms': float(np.percentile(lat, 90)), 'max_ms': float(np.max(lat)),
             'fusion_processing_p50_ms': float(fusion.get('processing_p50_ms', 'nan')),
-            'pipeline_exit_code': rc}
+            'node_processes': processes, 'pipeline_exit_code': rc}
 
 
 # ============================================================================= camera
@@ -326,6 +335,9 @@ def main(argv=None) -> int:
                              'and the epoch being sent (0, the default: at once, so the '
                              'epoch queues behind the burst of the interval\'s IMU and '
                              'odometry; a live receiver\'s epoch finds them processed) [s]')
+    parser.add_argument('--processes', action='store_true',
+                        help='the latency through the four nodes as four processes (default: '
+                             'one pipeline_node)')
     parser.add_argument('--fps', type=float, default=30.0)
     parser.add_argument('--camera-seconds', type=float, default=5.0)
     parser.add_argument('--skip-latency', action='store_true')
@@ -338,6 +350,7 @@ def main(argv=None) -> int:
     if not args.skip_latency:
         results['latency'] = bench_latency(args.particles, args.duration_s,
                                            period_s=args.period_s,
+                                           processes=args.processes,
                                            acquisition_particles=args.acquisition_particles,
                                            log=log, posteriors=args.posteriors or None)
         lat = results['latency']
