@@ -6,7 +6,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .particles import MotionIncrement
 from .types import ImuSeries, OdometrySeries
 
 # Online dead reckoning shared by imu_node (which publishes the states) and the epoch engine
@@ -17,6 +16,42 @@ ODOMETRY = 'odometry'
 IMU = 'imu'
 DR_SOURCES = (ODOMETRY, IMU)       # at equal stamps, odometry samples are taken first
 YAW_RATE_SOURCES = (ODOMETRY, IMU)
+
+
+@dataclass(frozen=True)
+class MotionIncrement:
+    """Vehicle motion between two GNSS epochs, in the vehicle frame.
+
+    Attributes:
+        dt_s: Elapsed time [s].
+        distance_m: Distance travelled along the heading [m].
+        dyaw_rad: Heading change [rad].
+        distance_var_m2: Variance of ``distance_m`` [m^2].
+        dyaw_var_rad2: Variance of ``dyaw_rad`` [rad^2].
+        dup_m: Height change [m] (0 for planar odometry).
+        unknown_s: Part of ``dt_s`` not covered by dead reckoning (lost, or reset) [s]:
+            over it the vehicle may have moved anywhere its maximum speed allows.
+    """
+
+    dt_s: float
+    distance_m: float
+    dyaw_rad: float
+    distance_var_m2: float
+    dyaw_var_rad2: float
+    dup_m: float = 0.0
+    unknown_s: float = 0.0
+
+    @classmethod
+    def stationary(cls, dt_s: float) -> 'MotionIncrement':
+        """Measured standstill: the propagation noise alone spreads the set."""
+        return cls(dt_s=dt_s, distance_m=0.0, dyaw_rad=0.0, distance_var_m2=0.0,
+                   dyaw_var_rad2=0.0)
+
+    @classmethod
+    def unknown(cls, dt_s: float) -> 'MotionIncrement':
+        """No dead reckoning for the whole interval: the motion is unknown."""
+        return cls(dt_s=dt_s, distance_m=0.0, dyaw_rad=0.0, distance_var_m2=0.0,
+                   dyaw_var_rad2=0.0, unknown_s=max(dt_s, 0.0))
 
 
 def wrap_angle(angle_rad: float) -> float:

@@ -11,46 +11,11 @@ from dataclasses import dataclass
 import numpy as np
 from .kernels import motion as motion_kernels
 from .kernels import weights as weight_kernels
+from .motion import MotionIncrement
 
 STATE_DIM = 4
 POS = slice(0, 3)
 YAW = 3
-
-
-@dataclass(frozen=True)
-class MotionIncrement:
-    """Vehicle motion between two GNSS epochs, in the vehicle frame.
-
-    Attributes:
-        dt_s: Elapsed time [s].
-        distance_m: Distance travelled along the heading [m].
-        dyaw_rad: Heading change [rad].
-        distance_var_m2: Variance of ``distance_m`` [m^2].
-        dyaw_var_rad2: Variance of ``dyaw_rad`` [rad^2].
-        dup_m: Height change [m] (0 for planar odometry).
-        unknown_s: Part of ``dt_s`` not covered by dead reckoning (lost, or reset) [s]:
-            over it the vehicle may have moved anywhere its maximum speed allows.
-    """
-
-    dt_s: float
-    distance_m: float
-    dyaw_rad: float
-    distance_var_m2: float
-    dyaw_var_rad2: float
-    dup_m: float = 0.0
-    unknown_s: float = 0.0
-
-    @classmethod
-    def stationary(cls, dt_s: float) -> 'MotionIncrement':
-        """Measured standstill: the propagation noise alone spreads the set."""
-        return cls(dt_s=dt_s, distance_m=0.0, dyaw_rad=0.0, distance_var_m2=0.0,
-                   dyaw_var_rad2=0.0)
-
-    @classmethod
-    def unknown(cls, dt_s: float) -> 'MotionIncrement':
-        """No dead reckoning for the whole interval: the motion is unknown."""
-        return cls(dt_s=dt_s, distance_m=0.0, dyaw_rad=0.0, distance_var_m2=0.0,
-                   dyaw_var_rad2=0.0, unknown_s=max(dt_s, 0.0))
 
 
 def log_sum_exp_rows(log_w: np.ndarray) -> np.ndarray:
