@@ -1,4 +1,5 @@
-"""GNSS module: measurement checks, receiver clock handling and the Particle RAIM likelihood.
+"""GNSS module: receiver clock handling and the Particle RAIM likelihood; the measurement
+checks (:mod:`.gnss_checks`, re-exported here).
 
 Paper §3 (Particle RAIM): the likelihood of a particle is a Gaussian mixture over the
 satellites, ``sum_k gamma_k N(pr_k | range_k + clock, sigma_k^2)``, with the mixture weights
@@ -16,12 +17,16 @@ The per-particle work (ranges, clocks, likelihoods) runs in the compiled kernels
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
 
 from .frames import LocalFrame, sagnac_corrected
+# The checks need no kernel: gnss_node imports them alone (no numba).
+from .gnss_checks import (MAX_PSEUDORANGE_M, MAX_SATELLITE_RADIUS_M,  # noqa: F401
+                          MAX_SATELLITES, MAX_VARIANCE_M2, GnssCheck, check_epoch,
+                          epoch_problem, satellite_key)
 from .kernels import gnss as gnss_kernels
 from .types import GnssEpoch
 
@@ -31,113 +36,6 @@ LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 # name of one :class:`Likelihood` (``LIKELIHOOD_MODELS``).
 PARTICLE_RAIM = 'particle_raim'    # the paper's mixture over satellites, weights by EM
 ROBUST = 'robust'                  # Gaussian with a uniform outlier floor per satellite
-
-
-#: Most satellites one epoch uses. The update's arrays are particles x motion samples x
-#: satellites, so the satellite count sets what one epoch costs (memory and time; a
-#: configuration whose sizes would exceed the memory budget of ``core.config`` with this
-#: many uses fewer, ``FilterConfig.satellite_limit``); an epoch with more usable
-#: satellites keeps the strongest by C/N0 (unknown C/N0 last, then the order received).
-#: A receiver tracking GPS, GLONASS, Galileo, BeiDou and QZSS sees 40-60 satellites under
-#: open sky (one row each: rows of the same satellite are duplicates), so 64 drops nothing
-#: real, and 64 well-spread satellites fix the position as well as more would.
-MAX_SATELLITES = 64
-#: Farthest a satellite may be from the Earth's centre [m]: GNSS orbits reach 42,164 km
-#: (geostationary); beyond twice that a position is corrupt, and its square (in the range
-#: arithmetic) must stay far from overflow.
-MAX_SATELLITE_RADIUS_M = 1e8
-#: Longest pseudorange taken [m]: geometric ranges are below 4e7 m, receiver clock offsets
-#: are steered within a millisecond (3e5 m).
-MAX_PSEUDORANGE_M = 1e8
-#: Largest pseudorange variance taken [m^2] (a standard deviation of 1,000 km carries no
-#: position information, and its inverse must not underflow in the update weights).
-MAX_VARIANCE_M2 = 1e12
-
-
-def epoch_problem(epoch: GnssEpoch) -> str | None:
-    """Why an epoch cannot be checked at all (None when its arrays fit together): an
-    integer stamp and one row per satellite in every array. Values are checked per
-    satellite by :func:`check_epoch`."""
-    if not isinstance(epoch.stamp_ns, (int, np.integer)) or isinstance(epoch.stamp_ns, bool):
-        return f'stamp must be an integer number of nanoseconds, got {epoch.stamp_ns!r}'
-    try:
-        k = int(np.shape(epoch.pr_m)[0]) if np.ndim(epoch.pr_m) == 1 else -1
-        shapes_ok = (k >= 0 and np.shape(epoch.sv_pos_ecef_m) == (k, 3)
-                     and all(np.shape(getattr(epoch, name)) == (k,)
-                             for name in ('var_m2', 'sv_id', 'system', 'elevation_deg',
-                                          'cn0_dbhz')))
-    except TypeError:
-        shapes_ok = False
-    if not shapes_ok:
-        return 'the arrays of the epoch do not hold one row per satellite'
-    return None
-
-
-@dataclass(frozen=True)
-class GnssCheck:
-    """Outcome of validating one epoch.
-
-    Attributes:
-        keep: (k,) mask of the satellites that passed every check.
-        rejected: ``{reason: count}`` for the satellites that did not.
-        usable: Whether enough satellites remain for a position update.
-        reason: Why the epoch is unusable ('' when usable).
-    """
-
-    keep: np.ndarray
-    rejected: dict = field(default_factory=dict)
-    usable: bool = True
-    reason: str = ''
-
-
-def check_epoch(epoch: GnssEpoch, min_satellites: int = 4, elevation_mask_deg: float = 0.0,
-                cn0_mask_dbhz: float = 0.0, max_satellites: int = MAX_SATELLITES) -> GnssCheck:
-    """Validate an epoch: non-finite or implausible values, duplicates, masks, satellite
-    count.
-
-    Satellites with a NaN elevation or C/N0 are kept (unknown is not below the mask).
-    Duplicated (system, sv_id) pairs are all dropped: there is no telling which is right.
-    Positions, pseudoranges and variances beyond ``MAX_SATELLITE_RADIUS_M``,
-    ``MAX_PSEUDORANGE_M`` and ``MAX_VARIANCE_M2`` are dropped ('out_of_range'); of more
-    than ``max_satellites`` (at most ``MAX_SATELLITES``) remaining, the strongest by C/N0
-    are kept ('satellite_limit').
-    """
-    k = epoch.n_sv
-    codes = gnss_kernels.satellite_reasons(
-        np.asarray(epoch.pr_m, dtype=float), np.asarray(epoch.sv_pos_ecef_m, dtype=float),
-        np.asarray(epoch.var_m2, dtype=float), _satellite_key(epoch, 100000),
-        np.asarray(epoch.elevation_deg, dtype=float), np.asarray(epoch.cn0_dbhz, dtype=float),
-        MAX_SATELLITE_RADIUS_M, MAX_PSEUDORANGE_M, MAX_VARIANCE_M2,
-        float(elevation_mask_deg), float(cn0_mask_dbhz))
-    keep = codes == 0
-    rejected: dict[str, int] = {}
-    if not keep.all():
-        counts = np.bincount(codes, minlength=len(gnss_kernels.SATELLITE_REASONS) + 1)
-        rejected = {reason: int(n) for reason, n in
-                    zip(gnss_kernels.SATELLITE_REASONS, counts[1:]) if n}
-
-    def drop(mask: np.ndarray, reason: str) -> None:
-        nonlocal keep
-        hit = mask & keep
-        if hit.any():
-            rejected[reason] = rejected.get(reason, 0) + int(hit.sum())
-            keep &= ~hit
-
-    n_keep = int(keep.sum())
-    limit = min(int(max_satellites), MAX_SATELLITES)
-    if n_keep > limit:
-        # Strongest first; unknown (NaN) or absurd (infinite) C/N0 sorts last, equal ones
-        # keep their order.
-        cn0 = np.where(np.isfinite(epoch.cn0_dbhz), epoch.cn0_dbhz, -np.inf)
-        order = np.flatnonzero(keep)[np.argsort(-cn0[keep], kind='stable')]
-        over = np.zeros(k, dtype=bool)
-        over[order[limit:]] = True
-        drop(over, 'satellite_limit')
-        n_keep = limit
-    if n_keep < min_satellites:
-        return GnssCheck(keep, rejected, False,
-                         f'{n_keep} usable satellites, at least {min_satellites} needed')
-    return GnssCheck(keep, rejected)
 
 
 @dataclass(frozen=True)
@@ -188,13 +86,8 @@ def prepare_epoch(epoch: GnssEpoch, frame: LocalFrame, rx_enu_m: np.ndarray,
         var = np.maximum(var, epoch.var_m2[multi])
     return PreparedEpoch(sv_enu_m=frame.ecef_to_enu(sv_ecef), pr_m=epoch.pr_m[multi].copy(),
                          sigma_m=np.sqrt(var), sys_index=sys_index[multi],
-                         n_systems=int(n_systems), sv_key=_satellite_key(epoch, 1000)[multi],
+                         n_systems=int(n_systems), sv_key=satellite_key(epoch, 1000)[multi],
                          cn0_dbhz=np.asarray(epoch.cn0_dbhz[multi], dtype=float))
-
-
-def _satellite_key(epoch: GnssEpoch, base: int) -> np.ndarray:
-    """``system * base + sv_id`` (int64): one key per satellite."""
-    return epoch.system.astype(np.int64) * base + epoch.sv_id.astype(np.int64)
 
 
 def clock_weights(prep: PreparedEpoch, centre_m: np.ndarray, spread_m: float,

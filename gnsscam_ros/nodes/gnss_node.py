@@ -5,7 +5,7 @@ Subscribes ``gnss/pseudoranges`` (PointCloud2, frame ``earth``); publishes
 when too few remain, so that fusion_node can report the epoch as STALE at once) and
 ``gnss/fix`` (robust snapshot least-squares fix, NavSatFix, only for usable epochs).
 
-Checks (``core.gnss.check_epoch``): non-finite values, non-positive range or variance,
+Checks (``core.gnss_checks.check_epoch``): non-finite values, non-positive range or variance,
 duplicated satellites, unknown system code, elevation and C/N0 masks, minimum satellite
 count; whole messages with wrong fields or frame, more satellites or values beyond the
 limits of ``msg_adapters.limits``, invalid stamps, stamps far from the stream
@@ -25,7 +25,7 @@ import numpy as np
 from sensor_msgs.msg import NavSatFix, NavSatStatus, PointCloud2
 
 from gnsscam_ros.core.frames import LocalFrame, sagnac_corrected
-from gnsscam_ros.core.gnss import check_epoch
+from gnsscam_ros.core.gnss_checks import check_epoch
 from gnsscam_ros.core.snapshot import solve_snapshot
 from gnsscam_ros.core.types import GnssEpoch
 from msg_adapters import (OK, WARN, GeodeticFix, MessageError, check_serialized_gnss,

@@ -441,49 +441,6 @@ def clock_inlier_weights(residual_m, sigma_m, sys_index, n_systems, spread_m, it
     return weights
 
 
-#: The reasons :func:`satellite_reasons` gives, by code (0: kept).
-SATELLITE_REASONS = ('non_finite', 'non_positive', 'out_of_range', 'duplicate',
-                     'elevation_mask', 'cn0_mask')
-
-
-@kernel
-def satellite_reasons(pr, sv, var, key, elevation, cn0, max_radius, max_pr, max_var,
-                      elevation_mask, cn0_mask):
-    """Why each satellite of an epoch is dropped: (k,) codes, 0 = kept, else 1 +
-    the index in ``SATELLITE_REASONS`` of the first check it fails, in that order.
-
-    Non-finite pseudorange, position or variance; non-positive pseudorange or variance;
-    position radius, pseudorange or variance beyond its maximum; a ``key`` (system and
-    satellite number) that occurs more than once in the epoch (every copy); elevation or
-    C/N0 below its mask (NaN is not below).
-    """
-    k = pr.shape[0]
-    codes = np.zeros(k, dtype=np.int8)
-    order = np.argsort(key)
-    for a in range(k):
-        i = order[a]
-        before = a > 0 and key[order[a - 1]] == key[i]
-        after = a + 1 < k and key[order[a + 1]] == key[i]
-        if before or after:
-            codes[i] = 4
-    for i in range(k):
-        x, y, z = sv[i, 0], sv[i, 1], sv[i, 2]
-        if not (math.isfinite(pr[i]) and math.isfinite(x) and math.isfinite(y)
-                and math.isfinite(z) and math.isfinite(var[i])):
-            codes[i] = 1
-        elif pr[i] <= 0.0 or var[i] <= 0.0:
-            codes[i] = 2
-        elif (math.sqrt(x * x + y * y + z * z) > max_radius or pr[i] > max_pr
-              or var[i] > max_var):
-            codes[i] = 3
-        elif codes[i] == 0:
-            if elevation[i] < elevation_mask:
-                codes[i] = 5
-            elif cn0[i] < cn0_mask:
-                codes[i] = 6
-    return codes
-
-
 @kernel
 def constellation_index(system):
     """Index 0..S-1 of each satellite's constellation among those with at least two
