@@ -4,13 +4,17 @@ The baseline the filter is compared with, the first fix that anchors the map fra
 gnss_node's monitoring fix. Unknowns: ECEF position and one receiver clock per
 constellation. A plain Gauss-Newton pass converges from the Earth's centre, then a robust
 loss (scipy's Cauchy) down-weights satellites that disagree with the rest.
+
+scipy's optimiser is imported on the first fix, not with this module: importing it takes
+0.5-1 s here, which gnss_node would otherwise spend at start-up before it can forward the
+first epoch (it publishes an epoch's satellites before it solves the fix); fusion_node
+solves a fix while it warms up (``core.warmup``), before it subscribes.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from .frames import sagnac_corrected
 from .types import GnssEpoch
@@ -51,6 +55,8 @@ def solve_snapshot(epoch: GnssEpoch, initial_ecef_m: np.ndarray | None = None,
     Raises:
         ValueError: Fewer satellites than unknowns.
     """
+    from scipy.optimize import least_squares     # see the module docstring
+
     systems, sys_index = np.unique(epoch.system, return_inverse=True)
     n_unknowns = 3 + systems.shape[0]
     if epoch.n_sv < n_unknowns:

@@ -42,7 +42,6 @@ from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
-from scipy import sparse
 
 from ..core.frames import LocalFrame
 from ..io.partials import make_partial_file, sweep_and_report
@@ -97,6 +96,8 @@ class InvertedIndex:
                 repeats are term frequencies).
             n_words: size of the vocabulary; ids must lie in [0, n_words).
         """
+        from scipy import sparse     # building only: camera_node, which loads, skips it
+
         n_images = len(documents)
         if n_images == 0:
             raise ValueError('an inverted index needs at least one image')

@@ -16,7 +16,6 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
-from scipy import sparse
 
 from .features import DESCRIPTOR_BYTES
 
@@ -279,6 +278,8 @@ def _majority(bits, labels, n_nodes):
         labels: (n,) node of each descriptor.
         n_nodes: number of nodes of the level.
     """
+    from scipy import sparse     # training only: camera_node, which only queries, skips it
+
     nodes, inverse, counts = np.unique(labels, return_inverse=True, return_counts=True)
     n = labels.shape[0]
     onehot = sparse.csr_matrix((np.ones(n, np.float32), (inverse, np.arange(n))),
