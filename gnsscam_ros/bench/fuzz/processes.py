@@ -24,6 +24,14 @@ and is started again. Measured per kill:
 
 To make the check bite, the filter certifies early (``alert_limit_m`` 50 m,
 ``integrity_settling_s`` 5 s): a run that saw no OK verdict outside the windows says so.
+
+**The drive fits the schedule.** Every kill needs stamp time: ``down_s``, its recovery
+(``rate`` stamp seconds per wall second) and ``gap_s`` before the next one. A drive shorter
+than :func:`schedule_s` (the warm-up, then per kill ``down_s`` + a recovery of twice the
+target + ``gap_s``: 144 s for the default four kills at 2x) is lengthened to it, and the
+run says so; ``duration_s`` is the shortest drive. (A 90 s drive, the CLI's default, left
+the last kill, fusion_node's, 2 s before the end: no epoch after its restart, recovery
+inf.)
 """
 from __future__ import annotations
 
@@ -68,6 +76,13 @@ class ProcessesConfig:
     target_recovery_s: float = 5.0
 
 
+def schedule_s(cfg: ProcessesConfig, kills: int) -> float:
+    """Stamp time the kill schedule needs [s]: the warm-up, then per kill the time it is
+    down, a recovery of twice the target at the replay rate, and the gap after it."""
+    per_kill = cfg.down_s + 2.0 * cfg.target_recovery_s * cfg.rate + cfg.gap_s
+    return cfg.warmup_s + kills * per_kill
+
+
 def _node_params(cfg: ProcessesConfig, stream: ValidStream) -> dict:
     base = MessagesConfig(seed=cfg.seed, alert_limit_m=cfg.alert_limit_m,
                           particles=cfg.particles,
@@ -87,16 +102,20 @@ class Campaign:
         self.cfg, self.log = cfg, log
         self.work = Path(cfg.work_dir or tempfile.mkdtemp(prefix='gnsscam_fuzz_processes_'))
         self.work.mkdir(parents=True, exist_ok=True)
-        self.stream = ValidStream(StreamConfig(seed=cfg.seed, duration_s=cfg.duration_s,
-                                               camera=cfg.camera), self.work)
-        self.domain = cfg.domain if cfg.domain is not None else fresh_domain()
-        params = write_params(self.work / 'params.yaml', _node_params(cfg, self.stream))
         names = [n for n in NODE_NAMES if cfg.camera or n != 'camera_node']
-        self.procs = {n: NodeProcess(n, params, self.domain, self.work) for n in names}
         victims = cfg.nodes or names
         unknown = set(victims) - set(names)
         if unknown:
             raise ValueError(f'no such node in this run: {sorted(unknown)}')
+        self.drive_s = max(cfg.duration_s, schedule_s(cfg, len(victims)))
+        if self.drive_s > cfg.duration_s:
+            log(f'processes: drive lengthened from {cfg.duration_s:g} s to '
+                f'{self.drive_s:g} s to fit {len(victims)} kills (schedule_s)')
+        self.stream = ValidStream(StreamConfig(seed=cfg.seed, duration_s=self.drive_s,
+                                               camera=cfg.camera), self.work)
+        self.domain = cfg.domain if cfg.domain is not None else fresh_domain()
+        params = write_params(self.work / 'params.yaml', _node_params(cfg, self.stream))
+        self.procs = {n: NodeProcess(n, params, self.domain, self.work) for n in names}
         stamps = self.stream.gnss_stamps
         if self.stream.seconds(stamps[-1]) <= cfg.warmup_s:
             raise ValueError('the drive is shorter than the warm-up')
@@ -279,8 +298,9 @@ def run_processes(cfg: ProcessesConfig, log=print) -> dict:
         Target('every node exits 0 when stopped', all(c == 0 for c in exits.values()),
                ', '.join(f'{n} {c}' for n, c in exits.items())),
     ]
-    return {'config': asdict(cfg), 'kills': kills, 'collateral': campaign.collateral,
-            'exit_codes_at_stop': exits, 'ok_outside_windows': fig['ok_outside_windows'],
+    return {'config': asdict(cfg), 'drive_s': campaign.drive_s, 'kills': kills,
+            'collateral': campaign.collateral, 'exit_codes_at_stop': exits,
+            'ok_outside_windows': fig['ok_outside_windows'],
             'verdicts': fig['verdicts'], 'seconds': time.monotonic() - t0,
             'work_dir': str(campaign.work), 'targets': [t.as_dict() for t in targets]}
 
