@@ -10,8 +10,12 @@ and is started again. Measured per kill:
 * **recovery**: wall seconds from the restart to the graph working again: the first
   updated epoch verdict (gnss_node, fusion_node: any epoch verdict of the new filter;
   imu_node: an updated verdict with the motion known again; camera_node: its first
-  published match); also split into the node's own start-up (until its first
-  ``diagnostics``) and what the graph adds after it;
+  published match); also split into the node's own start-up (from the restart to its
+  ready line, stamped by the node's log: imports, the map database, the kernels' warm-up),
+  discovery (from the ready line until the probe hears its first ``diagnostics``: the
+  DDS participants finding each other, plus at most one ``diagnostics_period_s`` of
+  0.1 s) and what the graph adds after that (the next inputs, the epoch through the
+  filter);
 * **integrity while an input is missing or reset**: every ``integrity_risk`` OK whose
   epoch falls between the kill and the node being back (gnss_node: the verdict needs its
   input; an epoch it passes once back is a valid one) or one epoch after that (imu_node:
@@ -36,6 +40,7 @@ inf.)
 from __future__ import annotations
 
 import math
+import re
 import tempfile
 import time
 from dataclasses import asdict, dataclass
@@ -159,6 +164,7 @@ class Campaign:
                 if stamp_s >= current['kill_stamp_s'] + self.cfg.down_s:
                     proc.start()
                     current['restart_wall'], current['restart_stamp_s'] = now_s, stamp_s
+                    current['restart_unix'], current['log'] = time.time(), proc.stderr_path
                     self.log(f'processes: restarted {node} at {stamp_s:.1f} s')
             else:
                 if 'ready_wall' not in current and node in c.values:
@@ -219,7 +225,9 @@ class Campaign:
             node, t_r = k['node'], k['restart_wall']
             flowing = self._recovered_at(node, k, verdicts)
             row['recovery_s'] = flowing - t_r if flowing is not None else math.inf
-            row['startup_s'] = (k['ready_wall'] - t_r) if 'ready_wall' in k else math.inf
+            heard = (k['ready_wall'] - t_r) if 'ready_wall' in k else math.inf
+            row['startup_s'] = min(_ready_line_s(node, k), heard)
+            row['discovery_s'] = heard - row['startup_s']
             row['graph_s'] = (flowing - k['ready_wall']
                               if flowing is not None and 'ready_wall' in k else math.inf)
             lo = k['kill_stamp_s']
@@ -270,6 +278,17 @@ class Campaign:
         return {name: proc.stop() for name, proc in self.procs.items()}
 
 
+def _ready_line_s(node: str, k: dict) -> float:
+    """Seconds from the restart of ``k`` to the node's ready line (the wall-clock stamp of
+    its log line; inf when it never logged one)."""
+    try:
+        text = k['log'].read_text(errors='replace')
+    except (KeyError, OSError):
+        return math.inf
+    found = re.search(r'\[(\d+\.\d+)\] \[' + re.escape(node) + r'\]: ready:', text)
+    return float(found.group(1)) - k['restart_unix'] if found else math.inf
+
+
 def run_processes(cfg: ProcessesConfig, log=print) -> dict:
     """The kill/restart campaign; its figures and targets (JSON-able)."""
     t0 = time.monotonic()
@@ -307,10 +326,11 @@ def run_processes(cfg: ProcessesConfig, log=print) -> dict:
 
 def print_processes(result: dict) -> list[Target]:
     rows = [[r['node'], r['kill_at_s'], r.get('exit_status'), r.get('startup_s'),
-             r.get('graph_s'), r['recovery_s'], r.get('ok'), r.get('error'), r.get('stale'),
-             r.get('violations')] for r in result['kills']]
-    print(table(['node', 'killed at s', 'kill status', 'start-up s', 'graph s',
-                 'recovery s', 'OK in window', 'ERROR', 'STALE', 'violations'], rows))
+             r.get('discovery_s'), r.get('graph_s'), r['recovery_s'], r.get('ok'),
+             r.get('error'), r.get('stale'), r.get('violations')] for r in result['kills']]
+    print(table(['node', 'killed at s', 'kill status', 'start-up s', 'discovery s',
+                 'graph s', 'recovery s', 'OK in window', 'ERROR', 'STALE', 'violations'],
+                rows))
     for r in result['kills']:
         if r.get('not_killed'):
             print(f"{r['node']} not killed: {r['not_killed']}")
