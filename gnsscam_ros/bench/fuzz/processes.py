@@ -231,14 +231,17 @@ class Campaign:
             row['graph_s'] = (flowing - k['ready_wall']
                               if flowing is not None and 'ready_wall' in k else math.inf)
             lo = k['kill_stamp_s']
-            # gnss_node: until it is back (an epoch it passes then is a valid one);
+            # gnss_node: until it is back (an epoch it passes then is a valid one; the
+            # epoch of the stamp it was seen back at too: GNSS goes last at equal stamps,
+            # so the kit sent it to the node already back);
             # imu_node: one epoch more (that epoch's motion spans the reset).
             hi = k.get('ready_stamp_s', math.inf) + (period_s if node == 'imu_node' else 0.0)
             if node == 'fusion_node':
                 firsts = [stream.seconds(v.epoch_stamp_ns) for v in verdicts
                           if v.received_s > t_r and v.epoch_status is not None]
                 hi = (firsts[0] if firsts else math.inf) + self.cfg.integrity_settling_s
-            inside = [v for v in verdicts if lo <= stream.seconds(v.epoch_stamp_ns) <= hi]
+            inside = [v for v in verdicts if lo <= stream.seconds(v.epoch_stamp_ns) <= hi
+                      and not (node == 'gnss_node' and stream.seconds(v.epoch_stamp_ns) == hi)]
             row['window_s'] = [lo, hi]
             row['ok'] = sum(v.level == OK_LEVEL for v in inside)
             row['ok_stamps_s'] = [round(stream.seconds(v.epoch_stamp_ns), 3) for v in inside
