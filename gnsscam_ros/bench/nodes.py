@@ -75,6 +75,24 @@ def _env(domain: int, log_dir: str) -> dict:
 
 
 # ============================================================================ latency
+def _start_latency_nodes(particles: int, acquisition_particles: int, posteriors: int | None,
+                         processes: bool, domain: int, log_dir: str) -> list:
+    """The nodes of the latency bench: one pipeline_node, or the four node processes."""
+    fusion_params = {'n_particles': particles, 'acquisition_particles': acquisition_particles,
+                     'gnss_timeout_s': 30.0, 'odometry_wait_s': 0.5}
+    if posteriors is not None:
+        fusion_params['n_posteriors'] = posteriors
+    params = {'fusion_node': fusion_params,
+              'imu_node': {'input_queue_depth': 2000, 'source_timeout_s': 30.0}}
+    if processes:
+        return [proc for proc, _ in start_node_processes(params, domain, log_dir, False, '/')]
+    params_file = write_params_file(Path(log_dir) / 'params.yaml', params)
+    return [subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.nodes.pipeline',
+                              '--ros-args', '--params-file', str(params_file)],
+                             env=_env(domain, log_dir), stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL)]
+
+
 def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: float = 0.0,
                   acquisition_particles: int = 0, domain: int = 61, seed: int = 3,
                   log=print, posteriors: int | None = 10, processes: bool = False) -> dict:
@@ -104,21 +122,8 @@ def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: f
     """
     drive = make_emulated_drive(seed, faults=2, duration_s=duration_s)
     log_dir = tempfile.mkdtemp(prefix='gnsscam_bench_')
-    fusion_params = {'n_particles': particles, 'acquisition_particles': acquisition_particles,
-                     'gnss_timeout_s': 30.0, 'odometry_wait_s': 0.5}
-    if posteriors is not None:
-        fusion_params['n_posteriors'] = posteriors
-    params = {'fusion_node': fusion_params,
-              'imu_node': {'input_queue_depth': 2000, 'source_timeout_s': 30.0}}
-    if processes:
-        procs = [proc for proc, _ in start_node_processes(params, domain, log_dir, False,
-                                                          '/')]
-    else:
-        params_file = write_params_file(Path(log_dir) / 'params.yaml', params)
-        procs = [subprocess.Popen([sys.executable, '-m', 'gnsscam_ros.nodes.pipeline',
-                                   '--ros-args', '--params-file', str(params_file)],
-                                  env=_env(domain, log_dir), stdout=subprocess.DEVNULL,
-                                  stderr=subprocess.DEVNULL)]
+    procs = _start_latency_nodes(particles, acquisition_particles, posteriors, processes,
+                                 domain, log_dir)
     probe = _Probe(domain)
     received: dict[int, float] = {}
     statuses: dict[int, str] = {}
