@@ -111,6 +111,22 @@ def test_profiles_keep_rmw_fastrtps_settings_but_readers_free_their_memory():
     assert _memory_settings(ET.fromstring(DDS_PROFILE)) == expected
 
 
+def _announcement_s(root: ET.Element) -> float:
+    participant = [e for e in root.iter(NS + 'participant')
+                   if e.get('is_default_profile') == 'true'][0]
+    found = participant.find('/'.join(NS + p for p in (
+        'rtps', 'builtin', 'discovery_config', 'leaseAnnouncement')))
+    assert found is not None, 'no leaseAnnouncement: Fast DDS announces every 3 s'
+    return (int(found.find(NS + 'sec').text) + 1e-9 * int(found.find(NS + 'nanosec').text))
+
+
+def test_profiles_announce_participants_often_enough_for_a_restart_within_a_second():
+    # A restarted node meets the running ones at their next announcement (Fast DDS
+    # default: every 3 s); the node processes' and the replay's profiles say 0.5 s.
+    assert _announcement_s(ET.parse(memory.PROFILE).getroot()) == 0.5
+    assert _announcement_s(ET.fromstring(DDS_PROFILE)) == 0.5
+
+
 # ============================================================ a node process
 def _rss_mb(pid: int, field: str = 'VmRSS') -> float:
     for line in Path(f'/proc/{pid}/status').read_text().splitlines():

@@ -140,6 +140,14 @@ DDS_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
       </userTransports>
       <useBuiltinTransports>false</useBuiltinTransports>
       <builtin>
+        <!-- A participant announces itself every 0.5 s (Fast DDS: 3 s): a node that
+             restarts finds the running ones within a second instead of up to 3 s. -->
+        <discovery_config>
+          <leaseAnnouncement>
+            <sec>0</sec>
+            <nanosec>500000000</nanosec>
+          </leaseAnnouncement>
+        </discovery_config>
         <readerHistoryMemoryPolicy>PREALLOCATED_WITH_REALLOC</readerHistoryMemoryPolicy>
         <writerHistoryMemoryPolicy>PREALLOCATED_WITH_REALLOC</writerHistoryMemoryPolicy>
       </builtin>

@@ -25,6 +25,11 @@ frees goes back at once; ``malloc_trim(0)`` after the garbage (with the profile)
 3-6 MB, and 10,000-satellite clouds (480 kB each, below that threshold) left 2 MB. No
 ``mallopt`` or trimming is needed.
 
+**Discovery.** The same profile makes each participant announce itself every 0.5 s
+instead of Fast DDS's 3 s: a node that restarts meets the running ones at their next
+announcement, so within a second rather than up to 3 s (measured: a new participant saw a
+running node after 0.26-0.64 s, against 0.27-3.2 s before).
+
 Fast DDS reads the profile file when the process creates its first participant, so the
 settings must be in the environment before that; child processes inherit them.
 """
