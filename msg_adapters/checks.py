@@ -84,8 +84,10 @@ def check_covariance(what: str, name: str, cov) -> None:
         raise MessageError(f'{what}: {name}: variance {bad:.6g} outside [0, '
                            f'{MAX_VARIANCE:.6g}]', 'range')
     sd = np.sqrt(np.maximum(var, 0.0))
-    if (np.abs(c) > np.outer(sd, sd) + tol).any():
-        i, j = np.argwhere(np.abs(c) > np.outer(sd, sd) + tol)[0]
+    bound = np.outer(sd, sd) + tol
+    np.fill_diagonal(bound, np.inf)          # sqrt(v)^2 need not be v in floating point
+    if (np.abs(c) > bound).any():
+        i, j = np.argwhere(np.abs(c) > bound)[0]
         raise MessageError(f'{what}: {name}: element ({i}, {j}) = {c[i, j]:.6g} beyond '
                            f'sqrt(c_ii c_jj) = {sd[i] * sd[j]:.6g} (a correlation above 1)',
                            'range')

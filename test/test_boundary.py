@@ -262,6 +262,7 @@ def _twist(**changes):
     ({'twist.angular.y': lim.MAX_GYRO_RPS + 0.1}, 'range'),
     ({'twist.angular.x': math.nan}, 'non_finite'),
     ({'7': 2.0}, None),                          # a variance the node does not use
+    ({'21': 1e11}, None),                        # sqrt(1e11)^2 != 1e11: no correlation
     ({'7': -2.0}, 'range'),
     ({'7': 0.01, '1': 0.005}, None),             # correlation 0.5 of speed and lateral speed
     ({'7': 0.01, '1': 0.02}, 'range'),           # correlation 2

@@ -435,6 +435,10 @@ class FusionNode(GnssCamNode):
         result, epoch = report.result, report.epoch
         self.last_result = result
         self.stats.count(f'epochs_{result.status}')
+        # Satellites the filter's own checks dropped (its masks, core limits, the count
+        # limit): counted as gnss_node counts its own.
+        for reason, n in result.rejected.items():
+            self.stats.count(f'satellites_rejected_{reason}', int(n))
         if DEAD_RECKONING in report.late:
             self.stats.count('odometry_late')
         if CAMERA in report.late:
