@@ -299,6 +299,13 @@ class Counters:
         return sum(value for vals in self.values.values() for key, value in vals.items()
                    if LOSS_COUNTER.search(key))
 
+    def lost(self, topic: str) -> float:
+        """Messages of ``topic`` its taking node counted as lost before its callback
+        (``lost_<topic>``; ``qos_message_lost_<topic>`` counts the same losses when the
+        middleware reports them: the larger of the two)."""
+        node = LINKS[topic][0]
+        return max(self.get(node, f'lost_{topic}'), self.get(node, f'qos_message_lost_{topic}'))
+
     def satellites_dropped(self) -> float:
         return sum(value for vals in self.values.values() for key, value in vals.items()
                    if SATELLITE_COUNTER.search(key))
@@ -307,6 +314,7 @@ class Counters:
         return {'rejected': self.rejected(), 'losses': self.losses(),
                 'satellites': self.satellites_dropped(),
                 'received': {t: self.received(t) for t in LINKS},
+                'lost': {t: self.lost(t) for t in LINKS},
                 'upstream': {t: self.upstream(t) for t in LINKS},
                 'by_reason': self.rejected_by_reason()}
 
