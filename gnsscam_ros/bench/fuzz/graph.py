@@ -29,6 +29,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rclpy.context import Context
+from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, Imu, NavSatFix, PointCloud2
@@ -377,6 +378,16 @@ class Probe:
         except Exception:       # noqa: BLE001 - rclpy's conversion errors vary by field
             return False
         return True
+
+    def acknowledged(self, topic: str, timeout_s: float) -> bool:
+        """Wait until every reliable subscriber of ``topic`` acknowledged what the probe
+        published (it is in the subscriber's queue: a large message is sent in fragments
+        after ``publish`` returns); True at once for best-effort ones."""
+        try:
+            return bool(self.pubs[topic].wait_for_all_acked(
+                Duration(nanoseconds=int(timeout_s * 1e9))))
+        except Exception:   # noqa: BLE001 - the context went down (a crashed graph)
+            return False
 
     def _spin(self) -> None:
         while not self._stop.is_set() and self.ctx.ok():

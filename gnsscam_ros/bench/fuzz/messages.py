@@ -173,6 +173,7 @@ class FaultPass:
         self.known_lost = {t: 0.0 for t in LINKS}
         self.last_rejected = 0.0
         self.unsynced: accounting.BurstResult | None = None
+        self.unacknowledged: set[str] = set()
         # A restarted node counts from 0 again: the losses it owed are never counted.
         self.losses = accounting.LossLedger()
 
@@ -180,12 +181,20 @@ class FaultPass:
         return self.sent[topic] + counters.upstream(topic) - self.known_lost[topic]
 
     def sync(self, settle_s: float = 0.0) -> tuple[dict, bool]:
-        """Wait until every node reported twice since now (by its own clock) and each has
+        """Wait until the reliable subscribers acknowledged what the probe sent, every node
+        reported twice since then (by its own clock) and each has
         either received what was sent to it or taken everything that was waiting (two
         reports with the same counts): what is missing then was lost on the way. False at
         the timeout (``hang_s``: a node stuck in one callback) or when the process exited.
         Never before ``settle_s`` (a large message takes a while on the way)."""
         c = self.probe.counters
+        # What the probe sent is in the nodes' queues first (reliable subscribers
+        # acknowledge it): a window that closed while a large message was still on its way
+        # would book it as lost, and its refusal as the next window's.
+        if self.pipeline.alive():
+            for topic in sorted(self.unacknowledged):
+                self.probe.acknowledged(topic, self.cfg.hang_s)
+        self.unacknowledged.clear()
         since_ns = time.time_ns()
         not_before = time.monotonic() + settle_s
         nodes_of = {node: [t for t, link in LINKS.items() if link[0] == node]
@@ -289,6 +298,7 @@ class FaultPass:
     def _publish_valid(self, event) -> None:
         if self.probe.publish(event.topic, self.stream.message(event)):
             self.sent[event.topic] += 1
+            self.unacknowledged.add(event.topic)
         self.last_stamp[event.topic] = event.stamp_ns
 
     def _wait_verdict(self, stamp_ns: int) -> bool:
@@ -373,6 +383,7 @@ class FaultPass:
             if self.probe.publish(fault.topic, msg):
                 res.sent += 1
                 self.sent[fault.topic] += 1
+                self.unacknowledged.add(fault.topic)
             else:
                 res.unsendable += 1
         del msgs
