@@ -6,7 +6,8 @@ tool, measured RSS, counted rejections, restarted what it killed) and only the t
 the issue that already hold today:
 
 * ``messages``: the clean pass answers every epoch without a crash; no misleading OK
-  (no OK verdict with the error above the alert limit, none for an injected epoch);
+  (no OK verdict with the error above the alert limit, on a valid epoch or, scored against
+  the truth at its stamp, on one the kit injected);
 * ``processes``: no integrity OK while a needed input is missing or reset; no other node
   exits when one is killed; every node exits 0 when stopped;
 * ``files``: nothing of ``gnsscam_eval bag`` fails (its corrupt bags are all refused with
@@ -99,6 +100,10 @@ def test_burst_accounting():
     assert sanitised.silently_accepted == 0
     plausible = accounting.BurstResult('t:m', 't', 'mutation', 'any', sent=5, delivered=5)
     assert plausible.silently_accepted == 0
+    # A frame dropped from the full matcher queue (counted) is not accepted silently.
+    queued = accounting.BurstResult('t:k', 't', 'structured', 'reject', sent=4, delivered=4,
+                                    rejected=3, dropped=1)
+    assert queued.silently_accepted == 0
 
 
 def test_judged_bursts_count_valid_messages_apart_and_late_counts_settle_losses():

@@ -13,8 +13,12 @@ input link holds what was sent on it). Over that window:
   end of the pass (:class:`LossLedger`); a loss beyond both is *uncounted* (a queue that
   overwrote it and nobody says so);
 * ``rejected``: what ``rejected_total`` of all nodes rose by (capped at the delivered
-  messages); ``sanitised``: satellites dropped by the checks (the message itself used);
-* ``silently accepted``: a ``reject`` burst delivered, neither refused nor sanitised.
+  messages); ``dropped``: what the taking node's other counts of messages it received
+  and did not use rose by (a full matcher queue, an epoch queue, the engine's own
+  refusals: :data:`.graph.DROP_COUNTERS`); ``sanitised``: satellites dropped by the
+  checks (the message itself used);
+* ``silently accepted``: a ``reject`` burst delivered, neither refused, dropped nor
+  sanitised.
 
 **Judged faults.** A random mutation (and a structured fault of random size) may leave a
 valid message (:mod:`.plausible` judges each one against the message it was made from):
@@ -47,6 +51,7 @@ class BurstResult:
     counted_loss: int = 0
     counted_late: int = 0
     rejected: int = 0
+    dropped: int = 0
     satellites: int = 0
     synced: bool = True
     seconds: float = 0.0
@@ -72,7 +77,7 @@ class BurstResult:
     def silently_accepted(self) -> int:
         if self.expect != 'reject' or self.satellites > 0:
             return 0
-        return max(0, self.delivered - self.refused)
+        return max(0, self.delivered - self.refused - self.dropped)
 
 
 @dataclass
@@ -92,6 +97,7 @@ class KindStats:
     counted_late: int = 0
     uncounted_loss: int = 0
     refused: int = 0
+    dropped: int = 0
     sanitised_bursts: int = 0
     silently_accepted: int = 0
     crashes: int = 0
@@ -110,6 +116,7 @@ class KindStats:
         self.counted_late += min(b.counted_late, b.lost)
         self.uncounted_loss += b.uncounted_loss
         self.refused += b.refused
+        self.dropped += min(b.dropped, b.delivered - b.refused)
         self.sanitised_bursts += int(b.satellites > 0)
         self.silently_accepted += b.silently_accepted
         self.max_burst_s = max(self.max_burst_s, b.seconds)

@@ -60,6 +60,13 @@ LINKS = {
 #: Counters that count messages a node lost or dropped (queue overflows, undecodable
 #: messages, QoS events): such a loss is counted, not silent. Matched by name.
 LOSS_COUNTER = re.compile(r'(^|_)(dropped|lost|overflow|undecodable|discarded)(_|$)')
+#: Counters of messages a node received and then did not use, saying so, other than
+#: rejections: camera_node's full matcher queue drops its oldest frame, fusion_node's
+#: engine drops its oldest queued epoch or refuses an input its own checks find wrong.
+DROP_COUNTERS = {wire.IMAGE: ('dropped_frames',),
+                 wire.GNSS_MEASUREMENTS: ('dropped_epochs', 'refused_gnss'),
+                 wire.DEAD_RECKONING: ('refused_dead_reckoning',),
+                 wire.MATCHES: ('refused_camera',)}
 SATELLITE_COUNTER = re.compile(r'^satellites_rejected_')
 
 RELIABLE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
@@ -307,6 +314,12 @@ class Counters:
         node = LINKS[topic][0]
         return max(self.get(node, f'lost_{topic}'), self.get(node, f'qos_message_lost_{topic}'))
 
+    def dropped(self, topic: str) -> float:
+        """Messages of ``topic`` received and then dropped or refused by counters other
+        than the rejections (:data:`DROP_COUNTERS`)."""
+        node = LINKS[topic][0]
+        return sum(self.get(node, key) for key in DROP_COUNTERS.get(topic, ()))
+
     def satellites_dropped(self) -> float:
         return sum(value for vals in self.values.values() for key, value in vals.items()
                    if SATELLITE_COUNTER.search(key))
@@ -316,6 +329,7 @@ class Counters:
                 'satellites': self.satellites_dropped(),
                 'received': {t: self.received(t) for t in LINKS},
                 'lost': {t: self.lost(t) for t in LINKS},
+                'dropped': {t: self.dropped(t) for t in LINKS},
                 'upstream': {t: self.upstream(t) for t in LINKS},
                 'by_reason': self.rejected_by_reason()}
 

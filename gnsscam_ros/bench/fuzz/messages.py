@@ -184,8 +184,8 @@ class FaultPass:
         return self.sent[topic] + counters.upstream(topic) - self.known_lost[topic]
 
     def sync(self, settle_s: float = 0.0) -> tuple[dict, bool]:
-        """Wait until the reliable subscribers acknowledged what the probe sent, every node
-        reported twice since then (by its own clock) and each has
+        """Wait until the reliable subscribers acknowledged the large messages the probe
+        sent, every node reported twice since then (by its own clock) and each has
         either received what was sent to it or taken everything that was waiting (two
         reports with the same counts): what is missing then was lost on the way. False at
         the timeout (``hang_s``: a node stuck in one callback) or when the process exited.
@@ -411,6 +411,7 @@ class FaultPass:
             res.delivered = max(res.delivered, res.sent)
         res.counted_loss = int(after['lost'][fault.topic] - before['lost'][fault.topic])
         res.rejected = int(after['rejected'] - before['rejected'])
+        res.dropped = int(after['dropped'][fault.topic] - before['dropped'][fault.topic])
         res.satellites = int(after['satellites'] - before['satellites'])
         res.reasons = {k: int(v - before['by_reason'].get(k, 0.0))
                        for k, v in after['by_reason'].items()
@@ -427,7 +428,8 @@ class FaultPass:
         late = max(0.0, snapshot['rejected'] - self.last_rejected)
         if self.unsynced is not None:
             res, self.unsynced = self.unsynced, None
-            owed = max(0, res.delivered - res.rejected) if res.satellites <= 0 else 0
+            owed = (max(0, res.delivered - res.rejected - res.dropped)
+                    if res.satellites <= 0 else 0)
             taken = int(min(late, owed))
             res.rejected += taken
             late -= taken
