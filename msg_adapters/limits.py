@@ -7,7 +7,13 @@ whose ``reason`` is the counter key the nodes report on ``diagnostics``:
 * ``'size'``: more satellites, matches or pixels than below (checked from the header
   fields, before any array of the message is decoded);
 * ``'non_finite'``: NaN or infinity where a number is needed;
-* ``'range'``: a finite value no road vehicle, GNSS satellite or camera map can have;
+* ``'range'``: a finite value no road vehicle, GNSS satellite or camera map can have
+  (a negative variance, a correlation above 1 and a quaternion that is no rotation too);
+* ``'frame'``: a header frame other than the one the topic is defined in;
+* ``'duplicate_satellites'``, ``'unknown_system'``: a checked GNSS epoch
+  (``gnss/measurements``) with a satellite twice or of a system code not in
+  :data:`.wire.KNOWN_SYSTEMS` (gnss_node drops such satellites of the receiver's epochs
+  and counts them per satellite);
 * ``'stamp_jump'``: a stamp too far from the recent stream (:class:`.gate.StampGate`).
 
 Each limit keeps the valid data of this package with a wide margin (smartLoc Berlin
@@ -92,6 +98,23 @@ MAX_GYRO_RPS = 35.0
 #: accelerometers. A road vehicle's own accelerations stay under 1.5 g, but potholes
 #: and kerbs give vertical spikes of several g that are real samples.
 MAX_ACCEL_MPS2 = 160.0
+#: The twist components a planar vehicle does not use but a twist carries (``odom/twist``,
+#: the dead reckoning's twist) are held to the same physics: lateral and vertical speed to
+#: :data:`MAX_SPEED_MPS`, roll and pitch rates to :data:`MAX_GYRO_RPS`.
+
+# ------------------------------------------------------------------- covariances
+#: Covariance matrices (IMU 3x3, twist and pose 6x6, row major): every element finite,
+#: every diagonal element (a variance) in [0, :data:`MAX_VARIANCE`], every off-diagonal
+#: element within ``sqrt(c_ii * c_jj)`` (a correlation of at most 1), each up to this
+#: tolerance [the matrix's units]: a rounded zero (-1e-17) is no negative variance, a
+#: negative variance (-1) or an off-diagonal term where both variances are zero is no
+#: covariance. Zero variances mean "not reported" (ROS convention); REP 145's marker of a
+#: missing IMU quantity (element 0 = -1) is judged by the IMU parser.
+COVARIANCE_TOLERANCE = 1e-9
+#: Unit quaternions (dead-reckoning pose, an IMU orientation it reports): ``|q|^2`` within
+#: 1 +- this, the tolerance of tf2 (``QUATERNION_NORMALIZATION_TOLERANCE``). A zero or a
+#: 1e300 quaternion is no rotation.
+QUATERNION_NORM_TOLERANCE = 1e-2
 
 # ------------------------------------------------------------------------ positions
 #: Any coordinate of a map- or odom-frame position [m] (dead reckoning, camera matches):

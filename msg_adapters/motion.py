@@ -1,11 +1,13 @@
 """IMU, odometry twist and dead-reckoning messages <-> the core's samples and states.
 
 * ``imu/data`` (``sensor_msgs/Imu``): body x forward, z up; the dead reckoning uses the
-  forward acceleration and the yaw rate (gyro z).
+  forward acceleration and the yaw rate (gyro z). Any frame name (the sensor's mounting
+  is the installation's; the axes are taken as the vehicle's).
 * ``odom/twist`` (``geometry_msgs/TwistWithCovarianceStamped``): forward speed
   ``linear.x`` [m/s] and yaw rate ``angular.z`` [rad/s]; variances at covariance indices 0
-  and 35.
-* ``odometry/dead_reckoning`` (``nav_msgs/Odometry``, frame ``odom``, child ``base_link``):
+  and 35 (0: not reported). Any frame name (the vehicle's, whatever it is called).
+* ``odometry/dead_reckoning`` (``nav_msgs/Odometry``, frame ``odom``, child ``base_link``;
+  other frames are refused, ``'frame'``):
   the planar dead-reckoned pose; pose covariance x and y carry the accumulated
   travelled-distance variance, yaw the accumulated heading variance; twist is the current
   speed and yaw rate with their variances. Consecutive messages give the motion between
@@ -29,12 +31,13 @@ from std_msgs.msg import Header
 
 from gnsscam_ros.core.motion import DeadReckoningState
 
-from .checks import check_abs, check_finite, check_range
+from .checks import (check_abs, check_covariance, check_finite, check_frame,
+                     check_unit_quaternion)
 from .errors import MessageError
 from .geometry import UNESTIMATED_VAR, quaternion_to_yaw, yaw_to_quaternion
 from .kit import RCLPY, MessageKit
 from .limits import (MAX_ACCEL_MPS2, MAX_GYRO_RPS, MAX_POSITION_M, MAX_SPEED_MPS,
-                     MAX_VARIANCE, MAX_YAW_RATE_RPS)
+                     MAX_YAW_RATE_RPS)
 from .stamps import make_header, ns_to_stamp, stamp_to_ns
 from .wire import (BASE_FRAME, DEAD_RECKONING, IMU, IMU_FRAME, MAP_FRAME, ODOM_FRAME,
                    ODOMETRY_GLOBAL, TWIST)
@@ -77,16 +80,23 @@ class TwistSample:
 def imu_to_sample(msg: Imu, what: str = IMU) -> ImuSample:
     """Imu -> :class:`ImuSample`.
 
+    The orientation is not used; when the message reports one (orientation covariance
+    element 0 is not REP 145's -1 "no estimate") it must be a unit quaternion with a
+    covariance, as the other two covariances must be (:func:`.checks.check_covariance`).
+
     Raises:
-        MessageError: A message declaring its angular velocity unavailable
-            (covariance[0] == -1, REP 145), an invalid stamp, non-finite rates or
-            accelerations, or ones beyond the sensor and vehicle limits of :mod:`.limits`
-            (``'range'``: any axis beyond :data:`.limits.MAX_ACCEL_MPS2` or
-            :data:`.limits.MAX_GYRO_RPS`, the yaw rate beyond
-            :data:`.limits.MAX_YAW_RATE_RPS`).
+        MessageError: A message declaring its angular velocity or linear acceleration
+            unavailable (covariance[0] == -1, REP 145; ``'value'``), an invalid stamp,
+            non-finite rates or accelerations, or ones beyond the sensor and vehicle
+            limits of :mod:`.limits` (``'range'``: any axis beyond
+            :data:`.limits.MAX_ACCEL_MPS2` or :data:`.limits.MAX_GYRO_RPS`, the yaw rate
+            beyond :data:`.limits.MAX_YAW_RATE_RPS`), a covariance that is none or a
+            reported orientation that is no rotation (``'range'``, ``'non_finite'``).
     """
     if msg.angular_velocity_covariance[0] == -1.0:
         raise MessageError(f'{what}: angular velocity marked unavailable', 'value')
+    if msg.linear_acceleration_covariance[0] == -1.0:
+        raise MessageError(f'{what}: linear acceleration marked unavailable', 'value')
     stamp_ns = stamp_to_ns(msg.header.stamp, what)
     a, g = msg.linear_acceleration, msg.angular_velocity
     accel = np.array([a.x, a.y, a.z], dtype=float)
@@ -97,6 +107,13 @@ def imu_to_sample(msg: Imu, what: str = IMU) -> ImuSample:
     check_abs(what, 'acceleration', accel, MAX_ACCEL_MPS2, ' m/s^2')
     check_abs(what, 'angular velocity', gyro, MAX_GYRO_RPS, ' rad/s')
     check_abs(what, 'yaw rate', gyro[2], MAX_YAW_RATE_RPS, ' rad/s')
+    check_covariance(what, 'angular velocity covariance', msg.angular_velocity_covariance)
+    check_covariance(what, 'linear acceleration covariance',
+                     msg.linear_acceleration_covariance)
+    if msg.orientation_covariance[0] != -1.0:
+        o = msg.orientation
+        check_unit_quaternion(what, 'orientation', o.x, o.y, o.z, o.w)
+        check_covariance(what, 'orientation covariance', msg.orientation_covariance)
     return ImuSample(stamp_ns, accel, gyro)
 
 
@@ -122,23 +139,32 @@ def twist_to_sample(msg: TwistWithCovarianceStamped, what: str = TWIST
                     ) -> TwistSample:
     """TwistWithCovarianceStamped -> :class:`TwistSample`.
 
-    A variance <= 0 means "not reported" (the dead reckoning then uses its default).
+    A variance of 0 means "not reported" (the dead reckoning then uses its default).
 
     Raises:
-        MessageError: An invalid stamp, non-finite speed, yaw rate or variances, or a
-            speed, yaw rate or variance beyond :mod:`.limits` (``'range'``).
+        MessageError: An invalid stamp, a non-finite twist, a speed or rate beyond
+            :mod:`.limits` (``'range'``; the components a planar vehicle does not use
+            too), or a covariance that is none (a negative variance, a correlation
+            above 1; :func:`.checks.check_covariance`).
     """
     stamp_ns = stamp_to_ns(msg.header.stamp, what)
     t = msg.twist.twist
     cov = msg.twist.covariance
-    values = [t.linear.x, t.angular.z, cov[0], cov[35]]
-    if not np.all(np.isfinite(values)):
-        raise MessageError(f'{what}: non-finite speed, yaw rate or covariance', 'non_finite')
-    check_abs(what, 'speed', t.linear.x, MAX_SPEED_MPS, ' m/s')
-    check_abs(what, 'yaw rate', t.angular.z, MAX_YAW_RATE_RPS, ' rad/s')
-    check_range(what, 'variance', [cov[0], cov[35]], -np.inf, MAX_VARIANCE)
+    _check_twist(what, t)
+    check_covariance(what, 'twist covariance', cov)
     return TwistSample(stamp_ns, float(t.linear.x), float(t.angular.z),
                        float(cov[0]), float(cov[35]))
+
+
+def _check_twist(what: str, t) -> None:
+    """Every component of a vehicle's twist against :mod:`.limits`."""
+    lin, ang = t.linear, t.angular
+    check_finite(what, **{'speed or angular rate': [lin.x, lin.y, lin.z, ang.x, ang.y,
+                                                    ang.z]})
+    check_abs(what, 'speed', lin.x, MAX_SPEED_MPS, ' m/s')
+    check_abs(what, 'lateral or vertical speed', [lin.y, lin.z], MAX_SPEED_MPS, ' m/s')
+    check_abs(what, 'yaw rate', ang.z, MAX_YAW_RATE_RPS, ' rad/s')
+    check_abs(what, 'roll or pitch rate', [ang.x, ang.y], MAX_GYRO_RPS, ' rad/s')
 
 
 def sample_to_twist(sample: TwistSample, frame_id: str = BASE_FRAME,
@@ -182,28 +208,39 @@ def dead_reckoning_to_odometry(state: DeadReckoningState, frame_id: str = ODOM_F
     return msg
 
 
-def odometry_to_dead_reckoning(msg: Odometry, what: str = DEAD_RECKONING
+def odometry_to_dead_reckoning(msg: Odometry, what: str = DEAD_RECKONING,
+                               frame_id: str | None = ODOM_FRAME,
+                               child_frame_id: str | None = BASE_FRAME
                                ) -> DeadReckoningState:
     """The ``odometry/dead_reckoning`` message -> :class:`DeadReckoningState`.
 
     The heading comes back wrapped to [-pi, pi]; :func:`motion_between` wraps differences.
 
+    Args:
+        msg: The message.
+        what: Name used in error messages.
+        frame_id: Required header frame, the dead reckoning's own (None: any).
+        child_frame_id: Required child frame, the vehicle's (None: any).
+
     Raises:
-        MessageError: An invalid stamp, non-finite values or an invalid quaternion, a
-            position beyond :data:`.limits.MAX_POSITION_M`, a speed or yaw rate beyond
-            the vehicle limits, or a variance outside [0, :data:`.limits.MAX_VARIANCE`]
-            (``'range'``).
+        MessageError: Another frame or child frame (``'frame'``), an invalid stamp,
+            non-finite values, a position beyond :data:`.limits.MAX_POSITION_M`, a speed
+            or rate beyond the vehicle limits, an orientation that is no unit quaternion
+            or a covariance that is none (a variance outside [0,
+            :data:`.limits.MAX_VARIANCE`], a correlation above 1; ``'range'``).
     """
+    check_frame(what, msg.header.frame_id, frame_id)
+    check_frame(what, msg.child_frame_id, child_frame_id, 'child frame')
     stamp_ns = stamp_to_ns(msg.header.stamp, what)
-    p = msg.pose.pose.position
+    p, o = msg.pose.pose.position, msg.pose.pose.orientation
     pc, tc = msg.pose.covariance, msg.twist.covariance
     t = msg.twist.twist
-    values = [p.x, p.y, t.linear.x, t.angular.z, pc[0], pc[35], tc[0], tc[35]]
-    check_finite(what, **{'pose, twist or covariance': values})
-    check_abs(what, 'position', [p.x, p.y], MAX_POSITION_M, ' m')
-    check_abs(what, 'speed', t.linear.x, MAX_SPEED_MPS, ' m/s')
-    check_abs(what, 'yaw rate', t.angular.z, MAX_YAW_RATE_RPS, ' rad/s')
-    check_range(what, 'variance', [pc[0], pc[35], tc[0], tc[35]], 0.0, MAX_VARIANCE)
+    check_finite(what, position=[p.x, p.y, p.z])
+    check_abs(what, 'position', [p.x, p.y, p.z], MAX_POSITION_M, ' m')
+    _check_twist(what, t)
+    check_unit_quaternion(what, 'orientation', o.x, o.y, o.z, o.w)
+    check_covariance(what, 'pose covariance', pc)
+    check_covariance(what, 'twist covariance', tc)
     return DeadReckoningState(
         stamp_ns=stamp_ns, x_m=float(p.x), y_m=float(p.y),
         yaw_rad=quaternion_to_yaw(msg.pose.pose.orientation), speed_mps=float(t.linear.x),

@@ -24,8 +24,8 @@ from .limits import (MAX_ABS_ELEVATION_DEG, MAX_CN0_DBHZ, MAX_MATCH_SCORE, MAX_M
                      MAX_SATELLITES, MAX_VARIANCE, MIN_CN0_DBHZ, MIN_MATCH_SCORE,
                      MIN_PSEUDORANGE_M, MIN_SATELLITE_RADIUS_M)
 from .stamps import make_header, stamp_to_ns
-from .wire import (EARTH_FRAME, GNSS, GNSS_DTYPE, MAP_FRAME, MATCH_DTYPE, MATCHES,
-                   POINTFIELD_CODE, POINTFIELD_NAMES, POINTFIELD_TYPES, header_dims)
+from .wire import (EARTH_FRAME, GNSS, GNSS_DTYPE, KNOWN_SYSTEMS, MAP_FRAME, MATCH_DTYPE,
+                   MATCHES, POINTFIELD_CODE, POINTFIELD_NAMES, POINTFIELD_TYPES, header_dims)
 
 
 def structured_to_pointcloud2(points: np.ndarray, stamp_ns: int, frame_id: str,
@@ -198,7 +198,10 @@ def pointcloud2_to_gnss_epoch(msg, frame_id: str | None = EARTH_FRAME,
         what: Name used in error messages.
         checked: The satellites have passed ``check_epoch`` (``gnss/measurements``):
             non-finite positions, ranges or variances and non-positive variances are
-            refused too. Elevation and C/N0 may still be NaN (unknown) in both cases.
+            refused too, and so is a satellite twice (the same ``system`` and ``sv_id``;
+            ``'duplicate_satellites'``) or of a ``system`` code not in
+            :data:`.wire.KNOWN_SYSTEMS` (``'unknown_system'``): gnss_node drops those.
+            Elevation and C/N0 may still be NaN (unknown) in both cases.
 
     Raises:
         MessageError: Wrong frame, more than :data:`.limits.MAX_SATELLITES` satellites
@@ -215,6 +218,8 @@ def pointcloud2_to_gnss_epoch(msg, frame_id: str | None = EARTH_FRAME,
     pr, var = pts['pseudorange'].astype(float), pts['variance'].astype(float)
     cn0, elevation = pts['cn0'].astype(float), pts['elevation'].astype(float)
     _check_satellites(what, sv, pr, var, checked)
+    if checked:
+        _check_identities(what, pts['sv_id'], pts['system'])
     check_range(what, 'C/N0', cn0, MIN_CN0_DBHZ, MAX_CN0_DBHZ, ' dB-Hz', allow_nan=True)
     check_range(what, 'elevation', elevation, -MAX_ABS_ELEVATION_DEG, MAX_ABS_ELEVATION_DEG,
                 ' deg', allow_nan=True)
@@ -245,6 +250,20 @@ def _check_satellites(what: str, sv: np.ndarray, pr: np.ndarray, var: np.ndarray
                 MIN_SATELLITE_RADIUS_M, MAX_SATELLITE_RADIUS_M, ' m')
     check_range(what, 'pseudorange', pr[rows], MIN_PSEUDORANGE_M, MAX_PSEUDORANGE_M, ' m')
     check_range(what, 'variance', var[rows], 0.0, MAX_VARIANCE, ' m^2')
+
+
+def _check_identities(what: str, sv_id: np.ndarray, system: np.ndarray) -> None:
+    """Known system codes, each satellite once (see :func:`pointcloud2_to_gnss_epoch`)."""
+    known = np.isin(system, KNOWN_SYSTEMS)
+    if not known.all():
+        raise MessageError(f'{what}: system code {int(system[~known][0])} is none of '
+                           f'{KNOWN_SYSTEMS}', 'unknown_system')
+    key = system.astype(np.int64) * 65536 + sv_id.astype(np.int64)
+    unique, counts = np.unique(key, return_counts=True)
+    if (counts > 1).any():
+        twice = int(unique[counts > 1][0])
+        raise MessageError(f'{what}: satellite {twice % 65536} of system {twice // 65536} '
+                           f'{int(counts.max())} times', 'duplicate_satellites')
 
 
 # -------------------------------------------------------------------- camera matches

@@ -162,6 +162,21 @@ def test_other_satellite_fields(field, value, reason):
         _refused(reason, ma.pointcloud2_to_gnss_epoch, msg)
 
 
+def test_checked_epochs_refuse_duplicates_and_unknown_systems_the_receiver_gets_them_dropped():
+    epoch = _epoch()
+    twice = _with(epoch, sv_id=np.r_[epoch.sv_id[:-1], epoch.sv_id[0]])
+    unknown = _with(epoch, system=np.r_[epoch.system[:-1], 99])
+    other_system = _with(epoch, system=np.r_[epoch.system[:-1], 8])    # same id, Galileo
+    for msg, reason in ((twice, 'duplicate_satellites'), (unknown, 'unknown_system')):
+        cloud = ma.gnss_epoch_to_pointcloud2(msg)
+        _refused(reason, ma.pointcloud2_to_gnss_epoch, cloud, checked=True)
+        # From the receiver: passed on, gnss_node drops and counts them per satellite.
+        assert ma.pointcloud2_to_gnss_epoch(cloud).n_sv == epoch.n_sv
+    ma.pointcloud2_to_gnss_epoch(ma.gnss_epoch_to_pointcloud2(other_system), checked=True)
+    moved = ma.gnss_epoch_to_pointcloud2(epoch, frame_id='map')
+    _refused('frame', ma.pointcloud2_to_gnss_epoch, moved, checked=True)
+
+
 def test_satellite_count_is_refused_before_anything_is_decoded():
     ok = ma.gnss_epoch_to_pointcloud2(_epoch(k=lim.MAX_SATELLITES))
     assert ma.pointcloud2_to_gnss_epoch(ok).n_sv == lim.MAX_SATELLITES
@@ -196,7 +211,9 @@ def test_imu_limits(accel, gyro, reason):
 
 @pytest.mark.parametrize('speed, yaw_rate, var, reason', [
     (lim.MAX_SPEED_MPS, -lim.MAX_YAW_RATE_RPS, lim.MAX_VARIANCE, None),
-    (-lim.MAX_SPEED_MPS, 0.0, -1.0, None),                # variance -1: not reported
+    (-lim.MAX_SPEED_MPS, 0.0, 0.0, None),                 # variance 0: not reported
+    (1.0, 0.0, -1.0, 'range'),                             # a negative variance is none
+    (1.0, 0.0, -1e-12, None),                              # a rounded zero is one
     (1.7e308, 0.0, 0.0, 'range'), (lim.MAX_SPEED_MPS + 0.01, 0.0, 0.0, 'range'),
     (0.0, lim.MAX_YAW_RATE_RPS + 0.01, 0.0, 'range'), (0.0, 0.0, 1e300, 'range'),
     (math.inf, 0.0, 0.0, 'non_finite')])
@@ -223,6 +240,125 @@ def test_dead_reckoning_limits(x, speed, var, reason):
         _refused(reason, ma.odometry_to_dead_reckoning, msg)
 
 
+def _twist(**changes):
+    msg = ma.sample_to_twist(ma.TwistSample(T0, 5.0, 0.1, 0.01, 1e-4))
+    for path, value in changes.items():
+        *parents, leaf = path.split('.')
+        obj = msg.twist
+        for p in parents:
+            obj = getattr(obj, p)
+        if leaf.isdigit():
+            cov = np.array(obj.covariance, float)
+            cov[int(leaf)] = value
+            obj.covariance = cov
+        else:
+            setattr(obj, leaf, value)
+    return msg
+
+
+@pytest.mark.parametrize('changes, reason', [
+    ({'twist.linear.y': lim.MAX_SPEED_MPS, 'twist.angular.x': -lim.MAX_GYRO_RPS}, None),
+    ({'twist.linear.z': lim.MAX_SPEED_MPS * 1.01}, 'range'),
+    ({'twist.angular.y': lim.MAX_GYRO_RPS + 0.1}, 'range'),
+    ({'twist.angular.x': math.nan}, 'non_finite'),
+    ({'7': 2.0}, None),                          # a variance the node does not use
+    ({'21': 1e11}, None),                        # sqrt(1e11)^2 != 1e11: no correlation
+    ({'7': -2.0}, 'range'),
+    ({'7': 0.01, '1': 0.005}, None),             # correlation 0.5 of speed and lateral speed
+    ({'7': 0.01, '1': 0.02}, 'range'),           # correlation 2
+    ({'31': 1e-3}, 'range'),                     # off-diagonal where a variance is 0
+    ({'31': 1e-12}, None),                       # within the tolerance
+    ({'14': math.inf}, 'non_finite')])
+def test_every_twist_component_and_the_whole_covariance_are_checked(changes, reason):
+    msg = _twist(**changes)
+    if reason is None:
+        ma.twist_to_sample(msg)
+    else:
+        _refused(reason, ma.twist_to_sample, msg)
+
+
+def _imu(**changes):
+    msg = ma.sample_to_imu(ma.ImuSample(T0, np.array([0.1, 0.0, 9.8]), np.zeros(3)))
+    for name, (index, value) in changes.items():
+        if name == 'orientation':
+            msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w = value
+            continue
+        cov = np.array(getattr(msg, name), float)
+        cov[index] = value
+        setattr(msg, name, cov)
+    return msg
+
+
+@pytest.mark.parametrize('changes, reason', [
+    ({}, None),
+    # Orientation marked unavailable (REP 145): its values are not judged.
+    ({'orientation': (None, (5.0, 0.0, 0.0, 0.0))}, None),
+    # Reported: a unit quaternion with a covariance.
+    ({'orientation_covariance': (0, 0.01)}, None),
+    ({'orientation_covariance': (0, 0.01), 'orientation': (None, (0.0, 0.0, 0.6, 0.8))},
+     None),
+    ({'orientation_covariance': (0, 0.01), 'orientation': (None, (0.0, 0.0, 0.0, 2.0))},
+     'range'),
+    ({'orientation_covariance': (0, -2.0)}, 'range'),
+    ({'linear_acceleration_covariance': (0, -1.0)}, 'value'),     # marked unavailable
+    ({'angular_velocity_covariance': (0, -1.0)}, 'value'),
+    ({'angular_velocity_covariance': (4, -0.5)}, 'range'),
+    ({'linear_acceleration_covariance': (3, 1.0)}, 'range'),      # off-diagonal, var 0
+    ({'angular_velocity_covariance': (8, math.nan)}, 'non_finite')])
+def test_imu_covariances_and_a_reported_orientation_are_checked(changes, reason):
+    msg = _imu(**changes)
+    if reason is None:
+        ma.imu_to_sample(msg)
+    else:
+        _refused(reason, ma.imu_to_sample, msg)
+
+
+def _odometry(**changes):
+    state = DeadReckoningState(T0, 10.0, -3.0, 0.3, 5.0, 0.1, 0.01, 1e-4, 1.0, 1e-3)
+    msg = ma.dead_reckoning_to_odometry(state)
+    for path, value in changes.items():
+        *parents, leaf = path.split('.')
+        obj = msg
+        for p in parents:
+            obj = getattr(obj, p)
+        if leaf.isdigit():
+            cov = np.array(obj.covariance, float)
+            cov[int(leaf)] = value
+            obj.covariance = cov
+        else:
+            setattr(obj, leaf, value)
+    return msg
+
+
+@pytest.mark.parametrize('changes, reason', [
+    ({}, None),
+    ({'pose.pose.orientation.z': 1e300}, 'range'),          # the fuzz kit's case
+    ({'pose.pose.orientation.w': 0.0, 'pose.pose.orientation.z': 0.0}, 'range'),
+    ({'pose.pose.orientation.z': 1.004 * math.sin(0.15),   # |q|^2 = 1.008: within
+      'pose.pose.orientation.w': 1.004 * math.cos(0.15)}, None),   # tf2's 1e-2
+    ({'pose.pose.orientation.x': math.nan}, 'non_finite'),
+    ({'pose.pose.position.z': lim.MAX_POSITION_M * 1.01}, 'range'),
+    ({'twist.twist.linear.y': 1e6}, 'range'),
+    ({'twist.twist.angular.x': lim.MAX_GYRO_RPS * 2}, 'range'),
+    ({'pose.14': -1.0}, 'range'),                            # z variance negative
+    ({'twist.0': -0.01}, 'range'),
+    ({'pose.1': 0.5}, None),                                 # x-y correlation 0.5
+    ({'pose.1': 5.0}, 'range'),
+    ({'twist.5': 1.0}, 'range'),
+    ({'header.frame_id': 'map'}, 'frame'),
+    ({'child_frame_id': 'imu'}, 'frame')])
+def test_dead_reckoning_frames_quaternion_and_covariances(changes, reason):
+    msg = _odometry(**changes)
+    if reason is None:
+        ma.odometry_to_dead_reckoning(msg)
+    else:
+        _refused(reason, ma.odometry_to_dead_reckoning, msg)
+    # Other frames when the node is configured so; None takes any.
+    moved = _odometry(**{'header.frame_id': 'odom_2', 'child_frame_id': 'car'})
+    ma.odometry_to_dead_reckoning(moved, frame_id='odom_2', child_frame_id='car')
+    ma.odometry_to_dead_reckoning(moved, frame_id=None, child_frame_id=None)
+
+
 # ============================================================================ camera
 def _matches(position, score=0.5, k=1):
     return ma.matches_to_pointcloud2(ma.CameraMatches(
@@ -238,6 +374,9 @@ def test_camera_match_limits():
     _refused('range', ma.pointcloud2_to_matches, _matches([0, 0, 0], -0.1))
     big = _matches([0, 0, 0], k=lim.MAX_MATCHES + 1)
     _refused('size', ma.pointcloud2_to_matches, big)
+    moved = _matches([0, 0, 0])
+    moved.header.frame_id = 'earth'
+    _refused('frame', ma.pointcloud2_to_matches, moved)
     _refused('size', ma.check_serialized_matches, serialize_message(big))
     huge = _Untouchable(header=big.header, width=10 ** 6, height=1, point_step=32,
                         row_step=32 * 10 ** 6, is_bigendian=False)
@@ -428,6 +567,20 @@ def _garbage(epoch, dr_state):
                       encoding='bgr8', step=24000)        # the header of an 8000 x 8000 frame
     imu_far = ma.sample_to_imu(ma.ImuSample(t, np.array([1e300, 0.0, 9.8]), np.zeros(3)))
     undecodable = b'\x00\x01\x00\x00' + b'\xff' * 24
+    # Values inside every range that are still no valid message: a negative variance, a
+    # frame the topic is not in, a satellite twice or of no known system on the checked
+    # link, an orientation that is no rotation.
+    twist_negative_var = ma.sample_to_twist(ma.TwistSample(t, 1.0, 0.0, -1.0, -1.0))
+    match_moved = ma.matches_to_pointcloud2(ma.CameraMatches(
+        t, np.zeros((1, 3)), np.ones(1), np.zeros(1, int)))
+    match_moved.header.frame_id = 'earth'
+    twice = gnss(_with(epoch, sv_id=np.r_[epoch.sv_id[:-1], epoch.sv_id[0]],
+                       system=np.r_[epoch.system[:-1], epoch.system[0]]))
+    unknown = gnss(_with(epoch, system=np.full(epoch.n_sv, 99)))
+    dr_spin = ma.dead_reckoning_to_odometry(dr_state)
+    dr_spin.pose.pose.orientation.z = 1e300
+    dr_moved = ma.dead_reckoning_to_odometry(dr_state)
+    dr_moved.header.frame_id = 'map'
     out = []
     for topic, node in (('gnss/pseudoranges', 'gnss_node'),
                         ('gnss/measurements', 'fusion_node')):
@@ -445,6 +598,12 @@ def _garbage(epoch, dr_state):
                                     2 ** 31 - 1), 'imu_node', 'stamp_jump'),
             ('imu/data', imu_far, 'imu_node', 'range'),
             ('odometry/dead_reckoning', dr_far, 'fusion_node', 'range'),
+            ('odom/twist', twist_negative_var, 'imu_node', 'range'),
+            ('camera/matches', match_moved, 'fusion_node', 'frame'),
+            ('gnss/measurements', twice, 'fusion_node', 'duplicate_satellites'),
+            ('gnss/measurements', unknown, 'fusion_node', 'unknown_system'),
+            ('odometry/dead_reckoning', dr_spin, 'fusion_node', 'range'),
+            ('odometry/dead_reckoning', dr_moved, 'fusion_node', 'frame'),
             ('camera/matches', match_far, 'fusion_node', 'range'),
             ('camera/image_raw', big_image, 'camera_node', 'size'),
             ('camera/image_raw', _stamped(ma.array_to_image(np.zeros((64, 64), np.uint8), t),
@@ -522,11 +681,14 @@ def _run_graph(drive, with_garbage: bool):
             g.spin_until(lambda: any(ma.parse_integrity_risk(m).epoch_stamp_ns == t
                                      for m in risks), what='integrity_risk of the epoch')
             results.append(fusion.last_result.status)
+        # Reports made now, after everything was handled (a periodic one from before
+        # would miss the last counts).
+        n_before = len(diagnostics)
         for node in nodes.values():
             node.publish_diagnostics()
-        g.spin_until(lambda: {s.name for m in diagnostics for s in m.status}
+        g.spin_until(lambda: {s.name for m in diagnostics[n_before:] for s in m.status}
                      >= {f'{n}: status' for n in nodes}, what='diagnostics')
-        latest = {s.name.split(':')[0]: ma.status_values(s) for m in diagnostics
+        latest = {s.name.split(':')[0]: ma.status_values(s) for m in diagnostics[n_before:]
                   for s in m.status if s.name.endswith(': status')}
         outputs = {
             'status': results,

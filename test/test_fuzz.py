@@ -6,7 +6,8 @@ tool, measured RSS, counted rejections, restarted what it killed) and only the t
 the issue that already hold today:
 
 * ``messages``: the clean pass answers every epoch without a crash; no misleading OK
-  (no OK verdict with the error above the alert limit, none for an injected epoch);
+  (no OK verdict with the error above the alert limit, on a valid epoch or, scored against
+  the truth at its stamp, on one the kit injected);
 * ``processes``: no integrity OK while a needed input is missing or reset; no other node
   exits when one is killed; every node exits 0 when stopped;
 * ``files``: nothing of ``gnsscam_eval bag`` fails (its corrupt bags are all refused with
@@ -24,7 +25,8 @@ import numpy as np
 import pytest
 from rclpy.serialization import serialize_message
 
-from gnsscam_ros.bench.fuzz import accounting, cases, mutate, schedule
+import msg_adapters as ma
+from gnsscam_ros.bench.fuzz import accounting, cases, mutate, plausible, schedule
 from gnsscam_ros.bench.fuzz.report import Target, verdict_line
 from gnsscam_ros.bench.fuzz.stream import INPUT_TOPICS, StreamConfig, ValidStream
 from gnsscam_ros.bench.fuzz.tools import fingerprint, run_in_process
@@ -98,6 +100,34 @@ def test_burst_accounting():
     assert sanitised.silently_accepted == 0
     plausible = accounting.BurstResult('t:m', 't', 'mutation', 'any', sent=5, delivered=5)
     assert plausible.silently_accepted == 0
+    # A frame dropped from the full matcher queue (counted) is not accepted silently.
+    queued = accounting.BurstResult('t:k', 't', 'structured', 'reject', sent=4, delivered=4,
+                                    rejected=3, dropped=1)
+    assert queued.silently_accepted == 0
+
+
+def test_judged_bursts_count_valid_messages_apart_and_late_counts_settle_losses():
+    valid = accounting.BurstResult('t:mutation_scale', 't', 'mutation', 'any', sent=3,
+                                   delivered=3, valid_after_mutation=3)
+    malformed = accounting.BurstResult('t:mutation_scale', 't', 'mutation', 'reject',
+                                       sent=2, delivered=2, rejected=1)
+    kinds = accounting.by_kind([valid, malformed], {})
+    k = kinds['t:mutation_scale']
+    assert (k.sent, k.malformed, k.valid_after_mutation, k.silently_accepted) == (5, 2, 3, 1)
+    assert accounting.by_topic(kinds)['t']['valid_after_mutation'] == 3
+    # A flood that lost 10, of which the node counted 6 in the window ...
+    ledger = accounting.LossLedger()
+    ledger.observe({'t': 0.0, 'u': 0.0}, {'t': 0.0, 'u': 0.0})
+    flood = accounting.BurstResult('t:flood', 't', 'flood', 'any', sent=30, delivered=20,
+                                   counted_loss=6)
+    ledger.observe({'t': 6.0, 'u': 0.0}, {'t': 10.0, 'u': 0.0}, flood)
+    assert flood.uncounted_loss == 4
+    # ... a later rise of the count that the kit's own valid stream explains settles
+    # nothing, one beyond it settles the debt (no further than the debt).
+    ledger.observe({'t': 8.0, 'u': 0.0}, {'t': 12.0, 'u': 0.0})
+    assert flood.uncounted_loss == 4
+    ledger.observe({'t': 15.0, 'u': 3.0}, {'t': 12.0, 'u': 0.0})
+    assert (flood.counted_late, flood.uncounted_loss) == (4, 0)
 
 
 def test_recovery_time():
@@ -109,6 +139,134 @@ def test_recovery_time():
     assert accounting.recovery_s(stamps, late, clean, stamps[3]) == 4.0
     never = {s: 50.0 for s in stamps}
     assert math.isinf(accounting.recovery_s(stamps, never, clean, stamps[3]))
+
+
+def _set(msg, path, value):
+    *parents, leaf = path.split('.')
+    for p in parents:
+        msg = getattr(msg, p)
+    setattr(msg, leaf, value)
+
+
+def _cov(msg, attr, index, value):
+    cov = np.array(getattr(msg, attr), float)
+    cov[index] = value
+    setattr(msg, attr, cov)
+    return msg
+
+
+def test_plausibility_judgement_of_faulty_messages(stream):
+    """The kit's own judgement (never the nodes' parsers): plausible changes are valid
+    messages, values beyond the documented physics or structure are not."""
+    from gnsscam_ros.bench.fuzz.cases import flip_bit
+    tpl = stream.templates(stream.gnss_stamps[2] + 1000)
+
+    def judged(topic, edit):
+        msg = copy.deepcopy(tpl[topic])
+        out = edit(msg)
+        return plausible.judge(topic, tpl[topic], out if isinstance(out, bytes) else msg)
+
+    def points(topic, dtype, edit):
+        def change(msg):
+            pts = cases.cloud_points(msg, dtype)
+            edit(pts)
+            return cases.with_points(msg, pts)
+        return judged(topic, change)
+
+    g, m = ma.GNSS_DTYPE, ma.MATCH_DTYPE
+    assert judged('imu/data', lambda msg: None) == plausible.Judgement(True, 'unchanged')
+    valid = [
+        points('gnss/pseudoranges', g, lambda p: p['pseudorange'].__setitem__(0, 4.4e7)),
+        points('gnss/measurements', g, lambda p: p['x'].__setitem__(
+            0, flip_bit(p['x'][0], 52))),                   # x2 or /2: radius still fits
+        judged('odom/twist', lambda msg: _set(msg, 'twist.twist.linear.x', 1e-150)),
+        judged('imu/data', lambda msg: _set(msg, 'header.frame_id', 'imu_link')),
+        judged('imu/data', lambda msg: _set(msg, 'orientation.x', 7.0)),   # REP 145: none
+        judged('odometry/dead_reckoning', lambda msg: _set(
+            msg, 'header.stamp.sec', msg.header.stamp.sec + 30)),
+        judged('camera/image_raw', lambda msg: _set(msg, 'data', bytes(len(msg.data)))),
+        points('camera/matches', m, lambda p: p['score'].__setitem__(0, 1.0))]
+    assert all(j.valid for j in valid), valid
+    malformed = [
+        points('gnss/pseudoranges', g, lambda p: p['x'].__setitem__(0, 1e160)),
+        points('gnss/pseudoranges', g, lambda p: p['variance'].__setitem__(0, -1.0)),
+        points('gnss/measurements', g, lambda p: p['sv_id'].__setitem__(1, p['sv_id'][0])),
+        points('gnss/measurements', g, lambda p: p['system'].__setitem__(0, 99)),
+        judged('odom/twist', lambda msg: _cov(msg.twist, 'covariance', 0, -1.0)),
+        judged('odom/twist', lambda msg: _cov(msg.twist, 'covariance', 1, 0.5)),
+        judged('odom/twist', lambda msg: _set(msg, 'twist.twist.linear.y', 1e6)),
+        judged('imu/data', lambda msg: _cov(msg, 'linear_acceleration_covariance', 0, -1.0)),
+        judged('imu/data', lambda msg: _cov(_cov(msg, 'orientation_covariance', 0, 0.1),
+                                            'orientation_covariance', 4, -1.0)),
+        judged('camera/matches', lambda msg: _set(msg, 'header.frame_id', 'earth')),
+        judged('odometry/dead_reckoning', lambda msg: _set(
+            msg, 'pose.pose.orientation.z', 1e300)),
+        judged('odometry/dead_reckoning', lambda msg: _set(msg, 'child_frame_id', 'imu')),
+        judged('odometry/dead_reckoning', lambda msg: _set(
+            msg, 'header.stamp.sec', msg.header.stamp.sec + 61)),
+        judged('gnss/pseudoranges', lambda msg: _set(msg, 'header.stamp.nanosec', 2**32 - 1)),
+        judged('camera/image_raw', lambda msg: _set(msg, 'height', msg.height + 1)),
+        judged('imu/data', lambda msg: serialize_message(msg)[:-9])]
+    assert not any(j.valid for j in malformed), malformed
+    assert malformed[-1].why.startswith('undecodable')
+
+
+@pytest.mark.parametrize('topic', INPUT_TOPICS)
+def test_what_the_kit_judges_malformed_the_boundary_refuses(stream, topic):
+    """Seeded random mutations: every one the kit judges malformed is refused by the
+    parser of its topic (or outside the stamp window of the gate, or, from the receiver,
+    has satellites gnss_node drops and counts); every one judged valid parses."""
+    from rclpy.serialization import deserialize_message
+
+    from gnsscam_ros.bench.fuzz.graph import TOPIC_TYPES
+    from gnsscam_ros.core.gnss import check_epoch
+    from msg_adapters import limits, wire
+    parse = {wire.GNSS: ma.pointcloud2_to_gnss_epoch,
+             wire.GNSS_MEASUREMENTS: lambda msg: ma.pointcloud2_to_gnss_epoch(
+                 msg, wire.EARTH_FRAME, checked=True),
+             wire.MATCHES: ma.pointcloud2_to_matches, wire.IMU: ma.imu_to_sample,
+             wire.TWIST: ma.twist_to_sample, wire.DEAD_RECKONING: ma.odometry_to_dead_reckoning,
+             wire.IMAGE: ma.image_to_array}[topic]
+    original = stream.templates(stream.gnss_stamps[2] + 1000)[topic]
+    rng = np.random.default_rng(11)
+    counts = {True: 0, False: 0}
+    for _ in range(120):
+        msg = mutate.mutate(original, rng)[0]
+        judgement = plausible.judge(topic, original, msg)
+        counts[judgement.valid] += 1
+        try:
+            if isinstance(msg, bytes):
+                msg = deserialize_message(msg, TOPIC_TYPES[topic])
+            parsed = parse(msg)
+        except Exception as err:        # noqa: BLE001 - undecodable or refused
+            assert not judgement.valid, (judgement, err)
+            continue
+        jump = abs(ma.stamp_to_ns(msg.header.stamp) - ma.stamp_to_ns(original.header.stamp))
+        dropped = topic == wire.GNSS and (
+            not np.isin(parsed.system, wire.KNOWN_SYSTEMS).all()
+            or bool(check_epoch(parsed).rejected))
+        refused = jump > limits.STAMP_WINDOW_NS or dropped
+        assert refused != judgement.valid, (judgement, msg)
+    assert counts[True] and counts[False], counts
+
+
+def test_ok_on_injected_epochs_is_scored_against_the_truth(stream):
+    from gnsscam_ros.bench.fuzz.graph import Verdict
+    from gnsscam_ros.bench.fuzz.messages import PassResult, injected_ok_errors
+    s = stream.gnss_stamps
+    between = s[1] + (s[2] - s[1]) // 3
+    truth = stream.truth_at(between)
+    on_truth = stream.frame.enu_to_geodetic(truth)
+    off = stream.frame.enu_to_geodetic(truth + np.array([40.0, 0.0, 0.0]))
+    res = PassResult('faults', fixes={between: tuple(map(float, on_truth)),
+                                      between + 1: tuple(map(float, off)),
+                                      s[3]: tuple(map(float, on_truth))})
+    ok = [Verdict(0.0, 0, stamp, 'updated', 5.0, 'ok') for stamp in
+          (between, between + 1, between + 2, s[-1] + 10**12, s[3])]
+    errors = injected_ok_errors(stream, res, ok)
+    assert len(errors) == 4                      # s[3] is a valid epoch: not injected
+    assert errors[0] < 0.01 and abs(errors[1] - 40.0) < 0.01
+    assert errors[2:] == [None, None]            # no fix; a stamp after the drive
 
 
 def test_verdict_line():

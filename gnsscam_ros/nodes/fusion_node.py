@@ -79,6 +79,7 @@ from msg_adapters import (ERROR, OK, STALE, WARN, GeodeticFix, GlobalOdometry,
                           pointcloud2_to_gnss_epoch, pointcloud2_to_matches, pose_covariance,
                           pose_to_msg, service_bits)
 from msg_adapters.geometry import UNESTIMATED_VAR
+from msg_adapters.wire import EARTH_FRAME
 
 from .common import BIG, GnssCamNode, ParameterError, latched_qos, reliable_qos
 from .runtime import run_node
@@ -120,6 +121,7 @@ DEFAULTS = {
     'map_frame_id': 'map',
     'fix_frame_id': 'gnss',
     'base_frame_id': 'base_link',
+    'odom_frame_id': 'odom',
     'gnss_timeout_s': 2.0,
     'stale_report_period_s': 1.0,
     'odometry_wait_s': 0.2,
@@ -184,10 +186,15 @@ class FusionNode(GnssCamNode):
                      validator=lambda v: None if len(v) == 3 and np.all(np.isfinite(v))
                      else 'map_origin_llh must be 3 finite numbers')
         self.declare('map_frame_id', DEFAULTS['map_frame_id'],
-                     'Frame of pose, particles, odometry/global and map/origin.')
+                     'Frame of pose, particles, odometry/global and map/origin, and the '
+                     "required frame of camera/matches (camera_node's map_frame_id).")
         self.declare('fix_frame_id', DEFAULTS['fix_frame_id'], 'Frame of fix.')
         self.declare('base_frame_id', DEFAULTS['base_frame_id'],
-                     'Child frame of odometry/global (the vehicle; its twist is in it).')
+                     'Child frame of odometry/global (the vehicle; its twist is in it) and '
+                     'of odometry/dead_reckoning (others are refused).')
+        self.declare('odom_frame_id', DEFAULTS['odom_frame_id'],
+                     "Frame of odometry/dead_reckoning (imu_node's odom_frame_id; others "
+                     'are refused).')
         # Upper bounds (core.engine MAX_*): a longer wait or timeout would hide a stopped
         # input behind the last verdict; a longer buffer only costs memory.
         self.declare('gnss_timeout_s', DEFAULTS['gnss_timeout_s'],
@@ -318,8 +325,10 @@ class FusionNode(GnssCamNode):
     def on_gnss(self, msg: PointCloud2) -> None:
         """Queue a GNSS epoch and process what is ready."""
         try:
-            # gnss_node publishes checked satellites only: no NaN or non-positive variance.
-            epoch = pointcloud2_to_gnss_epoch(msg, None, 'gnss/measurements', checked=True)
+            # gnss_node publishes checked satellites only (no NaN, non-positive variance,
+            # duplicate or unknown system), in the ECEF frame whatever its input's name.
+            epoch = pointcloud2_to_gnss_epoch(msg, EARTH_FRAME, 'gnss/measurements',
+                                              checked=True)
         except MessageError as err:
             self.warn_rejected('gnss/measurements', err.reason, str(err))
             return
@@ -339,7 +348,8 @@ class FusionNode(GnssCamNode):
     def on_dead_reckoning(self, msg: Odometry) -> None:
         """Buffer a dead-reckoning state; an epoch waiting for it may now run."""
         try:
-            state = odometry_to_dead_reckoning(msg)
+            state = odometry_to_dead_reckoning(msg, frame_id=self.param('odom_frame_id'),
+                                               child_frame_id=self.param('base_frame_id'))
         except MessageError as err:
             self.warn_rejected('odometry/dead_reckoning', err.reason, str(err))
             return
@@ -366,7 +376,7 @@ class FusionNode(GnssCamNode):
     def on_matches(self, msg: PointCloud2) -> None:
         """Buffer the best match of a camera image for the next epoch."""
         try:
-            matches = pointcloud2_to_matches(msg, None)
+            matches = pointcloud2_to_matches(msg, self.param('map_frame_id'))
         except MessageError as err:
             self.warn_rejected('camera/matches', err.reason, str(err))
             return
@@ -425,6 +435,10 @@ class FusionNode(GnssCamNode):
         result, epoch = report.result, report.epoch
         self.last_result = result
         self.stats.count(f'epochs_{result.status}')
+        # Satellites the filter's own checks dropped (its masks, core limits, the count
+        # limit): counted as gnss_node counts its own.
+        for reason, n in result.rejected.items():
+            self.stats.count(f'satellites_rejected_{reason}', int(n))
         if DEAD_RECKONING in report.late:
             self.stats.count('odometry_late')
         if CAMERA in report.late:

@@ -118,15 +118,23 @@ def print_messages(result: dict, out=sys.stdout) -> list[Target]:
                  'valid refused', 'OK', 'misleading OK', 'err2D med m', 'exit', 's'], rows),
           file=out)
     m = result['messages']
-    print(f"\nmalformed messages: {m['total']} ({m['structured']} structured, "
-          f"{m['mutations']} mutations; {m['unsendable']} not serialisable here); "
-          f"{m['floods']} valid messages in floods", file=out)
-    rows = [[t, r['structured'], r['mutations'], r['floods'], r['delivered'], r['refused'],
-             r['uncounted_loss'], r['silently_accepted'], r['crashes']]
+    print(f"\nmalformed messages: {m['malformed']} ({m['structured']} structured, "
+          f"{m['mutations']} mutations, less {m['valid_after_mutation']} valid after "
+          f"mutation; {m['unsendable']} not serialisable here); {m['floods']} valid "
+          "messages in floods", file=out)
+    rows = [[t, r['structured'], r['mutations'], r['valid_after_mutation'], r['floods'],
+             r['delivered'], r['refused'], r['uncounted_loss'], r['silently_accepted'],
+             r['crashes']]
             for t, r in result['by_topic'].items()]
-    print(table(['topic', 'structured', 'mutations', 'flood', 'delivered',
-                 'refused (counted)', 'lost uncounted', 'accepted silently', 'crashes'],
-                rows), file=out)
+    print(table(['topic', 'structured', 'mutations', 'valid after mutation', 'flood',
+                 'delivered', 'refused (counted)', 'lost uncounted', 'accepted silently',
+                 'crashes'], rows), file=out)
+    f = passes['faults']
+    print(f"OK verdicts on injected epochs: {f['ok_on_injected_epochs']} "
+          f"({f['ok_on_injected_scored']} scored against the truth, "
+          f"{f['misleading_ok_on_injected']} with the error above the alert limit, max "
+          f"{fmt(f['ok_on_injected_error_max_m'])} m; {f['ok_on_injected_unscored']} "
+          "unscored)", file=out)
     bad = [k for k in result['kinds'].values() if k['outcome'] not in ('ok', 'not tried')]
     bad.sort(key=lambda k: (-k['crashes'], -k['blocks'], -k['uncounted'], k['kind']))
     if bad:

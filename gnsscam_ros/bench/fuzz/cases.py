@@ -11,9 +11,11 @@ data buffers and NaN everywhere, and a few more of each kind.
 
 ``expect``: ``'reject'`` means a correct node refuses the message (and counts it: a
 satellite dropped by the checks counts too); ``'any'`` means accepting it is legitimate
-(a plausible message), refusing it must still be counted. ``heavy`` cases cost seconds
-and hundreds of MB (the pipeline's and this process's): a run can leave them out
-(``--light``). ``issue`` marks the single-message cases the issue lists.
+(a plausible message), refusing it must still be counted. A ``judged`` case's messages
+are judged one by one (:mod:`.plausible`): those that came out valid expect ``'any'``.
+``heavy`` cases cost seconds and hundreds of MB (the pipeline's and this process's): a
+run can leave them out (``--light``). ``issue`` marks the single-message cases the issue
+lists.
 """
 from __future__ import annotations
 
@@ -56,6 +58,9 @@ class Case:
         burst: Most copies published in one burst.
         reuse_stamp: Built with the stamp of the topic's last valid message (a duplicate)
             instead of a fresh one.
+        judged: Its messages may come out valid (a flipped exponent bit that lands on a
+            plausible value): each is judged (:mod:`.plausible`) and one judged valid is
+            expected like a valid message (``'any'``), not refused.
     """
 
     topic: str
@@ -66,6 +71,7 @@ class Case:
     issue: bool = False
     burst: int = 10
     reuse_stamp: bool = False
+    judged: bool = False
 
     @property
     def kind(self) -> str:
@@ -268,7 +274,7 @@ def gnss_cases(topic: str) -> list[Case]:
 
     return [
         Case(topic, 'coord_1e160', coord_1e160, issue=True),
-        Case(topic, 'exponent_bit_flip', exponent_flip, issue=True),
+        Case(topic, 'exponent_bit_flip', exponent_flip, issue=True, judged=True),
         Case(topic, 'pseudorange_1e160', pseudorange_1e160),
         Case(topic, 'variance_negative', variance_negative),
         Case(topic, 'nan_everywhere', nan_everywhere, issue=True),
@@ -352,7 +358,7 @@ def imu_cases() -> list[Case]:
         Case(t, 'accel_inf', values(accel[:1], np.inf)),
         Case(t, 'accel_1e300', values(accel[:1], 1e300)),
         Case(t, 'gyro_1.7e308', values(gyro[2:], 1.7e308)),
-        Case(t, 'exponent_bit_flip', exponent_flip, issue=True),
+        Case(t, 'exponent_bit_flip', exponent_flip, issue=True, judged=True),
         Case(t, 'gyro_unavailable', unavailable),
     ]
 
@@ -386,7 +392,7 @@ def twist_cases() -> list[Case]:
         values([ang], 1e6, name='yaw_rate_1e6'),
         Case(t, 'covariance_negative', covariance(-1.0)),
         Case(t, 'covariance_nan', covariance(np.nan)),
-        Case(t, 'exponent_bit_flip', exponent_flip, issue=True),
+        Case(t, 'exponent_bit_flip', exponent_flip, issue=True, judged=True),
     ]
 
 

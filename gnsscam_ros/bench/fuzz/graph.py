@@ -29,6 +29,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rclpy.context import Context
+from rclpy.duration import Duration
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, Imu, NavSatFix, PointCloud2
@@ -59,6 +60,13 @@ LINKS = {
 #: Counters that count messages a node lost or dropped (queue overflows, undecodable
 #: messages, QoS events): such a loss is counted, not silent. Matched by name.
 LOSS_COUNTER = re.compile(r'(^|_)(dropped|lost|overflow|undecodable|discarded)(_|$)')
+#: Counters of messages a node received and then did not use, saying so, other than
+#: rejections: camera_node's full matcher queue drops its oldest frame, fusion_node's
+#: engine drops its oldest queued epoch or refuses an input its own checks find wrong.
+DROP_COUNTERS = {wire.IMAGE: ('dropped_frames',),
+                 wire.GNSS_MEASUREMENTS: ('dropped_epochs', 'refused_gnss'),
+                 wire.DEAD_RECKONING: ('refused_dead_reckoning',),
+                 wire.MATCHES: ('refused_camera',)}
 SATELLITE_COUNTER = re.compile(r'^satellites_rejected_')
 
 RELIABLE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
@@ -299,6 +307,19 @@ class Counters:
         return sum(value for vals in self.values.values() for key, value in vals.items()
                    if LOSS_COUNTER.search(key))
 
+    def lost(self, topic: str) -> float:
+        """Messages of ``topic`` its taking node counted as lost before its callback
+        (``lost_<topic>``; ``qos_message_lost_<topic>`` counts the same losses when the
+        middleware reports them: the larger of the two)."""
+        node = LINKS[topic][0]
+        return max(self.get(node, f'lost_{topic}'), self.get(node, f'qos_message_lost_{topic}'))
+
+    def dropped(self, topic: str) -> float:
+        """Messages of ``topic`` received and then dropped or refused by counters other
+        than the rejections (:data:`DROP_COUNTERS`)."""
+        node = LINKS[topic][0]
+        return sum(self.get(node, key) for key in DROP_COUNTERS.get(topic, ()))
+
     def satellites_dropped(self) -> float:
         return sum(value for vals in self.values.values() for key, value in vals.items()
                    if SATELLITE_COUNTER.search(key))
@@ -307,6 +328,8 @@ class Counters:
         return {'rejected': self.rejected(), 'losses': self.losses(),
                 'satellites': self.satellites_dropped(),
                 'received': {t: self.received(t) for t in LINKS},
+                'lost': {t: self.lost(t) for t in LINKS},
+                'dropped': {t: self.dropped(t) for t in LINKS},
                 'upstream': {t: self.upstream(t) for t in LINKS},
                 'by_reason': self.rejected_by_reason()}
 
@@ -369,6 +392,16 @@ class Probe:
         except Exception:       # noqa: BLE001 - rclpy's conversion errors vary by field
             return False
         return True
+
+    def acknowledged(self, topic: str, timeout_s: float) -> bool:
+        """Wait until every reliable subscriber of ``topic`` acknowledged what the probe
+        published (it is in the subscriber's queue: a large message is sent in fragments
+        after ``publish`` returns); True at once for best-effort ones."""
+        try:
+            return bool(self.pubs[topic].wait_for_all_acked(
+                Duration(nanoseconds=int(timeout_s * 1e9))))
+        except Exception:   # noqa: BLE001 - the context went down (a crashed graph)
+            return False
 
     def _spin(self) -> None:
         while not self._stop.is_set() and self.ctx.ok():

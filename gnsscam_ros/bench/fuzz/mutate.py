@@ -14,9 +14,11 @@ Each mutation takes a valid message of an input topic and changes it one way:
   flipped bits, cut short, or replaced by random bytes, published as raw bytes: what a
   broken sender or a corrupted transport delivers; such a message may not even decode.
 
-A mutation may leave the message valid (a scaled value that is still plausible), so every
-mutation's expectation is ``'any'``: a node may accept it, and must count it if it refuses
-it; it must never crash or block.
+A mutation may leave the message valid (a scaled value that is still plausible): each
+mutated message is judged against the message it was made from (:mod:`.plausible`, which
+never asks the nodes' validator). One that came out valid is *valid after mutation*: a
+node may accept it, and must count it if it refuses it. Every other one is malformed: a
+node must refuse it and count it. None may crash or block a node.
 """
 from __future__ import annotations
 
@@ -210,6 +212,7 @@ class MutationKind:
     family: str = MUTATION
     heavy: bool = False
     issue: bool = False
+    judged: bool = True
 
     @property
     def kind(self) -> str:
