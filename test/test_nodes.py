@@ -277,7 +277,7 @@ def test_malformed_messages_are_refused_and_counted(graph, drive):
                                                               0, 0, 0, 0))
     bad_dr.pose.pose.orientation.w = math.nan
     send(pub_dr, bad_dr, fusion, 'received_dead_reckoning')
-    bad_matches = ma.gnss_epoch_to_pointcloud2(e1)       # not a match cloud
+    bad_matches = ma.gnss_epoch_to_pointcloud2(e1, frame_id='map')   # not a match cloud
     pub_matches.publish(bad_matches)   # camera_node publishes here too: wait for the refusal
     g.spin_until(lambda: fusion.stats.rejected.get('fields') == 1, what='the refusal')
     assert fusion.stats.rejected.get('non_finite') == 1
