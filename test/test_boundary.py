@@ -240,11 +240,12 @@ def test_dead_reckoning_limits(x, speed, var, reason):
         _refused(reason, ma.odometry_to_dead_reckoning, msg)
 
 
-def _twist(**changes):
-    msg = ma.sample_to_twist(ma.TwistSample(T0, 5.0, 0.1, 0.01, 1e-4))
+def _changed(msg, root, changes: dict):
+    """``msg`` with fields below ``root`` set: ``{'a.b.c': value}``, a number as the last
+    part sets that element of the covariance of ``a.b``."""
     for path, value in changes.items():
         *parents, leaf = path.split('.')
-        obj = msg.twist
+        obj = root
         for p in parents:
             obj = getattr(obj, p)
         if leaf.isdigit():
@@ -254,6 +255,11 @@ def _twist(**changes):
         else:
             setattr(obj, leaf, value)
     return msg
+
+
+def _twist(**changes):
+    msg = ma.sample_to_twist(ma.TwistSample(T0, 5.0, 0.1, 0.01, 1e-4))
+    return _changed(msg, msg.twist, changes)
 
 
 @pytest.mark.parametrize('changes, reason', [
@@ -316,18 +322,7 @@ def test_imu_covariances_and_a_reported_orientation_are_checked(changes, reason)
 def _odometry(**changes):
     state = DeadReckoningState(T0, 10.0, -3.0, 0.3, 5.0, 0.1, 0.01, 1e-4, 1.0, 1e-3)
     msg = ma.dead_reckoning_to_odometry(state)
-    for path, value in changes.items():
-        *parents, leaf = path.split('.')
-        obj = msg
-        for p in parents:
-            obj = getattr(obj, p)
-        if leaf.isdigit():
-            cov = np.array(obj.covariance, float)
-            cov[int(leaf)] = value
-            obj.covariance = cov
-        else:
-            setattr(obj, leaf, value)
-    return msg
+    return _changed(msg, msg, changes)
 
 
 @pytest.mark.parametrize('changes, reason', [
