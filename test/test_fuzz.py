@@ -130,6 +130,49 @@ def test_judged_bursts_count_valid_messages_apart_and_late_counts_settle_losses(
     assert (flood.counted_late, flood.uncounted_loss) == (4, 0)
 
 
+def _report(counters, node: str, t_s: float, **values) -> None:
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    msg = DiagnosticArray()
+    msg.header.stamp = ma.ns_to_stamp(int(t_s * 1e9))
+    msg.status = [DiagnosticStatus(name=f'{node}: status', values=[
+        KeyValue(key=k, value=str(v)) for k, v in values.items()])]
+    counters.update(msg)
+
+
+def test_a_node_is_drained_only_after_its_counts_stood_still_for_a_while():
+    from gnsscam_ros.bench.fuzz.graph import DRAINED_QUIET_S, Counters
+    c = Counters()
+    period = 0.05
+    _report(c, 'imu_node', 10.0, received_imu=4, rejected_total=4)
+    _report(c, 'imu_node', 10.0 + period, received_imu=4, rejected_total=4)
+    # Two reports one period apart with the same counts: a best-effort message may still
+    # be on its way on a loaded machine.
+    assert not c.drained('imu_node')
+    t = 10.0 + period
+    while t < 10.0 + DRAINED_QUIET_S:
+        assert not c.drained('imu_node')
+        t += period
+        _report(c, 'imu_node', t, received_imu=4, rejected_total=4)
+    assert c.drained('imu_node')
+    # A message taken starts the wait again.
+    _report(c, 'imu_node', t + period, received_imu=5, rejected_total=5)
+    _report(c, 'imu_node', t + 2 * period, received_imu=5, rejected_total=5)
+    assert not c.drained('imu_node')
+
+
+def test_a_snapshot_reads_one_set_of_reports():
+    from gnsscam_ros.bench.fuzz.graph import Counters
+    c = Counters()
+    _report(c, 'imu_node', 1.0, received_imu=4, rejected_total=4, rejected_undecodable=4)
+    reading = c.reading()
+    _report(c, 'imu_node', 1.05, received_imu=5, rejected_total=5, rejected_undecodable=5)
+    snap = reading.snapshot()
+    assert (snap['received']['imu/data'], snap['rejected'],
+            snap['by_reason']['imu_node.undecodable']) == (4.0, 4.0, 4.0)
+    snap = c.snapshot()
+    assert (snap['received']['imu/data'], snap['rejected']) == (5.0, 5.0)
+
+
 def test_recovery_time():
     stamps = [i * 10**9 for i in range(10)]
     clean = {s: 2.0 for s in stamps}

@@ -68,9 +68,17 @@ DROP_COUNTERS = {wire.IMAGE: ('dropped_frames',),
                  wire.DEAD_RECKONING: ('refused_dead_reckoning',),
                  wire.MATCHES: ('refused_camera',)}
 SATELLITE_COUNTER = re.compile(r'^satellites_rejected_')
+#: How long a node's ``received_*`` counts must stay still before what it has not
+#: received counts as lost [s] (a few of the kits' 0.05 s diagnostics periods: a
+#: best-effort message can reach a reader late on a loaded machine).
+DRAINED_QUIET_S = 0.5
 
 RELIABLE = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
                       reliability=ReliabilityPolicy.RELIABLE)
+
+
+def _received_counts(values: dict[str, float]) -> dict[str, float]:
+    return {k: v for k, v in values.items() if k.startswith('received_')}
 
 
 def rss_mb(pid: int) -> float:
@@ -223,6 +231,8 @@ class Counters:
         self._values: dict[str, dict[str, float]] = {}
         self._previous: dict[str, dict[str, float]] = {}
         self._stamps: dict[str, tuple[int, int]] = {}
+        #: Stamp of the node's first report with its current ``received_*`` counts.
+        self._counts_since: dict[str, int] = {}
         self.seq: dict[str, int] = {}
 
     def update(self, msg: DiagnosticArray) -> None:
@@ -238,7 +248,10 @@ class Counters:
                 except ValueError:
                     continue
             with self._lock:
-                self._previous[node] = self._values.get(node, {})
+                previous = self._values.get(node, {})
+                if _received_counts(parsed) != _received_counts(previous):
+                    self._counts_since[node] = stamp
+                self._previous[node] = previous
                 self._values[node] = parsed
                 self._stamps[node] = (self._stamps.get(node, (0, 0))[1], stamp)
                 self.seq[node] = self.seq.get(node, 0) + 1
@@ -255,6 +268,7 @@ class Counters:
                 self._values.pop(node, None)
                 self._previous.pop(node, None)
                 self._stamps.pop(node, None)
+                self._counts_since.pop(node, None)
 
     def reported_since(self, node: str, wall_ns: int) -> bool:
         """The node's last two reports were made after ``wall_ns`` (its clock is this
@@ -263,18 +277,47 @@ class Counters:
             older, newer = self._stamps.get(node, (0, 0))
         return older > wall_ns and newer > wall_ns
 
-    def drained(self, node: str) -> bool:
-        """The node's last two reports show the same ``received_*`` counts (and, for
-        camera_node, nothing waiting for the matcher): it has taken every message that
-        was waiting for it. (A node's executor serves every ready subscription between
-        two runs of its diagnostics timer.)"""
+    def drained(self, node: str, quiet_s: float = DRAINED_QUIET_S) -> bool:
+        """The node's reports show the same ``received_*`` counts for ``quiet_s`` (its
+        clock) and, for camera_node, nothing waiting for the matcher: it has taken every
+        message that was waiting for it. (A node's executor serves every ready
+        subscription between two runs of its diagnostics timer, but a best-effort
+        message can reach the reader a while after it was published when the machine
+        is loaded: two reports one period apart are not enough to call it lost.)"""
         with self._lock:
             new, old = self._values.get(node), self._previous.get(node)
-        if not new or old is None:
+            since = self._counts_since.get(node)
+            newest = self._stamps.get(node, (0, 0))[1]
+        if not new or old is None or since is None:
             return False
-        keys = [k for k in new if k.startswith('received_')]
-        return (all(new[k] == old.get(k) for k in keys)
-                and new.get('queue_length', 0.0) == 0.0)
+        return (newest - since >= quiet_s * 1e9 and new.get('queue_length', 0.0) == 0.0)
+
+    def reading(self) -> 'Reading':
+        """The figures of one copy of the newest reports (a report arriving meanwhile
+        cannot mix its counts with an older one's)."""
+        return Reading(self.values)
+
+    def get(self, node: str, key: str) -> float:
+        return self.reading().get(node, key)
+
+    def has(self, node: str, key: str) -> bool:
+        return self.reading().has(node, key)
+
+    def received(self, topic: str) -> float:
+        return self.reading().received(topic)
+
+    def upstream(self, topic: str) -> float:
+        return self.reading().upstream(topic)
+
+    def snapshot(self) -> dict:
+        return self.reading().snapshot()
+
+
+class Reading:
+    """Figures from one set of reports (``Counters.values``)."""
+
+    def __init__(self, values: dict[str, dict[str, float]]):
+        self.values = values
 
     def get(self, node: str, key: str) -> float:
         return self.values.get(node, {}).get(key, 0.0)

@@ -186,8 +186,9 @@ class FaultPass:
     def sync(self, settle_s: float = 0.0) -> tuple[dict, bool]:
         """Wait until the reliable subscribers acknowledged the large messages the probe
         sent, every node reported twice since then (by its own clock) and each has
-        either received what was sent to it or taken everything that was waiting (two
-        reports with the same counts): what is missing then was lost on the way. False at
+        either received what was sent to it or taken everything that was waiting (the
+        same counts for :data:`.graph.DRAINED_QUIET_S`): what is missing then was lost on
+        the way. The figures come from one copy of the reports. False at
         the timeout (``hang_s``: a node stuck in one callback) or when the process exited.
         Never before ``settle_s`` (a large message takes a while on the way)."""
         c = self.probe.counters
@@ -211,7 +212,8 @@ class FaultPass:
             if time.monotonic() < not_before or not all(
                     c.reported_since(n, since_ns) for n in NODE_NAMES):
                 return False
-            return all(c.drained(n) or all(c.received(t) >= self._expected(t, c)
+            now = c.reading()
+            return all(c.drained(n) or all(now.received(t) >= self._expected(t, now)
                                            for t in nodes_of[n]) for n in NODE_NAMES)
 
         ok = self.probe.spin_until(settled, self.cfg.hang_s)
@@ -219,12 +221,13 @@ class FaultPass:
             # A node busy for hang_s (one long callback): what it has not taken yet may
             # still come; only a node that has taken everything decides what was lost.
             self.result.sync_timeouts += 1
-        elif self.pipeline.alive():
+        now = c.reading()
+        if ok and self.pipeline.alive():
             for t in LINKS:
-                short = self._expected(t, c) - c.received(t)
+                short = self._expected(t, now) - now.received(t)
                 if short > 0:
                     self.known_lost[t] += short
-        return c.snapshot(), ok and self.pipeline.alive()
+        return now.snapshot(), ok and self.pipeline.alive()
 
     def _sent_large(self, topic: str, msg) -> None:
         size = len(msg) if isinstance(msg, bytes) else len(getattr(msg, 'data', b''))
