@@ -22,6 +22,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -167,22 +168,12 @@ def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: f
         settle = time.perf_counter() + 1.0
         while time.perf_counter() < settle:
             probe.executor.spin_once(timeout_sec=0.01)
-        odo, imu = drive.odometry, drive.imu
-        events = sorted([(int(t), 0, k) for k, t in enumerate(odo.stamp_ns)]
-                        + [(int(t), 1, k) for k, t in enumerate(imu.stamp_ns)])
-        ev = 0
+        motion = deque(_motion_messages(drive))
         sent: dict[int, float] = {}
         for i, epoch in enumerate(drive.gnss):
-            while ev < len(events) and events[ev][0] <= epoch.stamp_ns:
-                stamp, kind, k = events[ev]
-                ev += 1
-                if kind == 0:
-                    pub_odo.publish(ma.sample_to_twist(ma.TwistSample(
-                        stamp, odo.speed_mps[k], odo.yaw_rate_rps[k], odo.speed_var[k],
-                        odo.yaw_rate_var[k])))
-                else:
-                    pub_imu.publish(ma.sample_to_imu(ma.ImuSample(
-                        stamp, imu.accel_mps2[k], imu.gyro_rps[k])))
+            while motion and motion[0][0] <= epoch.stamp_ns:
+                _, topic, msg = motion.popleft()
+                (pub_odo if topic == 'odom/twist' else pub_imu).publish(msg)
             # Let the dead reckoning reach the epoch first: a receiver delivers an epoch
             # after its time of validity, so the IMU is already there in a live system.
             try:
@@ -205,21 +196,38 @@ def bench_latency(particles: int = 10_000, duration_s: float = 30.0, period_s: f
     finally:
         probe.close()
         rc = max(stop_process(proc, timeout_s=30.0) for proc in procs)
-    lat = [1e3 * (received[s] - sent[s]) for s in sorted(sent)][1:]  # 0: initialisation
-    # The leg through gnss_node (pseudoranges -> gnss/measurements, as this process sees it).
-    gnss_leg = [1e3 * (measured[s] - sent[s]) for s in sorted(sent)[1:] if s in measured]
     fusion = {}
     for m in diagnostics:
         for st in m.status:
             if st.name == 'fusion_node: status':
                 fusion = ma.status_values(st)
     return {'particles': particles, 'acquisition_particles': acquisition_particles,
-            'period_s': period_s,
-            'posteriors': posteriors, 'epochs': len(lat), 'median_ms': float(np.median(lat)),
-            'p90_ms': float(np.percentile(lat, 90)), 'max_ms': float(np.max(lat)),
+            'period_s': period_s, 'posteriors': posteriors,
+            **_latency_figures(sent, received, measured), 'node_processes': processes,
             'fusion_processing_p50_ms': float(fusion.get('processing_p50_ms', 'nan')),
-            'gnss_leg_median_ms': float(np.median(gnss_leg)) if gnss_leg else float('nan'),
-            'node_processes': processes, 'pipeline_exit_code': rc}
+            'pipeline_exit_code': rc}
+
+
+def _motion_messages(drive) -> list[tuple[int, str, object]]:
+    """The drive's odometry and IMU as ``(stamp_ns, topic, message)``, in stamp order."""
+    odo, imu = drive.odometry, drive.imu
+    out = [(int(t), 'odom/twist', ma.sample_to_twist(ma.TwistSample(
+        int(t), odo.speed_mps[k], odo.yaw_rate_rps[k], odo.speed_var[k], odo.yaw_rate_var[k])))
+        for k, t in enumerate(odo.stamp_ns)]
+    out += [(int(t), 'imu/data', ma.sample_to_imu(ma.ImuSample(
+        int(t), imu.accel_mps2[k], imu.gyro_rps[k]))) for k, t in enumerate(imu.stamp_ns)]
+    return sorted(out, key=lambda e: (e[0], e[1] != 'odom/twist'))
+
+
+def _latency_figures(sent: dict, received: dict, measured: dict) -> dict:
+    """Latency statistics [ms] of the epochs after the first (initialisation), and the
+    leg through gnss_node (pseudoranges -> gnss/measurements, as the probe sees it)."""
+    stamps = sorted(sent)[1:]
+    lat = [1e3 * (received[s] - sent[s]) for s in stamps]
+    gnss_leg = [1e3 * (measured[s] - sent[s]) for s in stamps if s in measured]
+    return {'epochs': len(lat), 'median_ms': float(np.median(lat)),
+            'p90_ms': float(np.percentile(lat, 90)), 'max_ms': float(np.max(lat)),
+            'gnss_leg_median_ms': float(np.median(gnss_leg)) if gnss_leg else float('nan')}
 
 
 # ============================================================================= camera
