@@ -213,11 +213,11 @@ def robust_log_likelihood(z: np.ndarray, log_sigma: np.ndarray, outlier_prob: fl
 # --------------------------------------------------------- motion (core.kernels.motion)
 def propagate(particles: np.ndarray, distance_m: np.ndarray, dyaw_rad: np.ndarray,
               dup_m: float, pos_var_m2: np.ndarray, yaw_var_rad2: float,
-              rng: np.random.Generator) -> np.ndarray:
+              noise: np.ndarray) -> np.ndarray:
     """(M, N, 4): the (N, 4) set moved by each of M motion samples along the mid-interval
-    heading, with per-particle process noise (float32 standard normal draws)."""
+    heading, with per-particle process noise (``noise``: (M, N, 4) float32 standard normal
+    draws)."""
     m, n = distance_m.shape[0], particles.shape[0]
-    noise = rng.standard_normal((m, n, STATE_DIM), dtype=np.float32)
     cos_n, sin_n = np.cos(particles[:, YAW]), np.sin(particles[:, YAW])
     half = 0.5 * dyaw_rad
     step_c = (distance_m * np.cos(half))[:, None]

@@ -41,14 +41,16 @@ def drive_epoch(k: int, rng) -> tuple:
 
 def oracle_choice(filt: ParticleFilter, epoch, motion, camera):
     """The motion samples, their joint log-weights and totals, by the numpy oracles, from
-    ``filt``'s state and random stream (``filt`` is a copy: its generator advances)."""
+    ``filt``'s state and random streams (``filt`` is a copy: its generators advance)."""
     cfg = filt.config
     distance, dyaw = motion_samples(motion, cfg.motion_sample_count,
                                     cfg.motion_perturbation_scale, filt.rng)
     pos_var = np.array([cfg.propagation_var_m2, cfg.propagation_var_m2,
                         cfg.vertical_propagation_var_m2]) * motion.dt_s
     priors = oracles.propagate(filt.particles, distance, dyaw, motion.dup_m, pos_var,
-                               cfg.yaw_propagation_var_rad2 * motion.dt_s, filt.rng)
+                               cfg.yaw_propagation_var_rad2 * motion.dt_s,
+                               filt.noise.take((distance.shape[0], filt.particles.shape[0],
+                                                4)))
     centre, cov = oracles.weighted_mean_cov(priors[0, :, :3], filt.log_w)
     check = gnss.check_epoch(epoch)
     prep = gnss.prepare_epoch(epoch.subset(check.keep), filt.frame, centre,

@@ -47,14 +47,19 @@ def test_motion_sample_zero_is_the_measurement(rng):
     assert np.std(distance[1:]) > 0.0
 
 
+def _normals(rng, shape):
+    return rng.standard_normal(shape, dtype=np.float32)
+
+
 def test_propagate_straight_and_turning_without_noise(rng):
     particles = np.array([[0.0, 0.0, 0.0, 0.0], [5.0, 5.0, 1.0, np.pi / 2]])
-    out = propagate(particles, np.array([10.0]), np.array([0.0]), 0.0, np.zeros(3), 0.0, rng)
+    out = propagate(particles, np.array([10.0]), np.array([0.0]), 0.0, np.zeros(3), 0.0,
+                    _normals(rng, (1, 2, 4)))
     np.testing.assert_allclose(out[0, 0, :3], [10.0, 0.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(out[0, 1, :3], [5.0, 15.0, 1.0], atol=1e-12)
     # A quarter turn over an arc: mid-heading chord of a constant turn rate.
     out = propagate(particles[:1], np.array([10.0]), np.array([np.pi / 2]), 0.0, np.zeros(3),
-                    0.0, rng)
+                    0.0, _normals(rng, (1, 1, 4)))
     np.testing.assert_allclose(out[0, 0, :2], 10.0 * np.array([np.cos(np.pi / 4),
                                                               np.sin(np.pi / 4)]))
     assert np.isclose(out[0, 0, 3], np.pi / 2)
@@ -63,7 +68,7 @@ def test_propagate_straight_and_turning_without_noise(rng):
 def test_propagate_noise_matches_variance(rng):
     particles = np.zeros((20000, 4))
     out = propagate(particles, np.zeros(2), np.zeros(2), 0.0, np.array([4.0, 4.0, 0.25]),
-                    0.01, rng)
+                    0.01, _normals(rng, (2, 20000, 4)))
     sd = out.reshape(-1, 4).std(axis=0)
     np.testing.assert_allclose(sd, [2.0, 2.0, 0.5, 0.1], rtol=0.03)
 

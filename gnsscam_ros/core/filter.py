@@ -24,7 +24,8 @@ from .fusion import MAX_CAMERA_MATCHES, CameraMeasurement, camera_fusion
 from .frames import LocalFrame
 from .gnss import LIKELIHOODS, PARTICLE_RAIM, ROBUST
 from .kernels import weights as weight_kernels
-from .particles import (POS, SYSTEMATIC, YAW, MotionIncrement,
+from .noise import ProcessNoise
+from .particles import (POS, STATE_DIM, SYSTEMATIC, YAW, MotionIncrement,
                         motion_samples, normalize_log_weights, propagate, weighted_mean_cov)
 from .snapshot import solve_snapshot
 from .types import GnssEpoch
@@ -140,6 +141,8 @@ class ParticleFilter:
         self.config = config                            # builds self.likelihood
         self.frame = frame
         self.rng = rng if rng is not None else np.random.default_rng()
+        # The process noise has a stream of its own, drawn an epoch ahead (core.noise).
+        self.noise = ProcessNoise(self.rng.spawn(1)[0])
         self.particles: np.ndarray | None = None        # (N, 4) chosen set
         self.log_w: np.ndarray | None = None            # (N,)
         self.posteriors: np.ndarray | None = None       # (S, N, 4) motion samples, last epoch
@@ -293,7 +296,9 @@ class ParticleFilter:
                                      cfg.vertical_propagation_var_m2]) * dt_s
                            + np.array([gap_m2, gap_m2, 0.0]),
                            cfg.yaw_propagation_var_rad2 * dt_s
-                           + (cfg.max_yaw_rate_rps * motion.unknown_s) ** 2, self.rng)
+                           + (cfg.max_yaw_rate_rps * motion.unknown_s) ** 2,
+                           self.noise.take((distance.shape[0], self.particles.shape[0],
+                                            STATE_DIM)))
         self._motion_unknown_s = float(motion.unknown_s)
         if motion.unknown_s * cfg.max_yaw_rate_rps > HEADING_LOST_RAD:
             # Without dead reckoning the heading drifts by up to max_yaw_rate_rps: beyond

@@ -149,7 +149,7 @@ def motion_samples(motion: MotionIncrement, n_samples: int, scale: float,
 
 def propagate(particles: np.ndarray, distance_m: np.ndarray, dyaw_rad: np.ndarray,
               dup_m: float, pos_var_m2: np.ndarray, yaw_var_rad2: float,
-              rng: np.random.Generator) -> np.ndarray:
+              noise: np.ndarray) -> np.ndarray:
     """Move one particle set by each of M motion samples, with per-particle process noise.
 
     The position advances along the mid-interval heading (second-order accurate for a
@@ -162,14 +162,16 @@ def propagate(particles: np.ndarray, distance_m: np.ndarray, dyaw_rad: np.ndarra
         dup_m: Height change [m].
         pos_var_m2: (3,) east, north, up position noise variances for this interval [m^2].
         yaw_var_rad2: Heading noise variance for this interval [rad^2].
-        rng: Random generator.
+        noise: (M, N, 4) float32 standard normal draws (:class:`.noise.ProcessNoise`;
+            single precision is ample for process noise and twice as fast to draw).
 
     Returns:
         (M, N, 4) propagated sets, one per motion sample.
     """
     m, n = distance_m.shape[0], particles.shape[0]
-    # Single-precision draws are twice as fast and ample for process noise.
-    noise = rng.standard_normal((m, n, STATE_DIM), dtype=np.float32)
+    if noise.shape != (m, n, STATE_DIM) or noise.dtype != np.float32:
+        raise ValueError(f'noise of shape {noise.shape} ({noise.dtype}), expected '
+                         f'{(m, n, STATE_DIM)} float32')
     out = np.empty((m, n, STATE_DIM))
     motion_kernels.propagate_sets(np.ascontiguousarray(particles, dtype=float),
                                   np.asarray(distance_m, dtype=float),

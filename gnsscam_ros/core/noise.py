@@ -1,0 +1,83 @@
+"""Process noise drawn one epoch ahead, off the epoch's critical path.
+
+The per-particle process noise is the largest random draw of an epoch (M x N x 4 standard
+normals: 400,000 at N = 10,000, M = 10, several milliseconds) and depends on nothing the
+epoch measures. :class:`ProcessNoise` draws it from a stream of its own, one block ahead:
+each :meth:`ProcessNoise.take` hands out the block drawn after the previous one and starts
+drawing the next on a worker thread (numpy releases the interpreter lock while it fills
+an array), so a node's epoch finds its noise ready and the draw runs while the node waits
+for the next epoch (or on another core).
+
+The values never depend on timing or threads: the stream is consumed in the same order
+either way — one block of the requested shape per ``take``, the next block drawn in the
+shape of the last one asked for; a prefetched block of another shape (the particle count
+changed) is discarded and a block of the new shape drawn in its place. Small blocks are
+drawn on the calling thread (a thread start would cost more than the draw).
+"""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+#: Blocks of at least this many values are drawn on a worker thread.
+THREADED_MIN_VALUES = 65_536
+
+
+class ProcessNoise:
+    """Float32 standard normal blocks from ``rng``, each drawn one ``take`` ahead.
+
+    Args:
+        rng: The noise stream (used by nothing else).
+    """
+
+    def __init__(self, rng: np.random.Generator):
+        self.rng = rng
+        self._next: np.ndarray | None = None
+        self._worker: threading.Thread | None = None
+        self._failure: BaseException | None = None
+
+    def take(self, shape: tuple[int, ...]) -> np.ndarray:
+        """The next block of standard normals of ``shape`` (float32, owned by the caller)."""
+        shape = tuple(int(s) for s in shape)
+        self._wait()
+        block, self._next = self._next, None
+        if block is None or block.shape != shape:
+            block = self._draw(shape)
+        self._draw_ahead(shape)
+        return block
+
+    def _draw(self, shape: tuple[int, ...]) -> np.ndarray:
+        return self.rng.standard_normal(shape, dtype=np.float32)
+
+    def _draw_ahead(self, shape: tuple[int, ...]) -> None:
+        if int(np.prod(shape)) < THREADED_MIN_VALUES:
+            self._next = self._draw(shape)
+            return
+
+        def fill() -> None:
+            try:
+                self._next = self._draw(shape)
+            except BaseException as err:    # noqa: BLE001 - raised again in take()
+                self._failure = err
+
+        self._worker = threading.Thread(target=fill, name='process-noise', daemon=True)
+        self._worker.start()
+
+    def _wait(self) -> None:
+        if self._worker is not None:
+            self._worker.join()
+            self._worker = None
+        if self._failure is not None:
+            failure, self._failure = self._failure, None
+            raise failure
+
+    # A filter is copied (tests compare it with a copy of itself) and handed between
+    # processes: the block being drawn is part of the state, the thread is not.
+    def __getstate__(self) -> dict:
+        self._wait()
+        return {'rng': self.rng, 'next': self._next}
+
+    def __setstate__(self, state: dict) -> None:
+        self.rng, self._next = state['rng'], state['next']
+        self._worker = self._failure = None

@@ -1,0 +1,51 @@
+"""Process noise drawn one epoch ahead: the values are those of the stream drawn in order,
+whatever the threads did, and a copied filter draws what the original draws."""
+import copy
+
+import numpy as np
+import pytest
+
+from gnsscam_ros.core.noise import THREADED_MIN_VALUES, ProcessNoise
+
+SMALL = (2, 10, 4)
+LARGE = (10, THREADED_MIN_VALUES // 10, 4)       # drawn on the worker thread
+LARGER = (10, THREADED_MIN_VALUES // 5, 4)
+
+
+def _stream(seed: int, shapes: list) -> list:
+    rng = np.random.default_rng(seed)
+    return [rng.standard_normal(s, dtype=np.float32) for s in shapes]
+
+
+@pytest.mark.parametrize('a, b', [(SMALL, (3, 10, 4)), (LARGE, LARGER), (SMALL, LARGE)])
+def test_blocks_are_the_stream_in_order_and_a_new_shape_discards_the_block_ahead(a, b):
+    noise = ProcessNoise(np.random.default_rng(4))
+    got = [noise.take(s) for s in (a, a, b, b, a)]
+    # Drawn: a, a, (a ahead: discarded), b, b, (b ahead: discarded), a.
+    expected = _stream(4, [a, a, a, b, b, b, a])
+    for block, want in zip(got, [expected[i] for i in (0, 1, 3, 4, 6)]):
+        assert block.dtype == np.float32
+        np.testing.assert_array_equal(block, want)
+
+
+def test_a_copy_draws_what_the_original_draws():
+    noise = ProcessNoise(np.random.default_rng(5))
+    noise.take(LARGE)                       # a block is being drawn ahead now
+    twin = copy.deepcopy(noise)
+    np.testing.assert_array_equal(twin.take(LARGE), noise.take(LARGE))
+    np.testing.assert_array_equal(twin.take(SMALL), noise.take(SMALL))
+
+
+def test_a_failed_draw_ahead_is_raised_by_the_next_take():
+    noise = ProcessNoise(np.random.default_rng(6))
+    noise.take(LARGE)
+    noise._wait()
+    noise._next = None
+
+    def broken(shape):
+        raise MemoryError('no room for the block')
+
+    noise._draw = broken
+    noise._draw_ahead(LARGE)
+    with pytest.raises(MemoryError, match='no room'):
+        noise.take(LARGE)
