@@ -198,3 +198,37 @@ def test_camera_node_gives_back_the_memory_of_a_refused_large_image(tmp_path):
     text = (tmp_path / 'camera_node.log').read_text()
     assert rc == 0, text
     assert 'XMLPARSER' not in text, text        # Fast DDS read the profile without error
+
+
+_EPOCHS = '''
+import resource, sys
+import numpy as np
+from gnsscam_ros.nodes.memory import keep_epoch_memory
+kept = keep_epoch_memory() if sys.argv[1] == 'kept' else None
+def epoch():
+    # The propagated sets at N = 10,000, M = 10 and two temporaries of their size.
+    sets = np.empty((10, 10_000, 4))
+    sets.fill(1.0)
+    moved = sets + 1.0
+    scaled = moved * 2.0
+    return float(scaled[0, 0, 0])
+epoch()
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(20):
+    epoch()
+print(kept, resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+'''
+
+
+def test_epoch_arrays_stay_in_the_process_instead_of_faulting_in_every_epoch():
+    def faults(mode: str) -> tuple[str, int]:
+        out = subprocess.run([sys.executable, '-c', _EPOCHS, mode], capture_output=True,
+                             text=True, check=True).stdout.split()
+        return out[0], int(out[1])
+
+    kept, with_setting = faults('kept')
+    _, without = faults('default')
+    assert kept == 'True'
+    # glibc's default gives the freed 9.6 MB back and faults them in again every epoch.
+    assert without > 20 * 1000
+    assert with_setting < 0.05 * without

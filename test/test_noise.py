@@ -20,12 +20,18 @@ def _stream(seed: int, shapes: list) -> list:
 @pytest.mark.parametrize('a, b', [(SMALL, (3, 10, 4)), (LARGE, LARGER), (SMALL, LARGE)])
 def test_blocks_are_the_stream_in_order_and_a_new_shape_discards_the_block_ahead(a, b):
     noise = ProcessNoise(np.random.default_rng(4))
-    got = [noise.take(s) for s in (a, a, b, b, a)]
+    got = [noise.take(s).copy() for s in (a, a, b, b, a)]     # each valid until the next
     # Drawn: a, a, (a ahead: discarded), b, b, (b ahead: discarded), a.
     expected = _stream(4, [a, a, a, b, b, b, a])
     for block, want in zip(got, [expected[i] for i in (0, 1, 3, 4, 6)]):
         assert block.dtype == np.float32
         np.testing.assert_array_equal(block, want)
+
+
+def test_two_buffers_alternate():
+    noise = ProcessNoise(np.random.default_rng(8))
+    first, second, third = (noise.take(LARGE) for _ in range(3))
+    assert first is third and first is not second
 
 
 def test_a_copy_draws_what_the_original_draws():
@@ -42,10 +48,10 @@ def test_a_failed_draw_ahead_is_raised_by_the_next_take():
     noise._wait()
     noise._next = None
 
-    def broken(shape):
+    def broken(shape, into):
         raise MemoryError('no room for the block')
 
     noise._draw = broken
-    noise._draw_ahead(LARGE)
+    noise._draw_ahead(LARGE, None)
     with pytest.raises(MemoryError, match='no room'):
         noise.take(LARGE)

@@ -34,30 +34,37 @@ class ProcessNoise:
     def __init__(self, rng: np.random.Generator):
         self.rng = rng
         self._next: np.ndarray | None = None
+        # The block handed out last: its memory takes the block after next (two buffers
+        # alternate, so no epoch pays for fresh pages).
+        self._handed_out: np.ndarray | None = None
         self._worker: threading.Thread | None = None
         self._failure: BaseException | None = None
 
     def take(self, shape: tuple[int, ...]) -> np.ndarray:
-        """The next block of standard normals of ``shape`` (float32, owned by the caller)."""
+        """The next block of standard normals of ``shape`` (float32). It is valid until
+        the next ``take``, which reuses its memory."""
         shape = tuple(int(s) for s in shape)
         self._wait()
         block, self._next = self._next, None
         if block is None or block.shape != shape:
-            block = self._draw(shape)
-        self._draw_ahead(shape)
+            block = self._draw(shape, None)
+        free, self._handed_out = self._handed_out, block
+        self._draw_ahead(shape, free)
         return block
 
-    def _draw(self, shape: tuple[int, ...]) -> np.ndarray:
-        return self.rng.standard_normal(shape, dtype=np.float32)
+    def _draw(self, shape: tuple[int, ...], into: np.ndarray | None) -> np.ndarray:
+        if into is None or into.shape != shape:
+            return self.rng.standard_normal(shape, dtype=np.float32)
+        return self.rng.standard_normal(dtype=np.float32, out=into)
 
-    def _draw_ahead(self, shape: tuple[int, ...]) -> None:
+    def _draw_ahead(self, shape: tuple[int, ...], into: np.ndarray | None) -> None:
         if int(np.prod(shape)) < THREADED_MIN_VALUES:
-            self._next = self._draw(shape)
+            self._next = self._draw(shape, into)
             return
 
         def fill() -> None:
             try:
-                self._next = self._draw(shape)
+                self._next = self._draw(shape, into)
             except BaseException as err:    # noqa: BLE001 - raised again in take()
                 self._failure = err
 
@@ -80,4 +87,4 @@ class ProcessNoise:
 
     def __setstate__(self, state: dict) -> None:
         self.rng, self._next = state['rng'], state['next']
-        self._worker = self._failure = None
+        self._handed_out = self._worker = self._failure = None

@@ -82,6 +82,7 @@ from msg_adapters.geometry import UNESTIMATED_VAR
 from msg_adapters.wire import EARTH_FRAME
 
 from .common import BIG, GnssCamNode, ParameterError, latched_qos, reliable_qos
+from .memory import keep_epoch_memory
 from .runtime import run_node
 
 #: Engine verdict levels -> DiagnosticStatus levels of integrity_risk.
@@ -577,6 +578,7 @@ class FusionNode(GnssCamNode):
 
 def main(args=None) -> int:
     """``ros2 run gnsscam_ros fusion_node``; the exit code (module docstring)."""
+    keep_epoch_memory()
     return run_node(FusionNode, args)
 
 
