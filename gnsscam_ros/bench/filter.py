@@ -29,7 +29,6 @@ from ..core.warmup import warm_up_kernels
 from ..datasets.emulated.drive import make_emulated_drive
 from ..io.atomic import OutputExistsError, write_json_atomic
 from ..io.tables import format_table
-from ..nodes.memory import keep_epoch_memory
 
 DEFAULT_COUNTS = (120, 1000, 10000, 100000)
 #: Posteriors M of the rows (the issue's yardstick: M = 10) and camera matches per epoch.
@@ -213,13 +212,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f'gnsscam_bench: {args.json} exists; pass --force to replace it',
               file=sys.stderr)
         return 4
-    # Freed epoch arrays stay in the process, as in fusion_node (nodes/memory.py); the bare
-    # arithmetic's temporaries get the same.
-    allocator_kept = keep_epoch_memory()
+    # glibc's default allocator settings for both the epoch and the bare arithmetic (the
+    # yardstick is what it was; fusion_node keeps freed epoch arrays: nodes/memory.py).
     result = bench(args.particles, args.posteriors, args.likelihood,
                    bias_model=args.bias_model, camera_matches=args.camera_matches,
                    default_config=not args.no_default_config)
-    result['epoch_memory_kept'] = allocator_kept
     print(f"kernels ready in {result['kernel_warm_up_s']:.2f} s (compiled or loaded from "
           'the cache)')
     print(f"M = {result['n_posteriors']} posteriors, bias model {result['bias_model']}; "

@@ -29,12 +29,13 @@ frees goes back at once; ``malloc_trim(0)`` after the garbage (with the profile)
 propagated sets: 3.2 MB at N = 10,000 x M = 10) and frees them when it ends; glibc hands
 freed memory at the top of the heap back to the kernel (trim threshold), so the next epoch
 faults fresh zeroed pages in again: ~700 page faults per epoch at N = 10,000, 3,400 at
-100,000. :func:`keep_epoch_memory` (fusion_node's start-up, and ``gnsscam_bench``, which
-times the epoch as fusion_node runs it) keeps blocks up to 32 MB (glibc's largest mmap
-threshold) on the heap and the freed heap up to 256 MB with the process: one page fault
-per epoch afterwards. Larger blocks (an 8000x8000 image) are still mapped and unmapped on
-their own, so a big message still goes back at once; the resident memory of fusion_node
-stays at the high-water mark of its epochs (tens of MB at N = 10,000).
+100,000. :func:`keep_epoch_memory` (fusion_node's start-up) keeps blocks up to 32 MB
+(glibc's largest mmap threshold) on the heap and the freed heap up to 256 MB with the
+process: one page fault per epoch afterwards. Larger blocks (an 8000x8000 image) are
+still mapped and unmapped on their own, so a big message still goes back at once; the
+resident memory of fusion_node stays at the high-water mark of its epochs (tens of MB at
+N = 10,000). (``gnsscam_bench`` keeps glibc's defaults: its yardstick, plain numpy, gains
+even more from the setting than the epoch.)
 
 **Discovery.** The same profile makes each participant announce itself every 0.5 s
 instead of Fast DDS's 3 s: a node that restarts meets the running ones at their next
