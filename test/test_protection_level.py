@@ -188,6 +188,26 @@ def test_biases_are_gauss_markov_with_the_model_size():
     assert wider.sigma_m(cn0[:1], 100.0)[0] == pytest.approx(20.0 * np.sqrt(1.01))
 
 
+def test_all_satellites_at_once_are_the_one_by_one_advance_bit_for_bit():
+    """New satellites, ones seen before, a repeated stamp, one back after a gap: the
+    vectorised advance gives the values of the one-by-one rule (which an epoch listing a
+    satellite twice still takes)."""
+    model = BiasModel(2.0, 0.2, 40.0, 20.0)
+    fast = BiasHypotheses(model, 7, np.random.default_rng(3))
+    slow = BiasHypotheses(model, 7, np.random.default_rng(3))
+    rng = np.random.default_rng(4)
+    for stamp_s, keys in [(0.0, [11, 12, 13]), (1.0, [12, 13, 14]), (1.0, [12, 15]),
+                          (2.5, [11, 12, 13, 14, 15]), (400.0, [11, 16])]:
+        keys = np.array(keys)
+        cn0 = rng.uniform(25.0, 50.0, keys.size)
+        stamp = int(stamp_s * SECOND) + 1_718_000_000 * SECOND
+        got = fast.biases_at(stamp, keys, cn0)
+        sigma = model.sigma_m(cn0, 0.0)
+        want = slow._advance_one_by_one(stamp, keys.tolist(), sigma,
+                                        slow.rng.standard_normal((keys.size, 7)))
+        np.testing.assert_array_equal(got, want)
+
+
 # ============================================================ motion loss and resets
 def state(t_s, x, var=None):
     return DeadReckoningState(int(t_s * SECOND), x, 0.0, 0.0, 8.0, 0.0, 0.01, 1e-6,

@@ -130,19 +130,27 @@ class BiasHypotheses:
         rms = 0.0 if self.residual_var_m2 is None else float(np.sqrt(self.residual_var_m2))
         sigma = self.model.sigma_m(cn0_dbhz, rms)
         tau = self.model.correlation_time_s
-        out = np.empty((keys.shape[0], self.n))
         # One call: the same stream as one draw of M per satellite, in order.
         draws = self.rng.standard_normal((keys.shape[0], self.n))
-        for i, key in enumerate(keys.tolist()):
-            draw = draws[i]
-            known = self._biases.get(key)
-            if known is None or stamp_ns <= known[0]:
-                bias = sigma[i] * draw if known is None else known[1]
-            else:
-                phi = np.exp(-(stamp_ns - known[0]) * 1e-9 / tau) if tau > 0 else 0.0
-                bias = phi * known[1] + np.sqrt(1.0 - phi * phi) * sigma[i] * draw
-            self._biases[key] = (stamp_ns, bias)
-            out[i] = bias
+        key_list = keys.tolist()
+        known = [self._biases.get(key) for key in key_list]
+        if len(set(key_list)) < len(key_list):
+            out = self._advance_one_by_one(stamp_ns, key_list, sigma, draws)
+        else:
+            # Every satellite at once: a new one (no stamp) draws from the stationary
+            # distribution (phi = 0), one at or after this stamp keeps its bias (phi = 1).
+            seen = np.array([k is not None for k in known])
+            then = np.array([k[0] if k is not None else stamp_ns for k in known],
+                            dtype=np.int64)
+            previous = np.array([k[1] if k is not None else np.zeros(self.n) for k in known])
+            dt_s = (stamp_ns - then) * 1e-9
+            phi = (np.exp(-np.maximum(dt_s, 0.0) / tau) if tau > 0
+                   else np.zeros_like(dt_s))
+            phi = np.where(~seen, 0.0, np.where(dt_s <= 0.0, 1.0, phi))
+            out = (phi[:, None] * previous
+                   + (np.sqrt(1.0 - phi * phi) * sigma)[:, None] * draws)
+            for key, row in zip(key_list, out):
+                self._biases[key] = (stamp_ns, row)
         horizon = stamp_ns - int(FORGET_AFTER_TAU * tau * 1e9)
         for key in [k for k, (t, _) in self._biases.items() if t < horizon]:
             del self._biases[key]
@@ -151,6 +159,23 @@ class BiasHypotheses:
             # The satellites seen longest ago go first (those in view now are the newest).
             for key in sorted(self._biases, key=lambda k: self._biases[k][0])[:excess]:
                 del self._biases[key]
+        return out
+
+    def _advance_one_by_one(self, stamp_ns: int, keys: list, sigma: np.ndarray,
+                            draws: np.ndarray) -> np.ndarray:
+        """:meth:`biases_at` for an epoch that lists a satellite twice (the second sees
+        the first's bias)."""
+        tau = self.model.correlation_time_s
+        out = np.empty((len(keys), self.n))
+        for i, key in enumerate(keys):
+            known = self._biases.get(key)
+            if known is None or stamp_ns <= known[0]:
+                bias = sigma[i] * draws[i] if known is None else known[1]
+            else:
+                phi = np.exp(-(stamp_ns - known[0]) * 1e-9 / tau) if tau > 0 else 0.0
+                bias = phi * known[1] + np.sqrt(1.0 - phi * phi) * sigma[i] * draws[i]
+            self._biases[key] = (stamp_ns, bias)
+            out[i] = bias
         return out
 
     def observe_residuals(self, stamp_ns: int, residual_m: np.ndarray, inlier: np.ndarray,
