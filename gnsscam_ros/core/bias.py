@@ -149,7 +149,8 @@ class BiasHypotheses:
             phi = np.where(~seen, 0.0, np.where(dt_s <= 0.0, 1.0, phi))
             out = (phi[:, None] * previous
                    + (np.sqrt(1.0 - phi * phi) * sigma)[:, None] * draws)
-            for key, row in zip(key_list, out):
+            # Rows of a copy: the caller may change what it is handed.
+            for key, row in zip(key_list, out.copy()):
                 self._biases[key] = (stamp_ns, row)
         horizon = stamp_ns - int(FORGET_AFTER_TAU * tau * 1e9)
         for key in [k for k, (t, _) in self._biases.items() if t < horizon]:
