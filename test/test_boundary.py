@@ -45,6 +45,13 @@ def _refused(reason, parse, *args, **kwargs):
     return str(err.value)
 
 
+def _accepted_or_refused(reason, parse, msg):
+    """``parse(msg)`` succeeds when ``reason`` is None, else refuses it for ``reason``."""
+    if reason is None:
+        return parse(msg)
+    return _refused(reason, parse, msg)
+
+
 class _Untouchable:
     """A message whose arrays must not be read: the sizes are refused before."""
 
@@ -100,10 +107,7 @@ def test_every_input_parser_refuses_an_invalid_stamp(make, parse, sec, nanosec):
     (lim.MIN_SATELLITE_RADIUS_M * 0.999, 'range'), (lim.MAX_SATELLITE_RADIUS_M * 1.001, 'range')])
 def test_satellite_radius_limits(radius, reason):
     msg = ma.gnss_epoch_to_pointcloud2(_epoch(radius=radius))
-    if reason is None:
-        ma.pointcloud2_to_gnss_epoch(msg)
-    else:
-        _refused(reason, ma.pointcloud2_to_gnss_epoch, msg)
+    _accepted_or_refused(reason, ma.pointcloud2_to_gnss_epoch, msg)
 
 
 def test_one_satellite_coordinate_of_1e160_or_a_flipped_exponent_is_refused():
@@ -122,10 +126,7 @@ def test_one_satellite_coordinate_of_1e160_or_a_flipped_exponent_is_refused():
     (1e300, 'range')])
 def test_pseudorange_limits(pr, reason):
     msg = ma.gnss_epoch_to_pointcloud2(_epoch(pr=pr))
-    if reason is None:
-        ma.pointcloud2_to_gnss_epoch(msg)
-    else:
-        _refused(reason, ma.pointcloud2_to_gnss_epoch, msg)
+    _accepted_or_refused(reason, ma.pointcloud2_to_gnss_epoch, msg)
 
 
 def test_markers_of_a_missing_measurement_pass_to_the_core_checks_only_from_the_receiver():
@@ -156,10 +157,7 @@ def test_other_satellite_fields(field, value, reason):
     values = getattr(epoch, name).copy()
     values[1] = value
     msg = ma.gnss_epoch_to_pointcloud2(_with(epoch, **{name: values}))
-    if reason is None:
-        ma.pointcloud2_to_gnss_epoch(msg)
-    else:
-        _refused(reason, ma.pointcloud2_to_gnss_epoch, msg)
+    _accepted_or_refused(reason, ma.pointcloud2_to_gnss_epoch, msg)
 
 
 def test_checked_epochs_refuse_duplicates_and_unknown_systems_the_receiver_gets_them_dropped():
@@ -203,10 +201,7 @@ def test_satellite_count_is_refused_before_anything_is_decoded():
     ([0, np.nan, 0], [0, 0, 0], 'non_finite')])
 def test_imu_limits(accel, gyro, reason):
     msg = ma.sample_to_imu(ma.ImuSample(T0, np.array(accel, float), np.array(gyro, float)))
-    if reason is None:
-        ma.imu_to_sample(msg)
-    else:
-        _refused(reason, ma.imu_to_sample, msg)
+    _accepted_or_refused(reason, ma.imu_to_sample, msg)
 
 
 @pytest.mark.parametrize('speed, yaw_rate, var, reason', [
@@ -277,10 +272,7 @@ def _twist(**changes):
     ({'14': math.inf}, 'non_finite')])
 def test_every_twist_component_and_the_whole_covariance_are_checked(changes, reason):
     msg = _twist(**changes)
-    if reason is None:
-        ma.twist_to_sample(msg)
-    else:
-        _refused(reason, ma.twist_to_sample, msg)
+    _accepted_or_refused(reason, ma.twist_to_sample, msg)
 
 
 def _imu(**changes):
@@ -313,10 +305,7 @@ def _imu(**changes):
     ({'angular_velocity_covariance': (8, math.nan)}, 'non_finite')])
 def test_imu_covariances_and_a_reported_orientation_are_checked(changes, reason):
     msg = _imu(**changes)
-    if reason is None:
-        ma.imu_to_sample(msg)
-    else:
-        _refused(reason, ma.imu_to_sample, msg)
+    _accepted_or_refused(reason, ma.imu_to_sample, msg)
 
 
 def _odometry(**changes):
@@ -344,10 +333,7 @@ def _odometry(**changes):
     ({'child_frame_id': 'imu'}, 'frame')])
 def test_dead_reckoning_frames_quaternion_and_covariances(changes, reason):
     msg = _odometry(**changes)
-    if reason is None:
-        ma.odometry_to_dead_reckoning(msg)
-    else:
-        _refused(reason, ma.odometry_to_dead_reckoning, msg)
+    _accepted_or_refused(reason, ma.odometry_to_dead_reckoning, msg)
     # Other frames when the node is configured so; None takes any.
     moved = _odometry(**{'header.frame_id': 'odom_2', 'child_frame_id': 'car'})
     ma.odometry_to_dead_reckoning(moved, frame_id='odom_2', child_frame_id='car')
