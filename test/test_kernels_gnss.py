@@ -11,9 +11,11 @@ from dataclasses import replace
 import numpy as np
 import oracles
 import pytest
+from scipy.special import logsumexp
 from synthetic import FRAME, epoch_at, sky
 
 from gnsscam_ros.core import gnss
+from gnsscam_ros.core.kernels import gnss as gnss_kernels
 from gnsscam_ros.core.particles import propagate, weighted_mean_cov
 from gnsscam_ros.core.types import GLONASS, GPS
 
@@ -113,6 +115,21 @@ def test_particle_raim_joint_matches_the_oracle(case, evidence):
     np.testing.assert_allclose(lik.gamma, expected.gamma, atol=1e-9)
 
 
+@pytest.mark.parametrize('n', [1, 3, 4, 63, 64, 65, 517])
+def test_log_sum_exp_kernel_equals_scipy(n):
+    """Lengths around its four partial results and its blocks; values spread over 2,000
+    nats (most exponentials underflow), a -inf among them, and all -inf."""
+    rng = np.random.default_rng(n)
+    values = rng.uniform(-1000.0, 1000.0, n)
+    if n > 1:
+        values[n // 2] = -np.inf
+    expected = logsumexp(values)
+    assert gnss_kernels._log_sum_exp(values) == pytest.approx(expected, rel=1e-15, abs=1e-12)
+    shifted = values - values.max() - 0.5
+    assert gnss_kernels._log_sum_exp(shifted) == pytest.approx(logsumexp(shifted), abs=1e-14)
+    assert gnss_kernels._log_sum_exp(np.full(n, -np.inf)) == -np.inf
+
+
 def test_robust_inlier_shares_match_the_oracle(case):
     prep, sets, prior, clock_w, z = case
     probability, share = gnss.robust_inlier_shares(sets[1], prior, prep, clock_w, 0.3, 300.0)
@@ -129,7 +146,7 @@ def test_robust_inlier_shares_match_the_oracle(case):
 def test_robust_joint_keeps_a_tiny_outlier_floor_finite(single):
     # eps / range of 1e-12 over 64 satellites: the product of the floors (1e-768) would
     # underflow; the kernel takes a log per group of satellites instead (float32: a log
-    # per 2 satellites, each within a float32 ulp of ~55 nats: 1e-4 over the 32).
+    # per 3 satellites, of a product rounded to a few float32 ulp: 1e-4 over the 22).
     rng = np.random.default_rng(4)
     sky_64 = sky(64, seed=7)
     epoch = epoch_at(TRUTH_ENU, clock_m=0.0, sv_ecef=sky_64)

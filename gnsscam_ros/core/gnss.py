@@ -148,8 +148,10 @@ SINGLE_MAX_OFFSET_M = 1000.0
 #: Largest error of the second-order range expansion the float32 likelihood allows [m]
 #: (``|d|^3 / (2 rho0^2)``: at 2e7 m, offsets up to 2 km).
 SINGLE_EXPANSION_TOLERANCE_M = 1e-5
-#: Densities of the float32 likelihood stay within exp(+-80) (float32: 1e-38 to 3e38).
-SINGLE_LOG_RANGE = 80.0
+#: Products of densities of the float32 likelihood stay within exp(+-87): normal float32
+#: numbers (1.2e-38 = exp(-87.3) to 3.4e38 = exp(88.7)). Twelve satellites of the default
+#: model (densities down to the floor 1e-3 = exp(-6.9)) make one product, so one log.
+SINGLE_LOG_RANGE = 87.0
 
 
 @dataclass(frozen=True)

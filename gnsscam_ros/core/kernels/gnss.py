@@ -63,23 +63,50 @@ def _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems, xy
 @inline_kernel
 def _fold_logs(prod, log_sum, m):
     """Add the log of each particle's running product of densities to its sum and start
-    the product again (one log per group of satellites)."""
+    the product again (one log per group of satellites; a float32 product's log is taken
+    in float64, which adds no error to the product's own rounding)."""
     for b in range(m):
-        log_sum[b] += math.log(prod[b])
+        log_sum[b] += math.log(np.float64(prod[b]))
         prod[b] = 1.0
 
 
 @kernel
 def _log_sum_exp(values):
-    """``log sum exp(values)`` of a (N,) array, shifted by its maximum."""
-    top = -np.inf
-    for i in range(values.shape[0]):
-        top = max(top, values[i])
+    """``log sum exp(values)`` of a (N,) array, shifted by its maximum.
+
+    Written for speed (once per set, over N values): the maximum in four partial results
+    (a loop into one scalar waits on each comparison), the exponentials a block at a time
+    into a buffer (a loop that only stores vectorises, with ``elementary.exp`` in it;
+    libm's exp is a call per element), the block summed in four partial sums."""
+    n = values.shape[0]
+    stop = n - n % 4
+    m0 = m1 = m2 = m3 = -np.inf
+    for i in range(0, stop, 4):
+        m0 = max(m0, values[i])
+        m1 = max(m1, values[i + 1])
+        m2 = max(m2, values[i + 2])
+        m3 = max(m3, values[i + 3])
+    for i in range(stop, n):
+        m0 = max(m0, values[i])
+    top = max(max(m0, m1), max(m2, m3))
     if not top > -np.inf:
         return top
+    buffer = np.empty(BLOCK)
     acc = 0.0
-    for i in range(values.shape[0]):
-        acc += math.exp(values[i] - top)
+    for start in range(0, n, BLOCK):
+        m = min(BLOCK, n - start)
+        for b in range(m):
+            buffer[b] = elementary.exp(values[start + b] - top)
+        s0 = s1 = s2 = s3 = 0.0
+        quad = m - m % 4
+        for b in range(0, quad, 4):
+            s0 += buffer[b]
+            s1 += buffer[b + 1]
+            s2 += buffer[b + 2]
+            s3 += buffer[b + 3]
+        for b in range(quad, m):
+            s0 += buffer[b]
+        acc += (s0 + s1) + (s2 + s3)
     return top + math.log(acc)
 
 
@@ -157,7 +184,8 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
                 if count == group:
                     _fold_logs(prod, log_sum, m)
                     count = 0
-            _fold_logs(prod, log_sum, m)
+            if count > 0:
+                _fold_logs(prod, log_sum, m)
             for b in range(m):
                 joint[s, start + b] = prior_log_w[start + b] + evidence * log_sum[b]
         total[s] = _log_sum_exp(joint[s])
@@ -267,7 +295,8 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
                 if count == group:
                     _fold_logs(prod, log_sum, m)
                     count = 0
-            _fold_logs(prod, log_sum, m)
+            if count > 0:
+                _fold_logs(prod, log_sum, m)
             for b in range(m):
                 joint[s, start + b] = prior_log_w[start + b] + evidence * log_sum[b]
         total[s] = _log_sum_exp(joint[s])
@@ -367,25 +396,32 @@ def robust_inlier_shares(points, log_w, sv, pr, inv_sigma, sys_index, clock_w, n
     xyz = np.empty((3, BLOCK))
     clock = np.empty((max(n_systems, 1), BLOCK))
     w = np.empty(BLOCK)
-    weighted = np.zeros(k)
-    share = np.zeros(k)
+    # Sums per satellite and lane of a block, added up once at the end: a loop that adds
+    # into one scalar stays scalar (each add waits for the previous one), this one
+    # vectorises with the exponential in it.
+    lanes_w = np.zeros((k, BLOCK))
+    lanes_p = np.zeros((k, BLOCK))
     for start in range(0, n, BLOCK):
         m = min(BLOCK, n - start)
         _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems, xyz, r,
                          clock)
         for b in range(m):
-            w[b] = math.exp(log_w[start + b])
+            w[b] = elementary.exp(log_w[start + b])
         for j in range(k):
             ls, isg = log_scale[j], inv_sigma[j]
-            sw, sp = 0.0, 0.0
+            r_j, sum_w, sum_p = r[j], lanes_w[j], lanes_p[j]
             for b in range(m):
-                zj = r[j, b] * isg
+                zj = r_j[b] * isg
                 dens = elementary.exp(ls - 0.5 * zj * zj)
                 p = dens / (dens + floor)
-                sw += w[b] * p
-                sp += p
-            weighted[j] += sw
-            share[j] += sp
+                sum_w[b] += w[b] * p
+                sum_p[b] += p
+    weighted = np.zeros(k)
+    share = np.zeros(k)
+    for j in range(k):
+        for b in range(BLOCK):
+            weighted[j] += lanes_w[j, b]
+            share[j] += lanes_p[j, b]
     total = share.sum()
     for j in range(k):
         share[j] /= total
