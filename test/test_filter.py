@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 from synthetic import FRAME, epoch_at, sky
 
+from gnsscam_ros.core import gnss
 from gnsscam_ros.core.filter import (PROPAGATED, REJECTED, UPDATED, WAITING, FilterConfig,
                                      ParticleFilter)
 from gnsscam_ros.core.particles import MotionIncrement
@@ -130,6 +131,16 @@ def test_invalid_configuration_is_refused_with_reasons():
     with pytest.raises(ValueError, match='likelihood'):
         filt.set_parameters(likelihood='magic')
     assert filt.config.likelihood == 'robust'
+
+
+def test_likelihood_parameters_changed_between_epochs_take_effect():
+    filt = ParticleFilter(config(), frame=FRAME, rng=np.random.default_rng(7))
+    drive_east(filt, 3)
+    filt.set_parameters(likelihood='particle_raim', dirichlet_alpha=1.5)
+    assert filt.likelihood == gnss.ParticleRaimLikelihood(1.5)
+    filt.set_parameters(likelihood='robust', outlier_prob=0.1)
+    assert filt.likelihood == gnss.RobustLikelihood(0.1, 300.0)
+    assert drive_east(filt, 2, start=3)[-1].status == UPDATED
 
 
 def test_same_seed_same_result():
