@@ -223,9 +223,6 @@ class ParticleFilter:
     def set_parameters(self, **changes) -> None:
         """Change parameters between epochs (validated; the old ones stay on error)."""
         new = replace(self.config, **changes)
-        if new.gnss != self.config.gnss:
-            # The likelihood object holds its parameters.
-            self.likelihood = gnss.make_likelihood(new.gnss)
         if (new.bias_hypotheses.model != self.config.bias_hypotheses.model
                 or new.n_posteriors != self.config.n_posteriors):
             self.bias = BiasHypotheses(new.bias_hypotheses.model, new.n_posteriors, self.rng)
