@@ -13,6 +13,9 @@ polynomial, within 2 float32 ulp of the exact value; 0 below ``exp(-87)``, where
 results stop being normal numbers, inf from ``exp(88)``): twice the SIMD lanes of
 :func:`exp`.
 
+:func:`largest` is the maximum of an array in four partial results (a loop into one
+scalar waits on each comparison; these chains run side by side).
+
 Inlined helpers are compiled into the kernels that call them, and numba's disk cache of a
 kernel depends on its own file only: the package drops cached kernels older than any of
 its sources at import (``kernels.drop_stale_caches``), so a change here recompiles them.
@@ -128,3 +131,19 @@ def exp32(x):
     out = out if x > _F32_LOWEST else _F32_ZERO
     out = out if x < _F32_HIGHEST else _F32_INF
     return out if x == x else x
+
+
+@inline_kernel
+def largest(values, initial):
+    """The largest of ``initial`` and the (N,) ``values``, in four partial maxima."""
+    n = values.shape[0]
+    stop = n - n % 4
+    m0 = m1 = m2 = m3 = initial
+    for i in range(0, stop, 4):
+        m0 = max(m0, values[i])
+        m1 = max(m1, values[i + 1])
+        m2 = max(m2, values[i + 2])
+        m3 = max(m3, values[i + 3])
+    for i in range(stop, n):
+        m0 = max(m0, values[i])
+    return max(max(m0, m1), max(m2, m3))

@@ -75,20 +75,11 @@ def _log_sum_exp(values):
     """``log sum exp(values)`` of a (N,) array, shifted by its maximum.
 
     Written for speed (once per set, over N values): the maximum in four partial results
-    (a loop into one scalar waits on each comparison), the exponentials a block at a time
+    (``elementary.largest``), the exponentials a block at a time
     into a buffer (a loop that only stores vectorises, with ``elementary.exp`` in it;
     libm's exp is a call per element), the block summed in four partial sums."""
     n = values.shape[0]
-    stop = n - n % 4
-    m0 = m1 = m2 = m3 = -np.inf
-    for i in range(0, stop, 4):
-        m0 = max(m0, values[i])
-        m1 = max(m1, values[i + 1])
-        m2 = max(m2, values[i + 2])
-        m3 = max(m3, values[i + 3])
-    for i in range(stop, n):
-        m0 = max(m0, values[i])
-    top = max(max(m0, m1), max(m2, m3))
+    top = elementary.largest(values, -np.inf)
     if not top > -np.inf:
         return top
     buffer = np.empty(BLOCK)

@@ -25,7 +25,7 @@ import math
 import numpy as np
 
 from . import kernel
-from .elementary import exp
+from .elementary import exp, largest
 
 #: Bins of the tail-mass histogram of the protection level.
 LEVEL_BINS = 2048
@@ -423,15 +423,7 @@ def hazard_and_level(x, y, z, w, index, offsets, centre, dims, radii, q_mass, wa
                 p0 += wr[i] * (row[i] >= r)
             total[a] += (p0 + p1) + (p2 + p3)
         if want_level:
-            m0 = m1 = m2 = m3 = 0.0
-            for i in range(0, stop, 4):
-                m0 = max(m0, row[i])
-                m1 = max(m1, row[i + 1])
-                m2 = max(m2, row[i + 2])
-                m3 = max(m3, row[i + 3])
-            for i in range(stop, n):
-                m0 = max(m0, row[i])
-            d_max = max(d_max, max(max(m0, m1), max(m2, m3)))
+            d_max = max(d_max, largest(row, 0.0))
     for a in range(n_radii):
         masses[a] = min(max(total[a] / m, 0.0), 1.0)
     if not want_level:
