@@ -129,7 +129,7 @@ def robust_scale(sigma_m: np.ndarray, outlier_prob: float, outlier_range_m: floa
     kernels take it: ``(log scale_k (k,), floor, group)`` with
     ``scale_k = (1 - eps) / (sigma_k sqrt(2 pi))``, ``floor = eps / range_out`` and
     ``group`` the number of densities whose product stays within ``exp(+-log_range)``
-    (the kernel takes one log per group; 690: float64, 80: float32); 0 when a single
+    (the kernel takes one log per group; 690: float64, 87: float32); 0 when a single
     density may already lie outside it (a zero floor)."""
     log_scale = np.log1p(-outlier_prob) - np.log(sigma_m) - LOG_SQRT_2PI
     floor = outlier_prob / outlier_range_m

@@ -75,9 +75,9 @@ def _log_sum_exp(values):
     """``log sum exp(values)`` of a (N,) array, shifted by its maximum.
 
     Written for speed (once per set, over N values): the maximum in four partial results
-    (``elementary.largest``), the exponentials a block at a time
-    into a buffer (a loop that only stores vectorises, with ``elementary.exp`` in it;
-    libm's exp is a call per element), the block summed in four partial sums."""
+    (``elementary.largest``); the exponentials a block at a time into a buffer (a loop
+    that only stores vectorises, with ``elementary.exp`` in it, where libm's exp would be
+    a call per element); each block summed in four partial sums."""
     n = values.shape[0]
     top = elementary.largest(values, -np.inf)
     if not top > -np.inf:
