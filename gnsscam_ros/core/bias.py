@@ -133,10 +133,10 @@ class BiasHypotheses:
         # One call: the same stream as one draw of M per satellite, in order.
         draws = self.rng.standard_normal((keys.shape[0], self.n))
         key_list = keys.tolist()
-        known = [self._biases.get(key) for key in key_list]
         if len(set(key_list)) < len(key_list):
             out = self._advance_one_by_one(stamp_ns, key_list, sigma, draws)
         else:
+            known = [self._biases.get(key) for key in key_list]
             # Every satellite at once: a new one (no stamp) draws from the stationary
             # distribution (phi = 0), one at or after this stamp keeps its bias (phi = 1).
             seen = np.array([k is not None for k in known])

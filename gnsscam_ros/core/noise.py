@@ -16,6 +16,7 @@ drawn on the calling thread (a thread start would cost more than the draw).
 """
 from __future__ import annotations
 
+import math
 import threading
 
 import numpy as np
@@ -59,7 +60,7 @@ class ProcessNoise:
         return self.rng.standard_normal(dtype=np.float32, out=into)
 
     def _draw_ahead(self, shape: tuple[int, ...], into: np.ndarray | None) -> None:
-        if int(np.prod(shape)) < THREADED_MIN_VALUES:
+        if math.prod(shape) < THREADED_MIN_VALUES:
             self._next = self._draw(shape, into)
             return
 
