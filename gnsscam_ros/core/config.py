@@ -44,6 +44,11 @@ from .fusion import MAX_CAMERA_MATCHES
 from .gnss import LIKELIHOODS, MAX_SATELLITES, ROBUST
 from .integrity import EXACT, INVERSE_METHODS
 
+#: Values of the ``error_model`` parameter.
+ERROR_ADAPTIVE = 'adaptive'
+ERROR_STATED = 'stated'
+ERROR_MODELS = (ERROR_ADAPTIVE, ERROR_STATED)
+
 #: Key of the field metadata that holds a parameter's description.
 _META = 'gnsscam_parameter'
 
@@ -271,10 +276,20 @@ class GnssConfig(_Part):
         0.0, 'Satellites below this elevation are dropped.', 'deg', low=-90.0, high=90.0)
     cn0_mask_dbhz: float = parameter(
         0.0, 'Satellites below this C/N0 are dropped.', 'dB-Hz', low=0.0, high=100.0)
+    error_model: str = parameter(
+        ERROR_ADAPTIVE, "'adaptive' (the pseudorange error mixture is learned online from "
+        'the residuals, per C/N0 class, over error_window_s; the stated variances are not '
+        "used; core.error_model) or 'stated' (the receiver's variances, "
+        'measurement_var_m2 and the outlier constants below).', choices=ERROR_MODELS)
+    error_window_s: float = parameter(
+        60.0, 'Sliding window of residuals from which the adaptive error model is learned '
+        '(the horizon of the adaptive mixtures of libRSF).', 's', low=1.0)
     measurement_var_m2: float = parameter(
-        10.0, 'Pseudorange variance (paper Table 1: 10).', 'm^2', low=0.0, low_open=True)
+        10.0, "Pseudorange variance (paper Table 1: 10; error_model 'stated').", 'm^2',
+        low=0.0, low_open=True)
     use_reported_variance: bool = parameter(
-        True, "Use max(measurement_var_m2, the receiver's variance).")
+        True, "Use max(measurement_var_m2, the receiver's variance) (error_model "
+        "'stated').")
     clock_kernel_max_m: float = parameter(
         3.0, "Cap on how much the prior's spread widens the clock's inlier kernel. NLOS "
         'errors are positive; a kernel wide enough to take them in biases the clock, and '
@@ -370,6 +385,19 @@ class IntegrityConfig(_Part):
         "the bias hypotheses start from none and need the filter's own memory to grow into "
         'it (measured: the level fell below the error at the end of acquisition on the '
         'emulated drive).', 's', low=0.0)
+
+    consistency_suspect_nats: float = parameter(
+        2.0, 'The cloud counts as inconsistent with the measurements (ERROR, the protection '
+        'level covering the snapshot solution) while the CUSUM of the log likelihood ratio '
+        '"cloud moved onto the snapshot solution" against "cloud" is at least this '
+        '(core.consistency): odds of e^2 = 7 to 1.', 'nats', low=0.0, low_open=True)
+    consistency_recover_nats: float = parameter(
+        6.0, 'At this statistic (odds of 400 to 1) the filter recovers: recovery_share of '
+        'the cloud moves onto the snapshot solution and integrity settles again.', 'nats',
+        low=0.0, low_open=True)
+    recovery_share: float = parameter(
+        0.5, 'Share of the cloud moved onto the snapshot solution at a recovery.', low=0.0,
+        high=1.0, low_open=True)
 
     @property
     def alert_limits_m(self) -> np.ndarray:
