@@ -295,8 +295,10 @@ class GnssConfig(_Part):
         'errors are positive; a kernel wide enough to take them in biases the clock, and '
         'through it the height, by tens of metres.', 'm', low=0.0)
     error_correlation_time_s: float = parameter(
-        5.0, 'GNSS errors closer in time than this are not independent evidence: each '
-        "epoch's log-likelihood is tempered by min(1, dt / this); 0 = off.", 's', low=0.0)
+        2.5, 'Correlation time tau of the GNSS errors as the likelihood counts evidence: an '
+        'epoch dt after the last is worth tanh(dt / (2 tau)) of an independent one (a '
+        'first-order Gauss-Markov error), whatever the GNSS rate; 0 = every epoch '
+        'independent.', 's', low=0.0)
     likelihood: str = parameter(
         ROBUST, "'particle_raim' (the paper's mixture) or 'robust' (Gaussian with an "
         'outlier floor).', choices=LIKELIHOODS)

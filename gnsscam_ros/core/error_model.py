@@ -16,9 +16,12 @@ estimated from the residuals over a sliding window):
   for NLOS and multipath with a mean ``mu >= 0`` (a reflected signal arrives late);
 * weights and spreads are maximum a posteriori estimates by EM, a few iterations per
   epoch started from the last epoch's fit (incremental EM). The priors keep a class with
-  few samples near the pooled fit of all classes, and the pooled fit near physical
-  scales (:class:`ErrorPriors`): they are conventions of the problem class (code noise of
-  metres, NLOS errors of tens of metres), not values fitted to a data set.
+  few samples near the pooled fit of all classes shaped by the SIGMA-epsilon law of code
+  tracking (Hartinger and Brunner 1999: variance proportional to ``10^(-C/N0 / 10)``),
+  and the pooled fit near physical scales (:class:`ErrorPriors`): conventions of the
+  problem class (code noise of metres, NLOS errors of tens of metres), not values fitted
+  to a data set. Before any residual the model is that prior, so the first fix is
+  weighted by C/N0 too, never by the stated variances.
 
 The residuals are taken at the filter's estimate after its own clock per constellation,
 and inflated by ``sqrt(V / (V - p))`` (``V`` usable satellites, ``p`` unknowns): the
@@ -39,6 +42,11 @@ import numpy as np
 #: tracking errors change most (below 25 a signal is mostly reflected, above 45 mostly
 #: direct). A generic discretisation, not a fit.
 CN0_EDGES_DBHZ = np.array([25.0, 30.0, 35.0, 40.0, 45.0])
+#: C/N0 of each class for the prior's shape [dB-Hz]: the bin centres (the unknown class
+#: at the reference).
+CLASS_CN0_DBHZ = np.array([22.5, 27.5, 32.5, 37.5, 42.5, 47.5, 45.0])
+#: Reference C/N0 of the prior's shape [dB-Hz].
+REFERENCE_CN0_DBHZ = 45.0
 #: Class of the satellites whose C/N0 is unknown.
 UNKNOWN_CLASS = CN0_EDGES_DBHZ.shape[0] + 1
 N_CLASSES = UNKNOWN_CLASS + 1
@@ -66,6 +74,7 @@ class ErrorPriors:
         pooled_strength: Pseudo-samples of the pooled fit's prior.
         class_strength: Pseudo-samples by which a class is drawn to the pooled fit.
         min_core_sd_m: Smallest core spread: code noise never vanishes [m].
+        max_shape: Largest factor of the SIGMA-epsilon shape (at the lowest C/N0).
     """
 
     core_sd_m: float = 5.0
@@ -74,6 +83,13 @@ class ErrorPriors:
     pooled_strength: float = 30.0
     class_strength: float = 30.0
     min_core_sd_m: float = 1.0
+    max_shape: float = 10.0
+
+    def shape(self) -> np.ndarray:
+        """(N_CLASSES,) spread of each class relative to the reference C/N0: standard
+        deviation proportional to ``10^(-C/N0 / 20)``, at most ``max_shape``."""
+        return np.minimum(10.0 ** (-(CLASS_CN0_DBHZ - REFERENCE_CN0_DBHZ) / 20.0),
+                          self.max_shape)
 
 
 @dataclass(frozen=True)
@@ -155,10 +171,6 @@ class AdaptiveErrorModel:
     """
 
     def __init__(self, window_s: float = 60.0, priors: ErrorPriors = ErrorPriors()):
-        import os  # EXPERIMENT
-        import json
-        if os.environ.get('GEXP'):
-            priors = ErrorPriors(**json.loads(os.environ['GEXP']))
         self.window_s = float(window_s)
         self.priors = priors
         self._stamp_ns = np.zeros(MAX_SAMPLES, dtype=np.int64)
@@ -170,8 +182,9 @@ class AdaptiveErrorModel:
 
     def _prior_fit(self, n: int) -> MixtureFit:
         p = self.priors
-        return MixtureFit(core_sd_m=np.full(n, p.core_sd_m), wide_share=np.full(n, p.wide_share),
-                          wide_mean_m=np.zeros(n), wide_sd_m=np.full(n, p.wide_sd_m),
+        shape = p.shape() if n == N_CLASSES else np.ones(n)
+        return MixtureFit(core_sd_m=p.core_sd_m * shape, wide_share=np.full(n, p.wide_share),
+                          wide_mean_m=np.zeros(n), wide_sd_m=p.wide_sd_m * shape,
                           samples=np.zeros(n))
 
     @property
@@ -227,14 +240,19 @@ class AdaptiveErrorModel:
         for _ in range(EM_ITERATIONS):
             fit = _em_step(r, w, zeros, 1, fit, pooled, p.pooled_strength, p.min_core_sd_m)
         self.pooled = MixtureFit(*fit, samples=np.array([float(n)]))
-        centre = tuple(np.repeat(v, N_CLASSES) for v in fit)
+        # The classes' prior: the pooled fit, its spreads shaped by C/N0 about their
+        # sample-weighted mean (so that the shape moves spreads between classes only).
+        counts = np.bincount(cls, minlength=N_CLASSES).astype(float)
+        shape = p.shape()
+        shape = shape / (np.sum(counts * shape) / max(counts.sum(), 1.0))
+        s0, pi, mu, s1 = fit
+        centre = (s0 * shape, np.repeat(pi, N_CLASSES), np.repeat(mu, N_CLASSES), s1 * shape)
         fit = (self.fit.core_sd_m, self.fit.wide_share, self.fit.wide_mean_m,
                self.fit.wide_sd_m)
         for _ in range(EM_ITERATIONS):
             fit = _em_step(r, w, cls, N_CLASSES, fit, centre, p.class_strength,
                            p.min_core_sd_m)
-        self.fit = MixtureFit(*fit, samples=np.bincount(cls, minlength=N_CLASSES)
-                              .astype(float))
+        self.fit = MixtureFit(*fit, samples=counts)
 
     def satellite_model(self, cn0_dbhz: np.ndarray) -> tuple[np.ndarray, np.ndarray,
                                                              np.ndarray]:

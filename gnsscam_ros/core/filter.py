@@ -343,9 +343,13 @@ class ParticleFilter:
         if not check.usable:
             return EpochResult(stamp_ns=epoch.stamp_ns, status=WAITING, reason=check.reason,
                                rejected=check.rejected)
+        usable = epoch.subset(check.keep)
+        # The learned model weighs the first fix (by C/N0), not the stated variances.
+        sigma = (self.errors.bias_sigma_m(usable.cn0_dbhz)
+                 if cfg.error_model == ERROR_ADAPTIVE else None)
         try:
-            fix = solve_snapshot(epoch.subset(check.keep),
-                                 measurement_var_m2=cfg.measurement_var_m2)
+            fix = solve_snapshot(usable, measurement_var_m2=cfg.measurement_var_m2,
+                                 sigma_m=sigma)
         except ValueError as err:
             return EpochResult(stamp_ns=epoch.stamp_ns, status=WAITING, reason=str(err),
                                rejected=check.rejected)
@@ -601,10 +605,14 @@ class ParticleFilter:
     def _evidence_weight(self, dt_s: float) -> float:
         """Tempering exponent of this epoch's GNSS log-likelihood.
 
-        Errors correlated over ``error_correlation_time_s`` are one piece of evidence per
-        correlation time, not one per epoch.
+        Errors that follow a first-order Gauss-Markov process with correlation time
+        ``tau = error_correlation_time_s`` make a new epoch ``dt`` after the last worth
+        ``(1 - phi) / (1 + phi) = tanh(dt / (2 tau))`` of an independent one,
+        ``phi = exp(-dt / tau)`` (the information an AR(1) sample adds about a constant):
+        ``dt / (2 tau)`` per epoch at a high rate, one per epoch when they are far apart,
+        so that the evidence per second of driving is the same at any GNSS rate.
         """
         cfg = self.config
         if cfg.error_correlation_time_s <= 0.0:
             return 1.0
-        return min(1.0, max(dt_s, 1e-3) / cfg.error_correlation_time_s)
+        return float(np.tanh(max(dt_s, 1e-3) / (2.0 * cfg.error_correlation_time_s)))
