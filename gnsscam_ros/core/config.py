@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .bias import BIAS_CN0, BIAS_MODELS, BIAS_NONE, MAX_TRACKED_SATELLITES, BiasModel
+from .bias import BIAS_LEARNED, BIAS_MODELS, BIAS_NONE, MAX_TRACKED_SATELLITES, BiasModel
 from .fusion import MAX_CAMERA_MATCHES
 from .gnss import LIKELIHOODS, MAX_SATELLITES, ROBUST
 from .integrity import EXACT, INVERSE_METHODS
@@ -317,9 +317,12 @@ class BiasConfig(_Part):
     """Bias hypotheses of the posteriors behind the risk bound (``core.bias``)."""
 
     bias_model: str = parameter(
-        BIAS_CN0, "'cn0' (each posterior carries a Gauss-Markov pseudorange bias per "
-        'satellite, its size from C/N0, propagated into the estimate; core.bias) or '
-        "'none' (posteriors differ by motion perturbations only, as in the paper).",
+        BIAS_LEARNED, "'learned' (each posterior carries a Gauss-Markov pseudorange bias per "
+        'satellite with the standard deviation of its signal class in the learned error '
+        "model, propagated into the estimate; core.bias, core.error_model), 'cn0' (the "
+        'same, its size from C/N0 and the constants below, which were calibrated on the '
+        "smartLoc drive: kept for comparison) or 'none' (posteriors differ by motion "
+        'perturbations only, as in the paper).',
         choices=BIAS_MODELS)
     bias_floor_m: float = parameter(
         2.0, 'Smallest bias standard deviation at high C/N0.', 'm', low=0.0)

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from . import gnss, integrity
-from .bias import BIAS_CN0, BIAS_MODELS, BIAS_NONE, BiasHypotheses
+from .bias import BIAS_CN0, BIAS_LEARNED, BIAS_MODELS, BIAS_NONE, BiasHypotheses
 from .config import ERROR_ADAPTIVE, FilterConfig
 from .consistency import ConsistencyMonitor, ConsistencyState, snapshot_position
 from .error_model import AdaptiveErrorModel
@@ -34,7 +34,8 @@ from .types import GnssEpoch
 
 # Importable from here as before: the parameter names and values of the configuration
 # (``core.config``), the likelihoods (``core.gnss``) and the bias models (``core.bias``).
-__all__ = ['BIAS_CN0', 'BIAS_MODELS', 'BIAS_NONE', 'HEADING_LOST_RAD', 'INVALID',
+__all__ = ['BIAS_CN0', 'BIAS_LEARNED', 'BIAS_MODELS', 'BIAS_NONE', 'HEADING_LOST_RAD',
+           'INVALID',
            'LIKELIHOODS', 'MAX_ORIGIN_DISTANCE_M', 'MAX_STATE_COORDINATE', 'PARTICLE_RAIM',
            'PROPAGATED', 'REINITIALISING', 'REJECTED', 'ROBUST', 'UPDATED', 'WAITING',
            'EpochResult', 'FilterConfig', 'ParticleFilter']
@@ -417,8 +418,9 @@ class ParticleFilter:
         evidence = self._evidence_weight(dt_s)
         lik = self.likelihood.joint(priors, prep, clock_w, evidence, self.log_w)
         joint, total = lik.joint, lik.total
-        self._consistency_state = self._test_consistency(priors[0], prep, centre, spread_m,
-                                                         evidence, float(total[0]))
+        self._consistency_state = self._snapshot_step(epoch.stamp_ns, priors[0], prep,
+                                                      centre, spread_m, evidence,
+                                                      float(total[0]))
         fusion = None
         if camera and cfg.use_camera:
             # The cost is images x samples x particles: a bounded number of images.
@@ -448,18 +450,25 @@ class ParticleFilter:
         result.n_satellites = int(prep.pr_m.shape[0])
         return result
 
-    def _test_consistency(self, cloud: np.ndarray, prep: gnss.PreparedEpoch,
-                          centre: np.ndarray, spread_m: float, evidence: float,
-                          cloud_total: float) -> ConsistencyState:
-        """One step of the consistency test (``core.consistency``): the log likelihood
-        ratio of the cloud moved onto the epoch's snapshot solution against the cloud."""
+    def _snapshot_step(self, stamp_ns: int, cloud: np.ndarray, prep: gnss.PreparedEpoch,
+                       centre: np.ndarray, spread_m: float, evidence: float,
+                       cloud_total: float) -> ConsistencyState:
+        """What the epoch's own robust snapshot solution tells: its residuals teach the
+        error model (``core.error_model``; the snapshot depends on this epoch alone, so
+        a filter locked onto a wrong place cannot teach the model that place), and the
+        cloud moved onto it is the alternative of the consistency test
+        (``core.consistency``)."""
         cfg = self.config
-        sigma = (self.errors.bias_sigma_m(prep.cn0_dbhz) if cfg.error_model == ERROR_ADAPTIVE
-                 else prep.sigma_m)
+        adaptive = cfg.error_model == ERROR_ADAPTIVE
+        sigma = self.errors.bias_sigma_m(prep.cn0_dbhz) if adaptive else prep.sigma_m
         snap = snapshot_position(prep.sv_enu_m, prep.pr_m, sigma, prep.sys_index,
                                  prep.n_systems, centre)
         if snap is None:
             return self.consistency.observe(float('nan'))
+        if adaptive:
+            at_snap = gnss.clock_weights(prep, snap, cfg.clock_kernel_max_m)
+            residual = gnss.clock_corrected_residuals(snap[None], prep, at_snap)[0]
+            self.errors.observe(stamp_ns, residual, prep.cn0_dbhz, 3 + prep.n_systems)
         shift = np.zeros(cloud.shape[1])
         shift[:2] = snap[:2] - centre[:2]
         moved = (cloud + shift)[None]
@@ -570,21 +579,23 @@ class ParticleFilter:
             prior_log_w = self.log_w
         prior_offsets = self.bias.offsets_m.copy()
         prep, inlier, evidence, clock_w = update
-        # The residuals at the estimate teach the error model and size the hypotheses.
-        at_estimate = gnss.clock_corrected_residuals(mean[None], prep, clock_w)[0]
-        self.errors.observe(stamp_ns, at_estimate, prep.cn0_dbhz, 3 + prep.n_systems)
         if cfg.bias_model == BIAS_NONE:
             offsets = prior_offsets
         else:
-            # The update weighed each satellite with tempering times inlier probability
-            # over its variance.
+            # The residuals at the estimate size the 'cn0' hypotheses; the 'learned' ones
+            # take an inlier's error, the core of its class. The update weighed each
+            # satellite with tempering times inlier probability over its variance.
+            at_estimate = gnss.clock_corrected_residuals(mean[None], prep, clock_w)[0]
+            learned = (self.errors.satellite_model(prep.cn0_dbhz)[0]
+                       if cfg.bias_model == BIAS_LEARNED else None)
             self.bias.observe_residuals(stamp_ns, at_estimate, inlier, 3 + prep.n_systems)
             weights = evidence * inlier / prep.sigma_m ** 2
             line = prep.sv_enu_m - mean
             line /= np.linalg.norm(line, axis=1, keepdims=True)
             _, prior_cov = weighted_mean_cov(pos[chosen], prior_log_w)
             offsets = self.bias.update(
-                self.bias.biases_at(stamp_ns, prep.sv_key, prep.cn0_dbhz), line, weights,
+                self.bias.biases_at(stamp_ns, prep.sv_key, prep.cn0_dbhz, learned), line,
+                weights,
                 prep.sys_index, prep.n_systems, prior_cov, cov).copy()
         posteriors = integrity.PosteriorSet(pos, post_log_w, index, offsets,
                                             cfg.horizontal_risk)
