@@ -10,18 +10,20 @@ the epoch (:func:`snapshot_position`; its height stays the cloud's: snapshot hei
 canyon are tens of metres off). Both are weighed by the same likelihood with the same
 evidence exponent, so their difference ``d = log L(moved) - log L(cloud)`` is a log
 likelihood ratio between two hypotheses of equal spread, and its sum over epochs is a
-sequential test (Page's CUSUM, ``S <- max(0, S + d)``):
+sequential test (Page's CUSUM, ``S <- max(0, S + d - allowance)``,
+:class:`ConsistencyMonitor`):
 
 * ``S >= suspect_nats``: inconsistent. The verdict is ERROR and the protection level
   covers the separation between the estimate and the snapshot solution.
 * ``S >= recover_nats``: recovery, as augmented Monte Carlo localisation injects
-  particles when the likelihood drops: a share of the cloud is moved onto the snapshot
-  solution (its spread kept), the likelihood decides between the two from then on, the
-  test starts again and integrity settles again before it is certified.
+  particles when the likelihood drops: a share of the cloud is moved by the smoothed
+  separation onto the snapshot solutions (its spread kept), the likelihood decides
+  between the two from then on, the test starts again and integrity settles again
+  before it is certified.
 
-Under a consistent cloud ``d`` is negative on average (the snapshot is the noisier
-solution), so ``S`` stays near zero; its steps are tempered like the update, so the time
-to detect a given separation does not depend on the GNSS rate.
+Under a consistent cloud ``d`` stays below the allowance on average, so ``S`` stays near
+zero; its steps are tempered like the update, so the time to detect a given separation
+does not depend on the GNSS rate.
 """
 from __future__ import annotations
 
@@ -34,6 +36,10 @@ PLAIN_STEPS = 4
 ROBUST_STEPS = 5
 #: Cauchy scale of the robust refinement, in standard deviations of the error model.
 CAUCHY_SCALE = 2.0
+#: Degrees of freedom of the move tested (east, north).
+SHIFT_DOF = 2
+#: Smoothing time of the separation a recovery moves the cloud by [s].
+SHIFT_SMOOTHING_S = 10.0
 
 
 def snapshot_position(sv_enu_m: np.ndarray, pr_m: np.ndarray, sigma_m: np.ndarray,
@@ -87,11 +93,12 @@ class ConsistencyState:
     Attributes:
         statistic_nats: The CUSUM ``S`` [nats].
         step_nats: This epoch's log likelihood ratio ``d`` [nats] (NaN: not tested).
-        separation_m: Horizontal distance from the estimate to the snapshot solution [m]
-            (NaN: none).
+        separation_m: Horizontal distance from the cloud to the snapshot solution,
+            smoothed [m] (NaN: none).
         inconsistent: ``S >= suspect_nats``.
         recover: ``S >= recover_nats``: the filter recovers this epoch.
-        target_enu_m: (2,) the snapshot solution, east and north [m] (None: none).
+        shift_m: (2,) the smoothed move from the cloud to the snapshot solution, east and
+            north [m] (None: none).
     """
 
     statistic_nats: float = 0.0
@@ -99,12 +106,22 @@ class ConsistencyState:
     separation_m: float = float('nan')
     inconsistent: bool = False
     recover: bool = False
-    target_enu_m: np.ndarray | None = None
+    shift_m: np.ndarray | None = None
 
 
 class ConsistencyMonitor:
     """Page's CUSUM of the log likelihood ratio "cloud moved to the snapshot solution"
     against "cloud where it is".
+
+    The snapshot solution is fitted to the epoch itself, so even a cloud in the right
+    place is beaten by it on average: for a Gaussian model the log likelihood ratio of a
+    fitted position against the true one is ``chi^2 / 2`` with as many degrees of freedom
+    as the move has (two: east and north), one nat per epoch before tempering. That
+    expectation is the test's allowance: ``S <- max(0, S + d - evidence * 1)``.
+
+    The move of a recovery is the separation smoothed over ``SHIFT_SMOOTHING_S`` (one
+    epoch's snapshot solution in a canyon may be tens of metres off; a lock is a
+    separation that persists).
 
     Args:
         suspect_nats: Statistic from which the cloud counts as inconsistent.
@@ -116,24 +133,46 @@ class ConsistencyMonitor:
         self.recover_nats = float(recover_nats)
         self.statistic_nats = 0.0
         self.recoveries = 0
+        self.shift_m: np.ndarray | None = None       # smoothed snapshot - cloud, E, N
+        self._stamp_ns: int | None = None
 
-    def observe(self, step_nats: float, separation_m: float = float('nan'),
-                target_enu_m: np.ndarray | None = None) -> ConsistencyState:
-        """Fold one epoch's log likelihood ratio into the test (NaN: no test this
-        epoch; the statistic stays)."""
-        if np.isfinite(step_nats):
-            self.statistic_nats = max(0.0, self.statistic_nats + float(step_nats))
-        recover = self.statistic_nats >= self.recover_nats
+    def observe(self, stamp_ns: int, step_nats: float, evidence: float = 0.0,
+                shift_m: np.ndarray | None = None) -> ConsistencyState:
+        """Fold one epoch into the test.
+
+        Args:
+            stamp_ns: Epoch time [ns].
+            step_nats: The epoch's log likelihood ratio (NaN: no test this epoch; the
+                statistic stays).
+            evidence: The epoch's evidence exponent (scales the allowance).
+            shift_m: (2,) snapshot solution minus cloud centre, east and north [m].
+        """
+        if np.isfinite(step_nats) and shift_m is not None:
+            self.statistic_nats = max(
+                0.0, self.statistic_nats + float(step_nats) - SHIFT_DOF / 2.0 * evidence)
+            if self.shift_m is None or self._stamp_ns is None:
+                self.shift_m = np.asarray(shift_m, dtype=float).copy()
+            else:
+                dt_s = max((stamp_ns - self._stamp_ns) * 1e-9, 0.0)
+                keep = float(np.exp(-dt_s / SHIFT_SMOOTHING_S))
+                self.shift_m = keep * self.shift_m + (1.0 - keep) * np.asarray(shift_m)
+            self._stamp_ns = stamp_ns
+        separation = (float('nan') if self.shift_m is None
+                      else float(np.hypot(*self.shift_m)))
+        recover = self.statistic_nats >= self.recover_nats and self.shift_m is not None
         state = ConsistencyState(
             statistic_nats=self.statistic_nats, step_nats=float(step_nats),
-            separation_m=float(separation_m),
-            inconsistent=self.statistic_nats >= self.suspect_nats,
-            recover=recover and target_enu_m is not None, target_enu_m=target_enu_m)
+            separation_m=separation, inconsistent=self.statistic_nats >= self.suspect_nats,
+            recover=recover,
+            shift_m=None if self.shift_m is None else self.shift_m.copy())
         if recover:
             self.recoveries += 1
             self.statistic_nats = 0.0
+            self.shift_m = None
         return state
 
     def reset(self) -> None:
         """Start the test again (a new initialisation); the recovery count stays."""
         self.statistic_nats = 0.0
+        self.shift_m = None
+        self._stamp_ns = None

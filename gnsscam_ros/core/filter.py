@@ -464,7 +464,7 @@ class ParticleFilter:
         snap = snapshot_position(prep.sv_enu_m, prep.pr_m, sigma, prep.sys_index,
                                  prep.n_systems, centre)
         if snap is None:
-            return self.consistency.observe(float('nan'))
+            return self.consistency.observe(stamp_ns, float('nan'))
         if adaptive:
             at_snap = gnss.clock_weights(prep, snap, cfg.clock_kernel_max_m)
             residual = gnss.clock_corrected_residuals(snap[None], prep, at_snap)[0]
@@ -475,18 +475,19 @@ class ParticleFilter:
         clock_w = gnss.clock_weights(prep, centre + shift[:3], spread_m)
         moved_total = float(self.likelihood.joint(moved, prep, clock_w, evidence,
                                                   self.log_w).total[0])
-        return self.consistency.observe(moved_total - cloud_total,
-                                        float(np.hypot(shift[0], shift[1])), snap[:2])
+        return self.consistency.observe(stamp_ns, moved_total - cloud_total, evidence,
+                                        shift[:2])
 
-    def _recover(self, mean: np.ndarray, stamp_ns: int) -> None:
-        """Move a share of the cloud onto the snapshot solution of the epoch (its shape
-        kept), so that the likelihood decides between the two places from now on."""
-        target = self._consistency_state.target_enu_m
+    def _recover(self, stamp_ns: int) -> None:
+        """Move a share of the cloud by the smoothed separation onto the snapshot
+        solutions (its shape kept), so that the likelihood decides between the two places
+        from now on."""
+        shift = self._consistency_state.shift_m
         n = self.particles.shape[0]
         moved = self.rng.choice(n, size=max(1, int(self.config.recovery_share * n)),
                                 replace=False)
         self.particles = self.particles.copy()
-        self.particles[moved, :2] += target - mean[:2]
+        self.particles[moved, :2] += shift
         if self.acquired_stamp_ns is not None:
             self.acquired_stamp_ns = stamp_ns               # settle again before OK
 
@@ -534,7 +535,7 @@ class ParticleFilter:
             log_w = np.full(n_out, -np.log(n_out))
         self.particles, self.log_w = particles, normalize_log_weights(log_w)
         if consistency.recover:
-            self._recover(mean, epoch.stamp_ns)
+            self._recover(epoch.stamp_ns)
         self.posteriors, self.posterior_log_w = priors, post_log_w
         result = EpochResult(
             stamp_ns=epoch.stamp_ns, status=UPDATED, position_enu_m=mean, covariance_m2=cov,
