@@ -254,15 +254,12 @@ class AdaptiveErrorModel:
                            p.min_core_sd_m)
         self.fit = MixtureFit(*fit, samples=counts)
 
-    def satellite_model(self, cn0_dbhz: np.ndarray) -> tuple[np.ndarray, np.ndarray,
-                                                             np.ndarray]:
-        """The likelihood's view of each satellite: ``(core sd [m], wide share,
-        wide density [1/m])``, the wide component as a flat floor at its peak density
-        (robust: a fault of hundreds of metres costs no more than an NLOS error)."""
+    def satellite_model(self, cn0_dbhz: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The mixture of each satellite's class: ``(core sd [m], wide share, wide mean
+        [m], wide sd [m])``, arrays (k,)."""
         cls = signal_class(cn0_dbhz)
         f = self.fit
-        density = 1.0 / (np.sqrt(2.0 * np.pi) * f.wide_sd_m[cls])
-        return f.core_sd_m[cls], f.wide_share[cls], density
+        return (f.core_sd_m[cls], f.wide_share[cls], f.wide_mean_m[cls], f.wide_sd_m[cls])
 
     def bias_sigma_m(self, cn0_dbhz: np.ndarray) -> np.ndarray:
         """Standard deviation of each satellite's whole error (core and wide) [m]."""

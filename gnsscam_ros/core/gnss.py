@@ -51,10 +51,10 @@ class PreparedEpoch:
         n_systems: Number of distinct constellations S.
         sv_key: (k,) ``system * 1000 + sv_id``, one key per satellite across epochs.
         cn0_dbhz: (k,) carrier-to-noise density ratios [dB-Hz] (NaN when unknown).
-        outlier_prob: (k,) share of the robust likelihood's outlier part per satellite
-            (None: the likelihood's own ``outlier_prob``).
-        outlier_density: (k,) density of the outlier part [1/m] (None: one over the
-            likelihood's ``outlier_range_m``).
+        wide_share: (k,) weight of the NLOS / multipath component of each satellite's
+            learned error mixture (None: no such component, the stated model).
+        wide_mean_m: (k,) its mean [m] (None as above).
+        wide_sd_m: (k,) its standard deviation [m] (None as above).
     """
 
     sv_enu_m: np.ndarray
@@ -64,19 +64,37 @@ class PreparedEpoch:
     n_systems: int
     sv_key: np.ndarray
     cn0_dbhz: np.ndarray
-    outlier_prob: np.ndarray | None = None
-    outlier_density: np.ndarray | None = None
+    wide_share: np.ndarray | None = None
+    wide_mean_m: np.ndarray | None = None
+    wide_sd_m: np.ndarray | None = None
 
-    def outlier_model(self, outlier_prob: float, outlier_range_m: float
-                      ) -> tuple[np.ndarray, np.ndarray]:
-        """``(share (k,), density (k,))`` of the outlier part: the epoch's own (learned)
-        where it has them, else the given constants."""
-        k = self.pr_m.shape[0]
-        share = (np.full(k, float(outlier_prob)) if self.outlier_prob is None
-                 else self.outlier_prob)
-        density = (np.full(k, 1.0 / outlier_range_m) if self.outlier_density is None
-                   else self.outlier_density)
-        return share, density
+
+@dataclass(frozen=True)
+class RobustTerms:
+    """Per-satellite terms of the robust density as the kernels take them (see
+    :func:`robust_terms`): ``log_scale``, ``floor``, ``wide_log_scale``, ``wide_mean``,
+    ``wide_inv_sigma`` (k,) and ``group`` (satellites per log)."""
+
+    log_scale: np.ndarray
+    floor: np.ndarray
+    wide_log_scale: np.ndarray
+    wide_mean: np.ndarray
+    wide_inv_sigma: np.ndarray
+    group: int
+
+    @property
+    def arrays(self) -> tuple:
+        """The arrays in the kernels' argument order."""
+        return (self.log_scale, self.floor, self.wide_log_scale, self.wide_mean,
+                self.wide_inv_sigma)
+
+
+#: Share of the flat floor under the learned mixture: what neither the line-of-sight
+#: core nor the NLOS component explains (faults of hundreds of metres) costs at most
+#: ``log(FAULT_SHARE / outlier_range_m)`` per satellite.
+FAULT_SHARE = 0.01
+#: ``log`` of a component that is absent: ``elementary.exp`` gives exactly 0 for it.
+ABSENT_LOG = -1000.0
 
 
 def prepare_epoch(epoch: GnssEpoch, frame: LocalFrame, rx_enu_m: np.ndarray,
@@ -104,9 +122,9 @@ def prepare_epoch(epoch: GnssEpoch, frame: LocalFrame, rx_enu_m: np.ndarray,
     rx_ecef = frame.enu_to_ecef(rx_enu_m)
     sv_ecef = sagnac_corrected(epoch.sv_pos_ecef_m[multi], rx_ecef)
     cn0 = np.asarray(epoch.cn0_dbhz[multi], dtype=float)
-    share = density = None
+    share = mean = spread = None
     if error_model is not None:
-        sigma, share, density = error_model.satellite_model(cn0)
+        sigma, share, mean, spread = error_model.satellite_model(cn0)
     else:
         var = np.full(int(multi.sum()), float(measurement_var_m2))
         if use_reported_variance:
@@ -115,7 +133,8 @@ def prepare_epoch(epoch: GnssEpoch, frame: LocalFrame, rx_enu_m: np.ndarray,
     return PreparedEpoch(sv_enu_m=frame.ecef_to_enu(sv_ecef), pr_m=epoch.pr_m[multi].copy(),
                          sigma_m=sigma, sys_index=sys_index[multi],
                          n_systems=int(n_systems), sv_key=satellite_key(epoch, 1000)[multi],
-                         cn0_dbhz=cn0, outlier_prob=share, outlier_density=density)
+                         cn0_dbhz=cn0, wide_share=share, wide_mean_m=mean,
+                         wide_sd_m=spread)
 
 
 def clock_weights(prep: PreparedEpoch, centre_m: np.ndarray, spread_m: float,
@@ -151,25 +170,42 @@ def clock_corrected_residuals(positions_m: np.ndarray, prep: PreparedEpoch,
                                             clock_weights, prep.n_systems)
 
 
-def robust_scale(sigma_m: np.ndarray, outlier_prob: np.ndarray, outlier_density: np.ndarray,
-                 log_range: float = 690.0) -> tuple[np.ndarray, np.ndarray, int]:
-    """The robust model's per-satellite density ``scale_k exp(-z_k^2 / 2) + floor_k`` as
-    the kernels take it: ``(log scale_k (k,), floor_k (k,), group)`` with
-    ``scale_k = (1 - eps_k) / (sigma_k sqrt(2 pi))``, ``floor_k = eps_k d_k`` (``d_k``
-    the outlier density) and ``group`` the number of densities whose product stays within
-    ``exp(+-log_range)`` (the kernel takes one log per group; 690: float64, 87: float32);
-    0 when a single density may already lie outside it (a zero floor)."""
-    outlier_prob = np.broadcast_to(np.asarray(outlier_prob, dtype=float), sigma_m.shape)
-    log_scale = np.log1p(-outlier_prob) - np.log(sigma_m) - LOG_SQRT_2PI
-    floor = np.ascontiguousarray(outlier_prob * np.broadcast_to(outlier_density,
-                                                                sigma_m.shape))
-    # Every density lies between its floor and its scale plus its floor.
+def robust_terms(prep: PreparedEpoch, outlier_prob: float, outlier_range_m: float,
+                 log_range: float = 690.0) -> RobustTerms:
+    """The robust model's per-satellite density as the kernels take it.
+
+    ``scale_k exp(-z_k^2 / 2) + wide_k exp(-w_k^2 / 2) + floor_k``: with the learned error
+    mixture (``prep.wide_share`` set), the core ``(1 - pi_k - FAULT_SHARE) N(0, s0_k)``,
+    the NLOS component ``pi_k N(mu_k, s1_k)`` and ``FAULT_SHARE`` over
+    ``outlier_range_m``; with the stated model, ``(1 - eps) N(0, sigma_k)`` and ``eps``
+    over ``outlier_range_m`` (no wide component). ``group`` is the number of densities
+    whose product stays within ``exp(+-log_range)`` (the kernel takes one log per group;
+    690: float64, 87: float32); 0 when a single density may already lie outside it (a
+    zero floor).
+    """
+    k = prep.pr_m.shape[0]
+    if prep.wide_share is None:
+        core = np.full(k, 1.0 - outlier_prob)
+        floor_share = outlier_prob
+        wide_log = np.full(k, ABSENT_LOG)
+        wide_mean = np.zeros(k)
+        wide_inv = np.ones(k)
+    else:
+        core = 1.0 - prep.wide_share - FAULT_SHARE
+        floor_share = FAULT_SHARE
+        wide_log = np.log(prep.wide_share) - np.log(prep.wide_sd_m) - LOG_SQRT_2PI
+        wide_mean = np.asarray(prep.wide_mean_m, dtype=float)
+        wide_inv = 1.0 / prep.wide_sd_m
+    log_scale = np.log(core) - np.log(prep.sigma_m) - LOG_SQRT_2PI
+    floor = np.full(k, floor_share / outlier_range_m)
+    # Every density lies between its floor and the sum of its scales and its floor.
     with np.errstate(divide='ignore'):                  # no floor: log 0 = -inf
         log_floor = np.log(floor)
-    log_largest = np.logaddexp(log_scale, log_floor)
+    log_largest = np.logaddexp(np.logaddexp(log_scale, wide_log), log_floor)
     per_term = max(float(np.abs(log_floor).max(initial=0.0)),
                    float(np.abs(log_largest).max(initial=0.0)), 1e-3)
-    return log_scale, floor, int(log_range / per_term) if np.isfinite(per_term) else 0
+    group = int(log_range / per_term) if np.isfinite(per_term) else 0
+    return RobustTerms(log_scale, floor, wide_log, wide_mean, wide_inv, group)
 
 
 #: Largest distance of a particle from the cloud centre of the float32 likelihood [m]:
@@ -241,12 +277,11 @@ def robust_inlier_shares(positions_m: np.ndarray, log_w: np.ndarray, prep: Prepa
         average over the particles normalised to sum to one (the robust likelihood's
         mixture weights, reported with the epoch).
     """
-    log_scale, floor, _ = robust_scale(prep.sigma_m,
-                                       *prep.outlier_model(outlier_prob, outlier_range_m))
+    terms = robust_terms(prep, outlier_prob, outlier_range_m)
     return gnss_kernels.robust_inlier_shares(
         np.ascontiguousarray(positions_m, dtype=float), np.ascontiguousarray(log_w, float),
         prep.sv_enu_m, prep.pr_m, 1.0 / prep.sigma_m, prep.sys_index, clock_weights,
-        prep.n_systems, log_scale, floor)
+        prep.n_systems, *terms.arrays)
 
 
 @dataclass(frozen=True)
@@ -346,21 +381,20 @@ class RobustLikelihood:
         joint = np.empty(sets.shape[:2])
         prior_log_w = np.ascontiguousarray(prior_log_w, dtype=float)
         inv_sigma = 1.0 / prep.sigma_m
-        outliers = prep.outlier_model(self.outlier_prob, self.outlier_range_m)
-        log_scale, floor, group = robust_scale(prep.sigma_m, *outliers, SINGLE_LOG_RANGE)
+        terms = robust_terms(prep, self.outlier_prob, self.outlier_range_m, SINGLE_LOG_RANGE)
         geometry = (relative_geometry(sets, prep, clock_weights)
-                    if self.single_precision and group >= 1 else None)
+                    if self.single_precision and terms.group >= 1 else None)
         if geometry is not None:
             total = gnss_kernels.robust_joint_single(
                 sets, geometry.centre_m, geometry.unit, geometry.base_m,
                 geometry.half_inv_range, geometry.max_offset_m, prep.sv_enu_m, prep.pr_m,
-                inv_sigma, prep.sys_index, clock_weights, prep.n_systems, log_scale,
-                floor, group, float(evidence), prior_log_w, joint)
+                inv_sigma, prep.sys_index, clock_weights, prep.n_systems, *terms.arrays,
+                terms.group, float(evidence), prior_log_w, joint)
             return GnssLikelihood(joint=joint, total=total)
-        log_scale, floor, group = robust_scale(prep.sigma_m, *outliers)
+        terms = robust_terms(prep, self.outlier_prob, self.outlier_range_m)
         total = gnss_kernels.robust_joint(
             sets, prep.sv_enu_m, prep.pr_m, inv_sigma, prep.sys_index,
-            clock_weights, prep.n_systems, log_scale, floor, max(group, 1),
+            clock_weights, prep.n_systems, *terms.arrays, max(terms.group, 1),
             float(evidence), prior_log_w, joint)
         return GnssLikelihood(joint=joint, total=total)
 

@@ -122,12 +122,14 @@ def residuals_of_points(points, sv, pr, sys_index, clock_w, n_systems):
 
 @contracted_kernel
 def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_scale, floor,
-                 group, evidence, prior_log_w, joint):
+                 wide_log_scale, wide_mean, wide_inv_sigma, group, evidence, prior_log_w,
+                 joint):
     """Joint log-weights under the robust likelihood, for S sets of N particles.
 
-    ``log L = sum_k log(scale_k exp(-z_k^2 / 2) + floor_k)`` with
-    ``scale_k = (1 - eps_k) / (sigma_k sqrt(2 pi))`` and ``floor_k = eps_k d_k`` (``d_k``
-    the outlier density of the satellite, ``core.error_model``): one
+    ``log L = sum_k log(scale_k exp(-z_k^2 / 2) + wide_k exp(-w_k^2 / 2) + floor_k)``
+    with ``z_k = e_k / sigma_k`` (the line-of-sight core), ``w_k = (e_k - mu_k) / s_k``
+    (the NLOS / multipath component of the learned error model, ``core.error_model``;
+    ``log wide_k`` below ``-708``: none) and a flat floor per satellite: two
     ``exp`` per satellite, one ``log`` per ``group`` satellites (the product of that many
     densities stays within the floating-point range; ``core.gnss.robust_scale``).
 
@@ -141,6 +143,9 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
         n_systems: Number of constellations.
         log_scale: (k,) log of each satellite's Gaussian scale (above).
         floor: (k,) outlier floor of each satellite (above).
+        wide_log_scale: (k,) log of each satellite's wide component scale ``wide_k``.
+        wide_mean: (k,) its mean ``mu_k`` [m].
+        wide_inv_sigma: (k,) its inverse standard deviation ``1 / s_k`` [1/m].
         group: Satellites per log.
         evidence: Tempering exponent of the log-likelihood.
         prior_log_w: (N,) prior log-weights.
@@ -169,9 +174,12 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
             count = 0
             for j in range(k):
                 ls, isg, fl = log_scale[j], inv_sigma[j], floor[j]
+                wl, wm, wis = wide_log_scale[j], wide_mean[j], wide_inv_sigma[j]
                 for b in range(m):
                     zj = r[j, b] * isg
-                    prod[b] *= elementary.exp(ls - 0.5 * zj * zj) + fl
+                    wj = (r[j, b] - wm) * wis
+                    prod[b] *= (elementary.exp(ls - 0.5 * zj * zj)
+                                + elementary.exp(wl - 0.5 * wj * wj) + fl)
                 count += 1
                 if count == group:
                     _fold_logs(prod, log_sum, m)
@@ -186,8 +194,9 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
 
 @contracted_kernel
 def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, sv, pr,
-                        inv_sigma, sys_index, clock_w, n_systems, log_scale, floor, group,
-                        evidence, prior_log_w, joint):
+                        inv_sigma, sys_index, clock_w, n_systems, log_scale, floor,
+                        wide_log_scale, wide_mean, wide_inv_sigma, group, evidence,
+                        prior_log_w, joint):
     """:func:`robust_joint` with the per-satellite arithmetic in float32 (twice the SIMD
     lanes), on coordinates relative to a ``centre`` near the cloud.
 
@@ -202,9 +211,10 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
     particle farther out takes the exact float64 residuals (:func:`_block_residuals`).
 
     Args:
-        sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_scale, floor, evidence,
-            prior_log_w, joint: As :func:`robust_joint` (``floor`` and the densities
-            within the float32 range, ``group`` for it).
+        sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_scale, floor,
+            wide_log_scale, wide_mean, wide_inv_sigma, evidence, prior_log_w, joint: As
+            :func:`robust_joint` (``floor`` and the densities within the float32 range,
+            ``group`` for it).
         centre: (3,) the centre c [m].
         unit, base, half_inv_range: (k, 3), (k,), (k,) as above.
         max_offset_m: Largest ``|d|`` of the float32 path [m].
@@ -222,6 +232,9 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
     inv_sigma32 = inv_sigma.astype(f32)
     log_scale32 = log_scale.astype(f32)
     floor32 = floor.astype(f32)
+    wide_log32 = np.maximum(wide_log_scale, -1000.0).astype(f32)
+    wide_mean32 = wide_mean.astype(f32)
+    wide_inv32 = wide_inv_sigma.astype(f32)
     half = f32(0.5)
     one = f32(1.0)
     zero = f32(0.0)
@@ -279,10 +292,14 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
             count = 0
             for j in range(k):
                 ls, isg, fl = log_scale32[j], inv_sigma32[j], floor32[j]
+                wl, wm, wis = wide_log32[j], wide_mean32[j], wide_inv32[j]
                 r_j, clock_c = r[j], clock[sys_index[j]]
                 for b in range(m):
-                    zj = (r_j[b] - clock_c[b]) * isg
-                    prod[b] *= elementary.exp32(ls - half * zj * zj) + fl
+                    ej = r_j[b] - clock_c[b]
+                    zj = ej * isg
+                    wj = (ej - wm) * wis
+                    prod[b] *= (elementary.exp32(ls - half * zj * zj)
+                                + elementary.exp32(wl - half * wj * wj) + fl)
                 count += 1
                 if count == group:
                     _fold_logs(prod, log_sum, m)
@@ -372,10 +389,11 @@ def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
 
 @contracted_kernel
 def robust_inlier_shares(points, log_w, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
-                         log_scale, floor):
+                         log_scale, floor, wide_log_scale, wide_mean, wide_inv_sigma):
     """Per-satellite inlier probabilities of one set under the robust model.
 
-    ``p_k = d_k / (d_k + floor_k)``, ``d_k = scale_k exp(-z_k^2 / 2)``, per particle.
+    ``p_k = d_k / (d_k + v_k + floor_k)``, ``d_k = scale_k exp(-z_k^2 / 2)`` (the core)
+    and ``v_k`` the wide component (:func:`robust_joint`), per particle.
 
     Returns:
         ``(weighted (k,), share (k,))``: the average of ``p_k`` under ``log_w`` (what the
@@ -401,11 +419,13 @@ def robust_inlier_shares(points, log_w, sv, pr, inv_sigma, sys_index, clock_w, n
             w[b] = elementary.exp(log_w[start + b])
         for j in range(k):
             ls, isg, fl = log_scale[j], inv_sigma[j], floor[j]
+            wl, wm, wis = wide_log_scale[j], wide_mean[j], wide_inv_sigma[j]
             r_j, sum_w, sum_p = r[j], lanes_w[j], lanes_p[j]
             for b in range(m):
                 zj = r_j[b] * isg
+                wj = (r_j[b] - wm) * wis
                 dens = elementary.exp(ls - 0.5 * zj * zj)
-                p = dens / (dens + fl)
+                p = dens / (dens + elementary.exp(wl - 0.5 * wj * wj) + fl)
                 sum_w[b] += w[b] * p
                 sum_p[b] += p
     weighted = np.zeros(k)
