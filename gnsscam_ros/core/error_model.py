@@ -23,9 +23,11 @@ estimated from the residuals over a sliding window):
   to a data set. Before any residual the model is that prior, so the first fix is
   weighted by C/N0 too, never by the stated variances.
 
-The residuals are taken at the filter's estimate after its own clock per constellation,
-and inflated by ``sqrt(V / (V - p))`` (``V`` usable satellites, ``p`` unknowns): the
-estimate absorbs part of every error, the residuals alone would understate them.
+The residuals are those of the epoch's own robust snapshot solution (so that a filter
+locked onto a wrong place cannot teach the model that place), after its clock per
+constellation, inflated by ``sqrt(V / (V - p))`` (``V`` the expected number of
+line-of-sight satellites under the current fit, ``p`` unknowns): the fix absorbs part of
+the errors of the satellites it rests on, their residuals alone would understate them.
 
 The same fit drives the GNSS likelihood (core spread and outlier share per satellite,
 :meth:`AdaptiveErrorModel.satellite_model`), the size of the bias hypotheses behind the
@@ -198,17 +200,25 @@ class AdaptiveErrorModel:
 
         Args:
             stamp_ns: Epoch time [ns].
-            residual_m: (k,) clock-corrected residuals at the estimate [m].
+            residual_m: (k,) clock-corrected residuals of a fix [m].
             cn0_dbhz: (k,) C/N0 of the satellites [dB-Hz] (NaN: unknown).
-            n_unknowns: Position and clock unknowns the estimate took from them.
+            n_unknowns: Position and clock unknowns the fix took from them.
         """
         r = np.asarray(residual_m, dtype=float)
         keep = np.isfinite(r)
-        k = int(keep.sum())
-        if k <= n_unknowns:
-            return                         # no redundancy: the residuals say nothing
-        r = r[keep] * np.sqrt(k / (k - n_unknowns))
+        r = r[keep]
         cls = signal_class(np.asarray(cn0_dbhz, dtype=float)[keep])
+        # The fix rests on the line-of-sight satellites: their count, not all, says how
+        # much of their errors it absorbed.
+        f = self.fit
+        s0, pi, mu, s1 = (v[cls] for v in (f.core_sd_m, f.wide_share, f.wide_mean_m,
+                                           f.wide_sd_m))
+        core = (1.0 - pi) * _normal_pdf(r, 0.0, s0)
+        line_of_sight = float(np.sum(core / np.maximum(core + pi * _normal_pdf(r, mu, s1),
+                                                       1e-300)))
+        if line_of_sight <= n_unknowns + 1.0:
+            return                         # too little redundancy to say anything
+        r = r * np.sqrt(line_of_sight / (line_of_sight - n_unknowns))
         self._append(stamp_ns, r, cls)
         self._refit()
 

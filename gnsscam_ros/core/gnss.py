@@ -72,21 +72,22 @@ class PreparedEpoch:
 @dataclass(frozen=True)
 class RobustTerms:
     """Per-satellite terms of the robust density as the kernels take them (see
-    :func:`robust_terms`): ``log_scale``, ``floor``, ``wide_log_scale``, ``wide_mean``,
-    ``wide_inv_sigma`` (k,) and ``group`` (satellites per log)."""
+    :func:`robust_terms`): ``log_scale``, ``floor``, ``wide_log_scale``, ``wide_low``,
+    ``wide_high``, ``wide_inv_sigma`` (k,) and ``group`` (satellites per log)."""
 
     log_scale: np.ndarray
     floor: np.ndarray
     wide_log_scale: np.ndarray
-    wide_mean: np.ndarray
+    wide_low: np.ndarray
+    wide_high: np.ndarray
     wide_inv_sigma: np.ndarray
     group: int
 
     @property
     def arrays(self) -> tuple:
         """The arrays in the kernels' argument order."""
-        return (self.log_scale, self.floor, self.wide_log_scale, self.wide_mean,
-                self.wide_inv_sigma)
+        return (self.log_scale, self.floor, self.wide_log_scale, self.wide_low,
+                self.wide_high, self.wide_inv_sigma)
 
 
 #: Share of the flat floor under the learned mixture: what neither the line-of-sight
@@ -174,28 +175,34 @@ def robust_terms(prep: PreparedEpoch, outlier_prob: float, outlier_range_m: floa
                  log_range: float = 690.0) -> RobustTerms:
     """The robust model's per-satellite density as the kernels take it.
 
-    ``scale_k exp(-z_k^2 / 2) + wide_k exp(-w_k^2 / 2) + floor_k``: with the learned error
-    mixture (``prep.wide_share`` set), the core ``(1 - pi_k - FAULT_SHARE) N(0, s0_k)``,
-    the NLOS component ``pi_k N(mu_k, s1_k)`` and ``FAULT_SHARE`` over
-    ``outlier_range_m``; with the stated model, ``(1 - eps) N(0, sigma_k)`` and ``eps``
-    over ``outlier_range_m`` (no wide component). ``group`` is the number of densities
-    whose product stays within ``exp(+-log_range)`` (the kernel takes one log per group;
-    690: float64, 87: float32); 0 when a single density may already lie outside it (a
-    zero floor).
+    ``scale_k exp(-z_k^2 / 2) + wide_k exp(-w_k^2 / 2) + floor_k``. With the learned error
+    mixture (``prep.wide_share`` set): the core ``(1 - pi_k - FAULT_SHARE) N(0, s0_k)``;
+    the NLOS / multipath component of weight ``pi_k``, flat over the delays it produces
+    (``0 .. mu_k + 2 s1_k``: a reflection only ever delays a signal, by any amount, so
+    within that range it pulls the position nowhere) and falling off beyond it like the
+    core (a large *negative* residual is no reflection: the asymmetry that tells a wrong
+    position from NLOS); and ``FAULT_SHARE`` flat over ``outlier_range_m``. With the
+    stated model: ``(1 - eps) N(0, sigma_k)`` and ``eps`` over ``outlier_range_m``.
+    ``group`` is the number of densities whose product stays within ``exp(+-log_range)``
+    (the kernel takes one log per group; 690: float64, 87: float32); 0 when a single
+    density may already lie outside it (a zero floor).
     """
     k = prep.pr_m.shape[0]
     if prep.wide_share is None:
         core = np.full(k, 1.0 - outlier_prob)
         floor_share = outlier_prob
         wide_log = np.full(k, ABSENT_LOG)
-        wide_mean = np.zeros(k)
+        low = high = np.zeros(k)
         wide_inv = np.ones(k)
     else:
         core = 1.0 - prep.wide_share - FAULT_SHARE
         floor_share = FAULT_SHARE
-        wide_log = np.log(prep.wide_share) - np.log(prep.wide_sd_m) - LOG_SQRT_2PI
-        wide_mean = np.asarray(prep.wide_mean_m, dtype=float)
-        wide_inv = 1.0 / prep.wide_sd_m
+        low = np.zeros(k)
+        high = np.asarray(prep.wide_mean_m, dtype=float) + 2.0 * prep.wide_sd_m
+        # Flat part plus the two half-Gaussian ends carry the component's weight.
+        wide_log = np.log(prep.wide_share) - np.log(
+            high - low + np.sqrt(2.0 * np.pi) * prep.sigma_m)
+        wide_inv = 1.0 / prep.sigma_m
     log_scale = np.log(core) - np.log(prep.sigma_m) - LOG_SQRT_2PI
     floor = np.full(k, floor_share / outlier_range_m)
     # Every density lies between its floor and the sum of its scales and its floor.
@@ -205,7 +212,7 @@ def robust_terms(prep: PreparedEpoch, outlier_prob: float, outlier_range_m: floa
     per_term = max(float(np.abs(log_floor).max(initial=0.0)),
                    float(np.abs(log_largest).max(initial=0.0)), 1e-3)
     group = int(log_range / per_term) if np.isfinite(per_term) else 0
-    return RobustTerms(log_scale, floor, wide_log, wide_mean, wide_inv, group)
+    return RobustTerms(log_scale, floor, wide_log, low, high, wide_inv, group)
 
 
 #: Largest distance of a particle from the cloud centre of the float32 likelihood [m]:
