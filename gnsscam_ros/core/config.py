@@ -295,10 +295,12 @@ class GnssConfig(_Part):
         'errors are positive; a kernel wide enough to take them in biases the clock, and '
         'through it the height, by tens of metres.', 'm', low=0.0)
     error_correlation_time_s: float = parameter(
-        2.5, 'Correlation time tau of the GNSS errors as the likelihood counts evidence: an '
-        'epoch dt after the last is worth tanh(dt / (2 tau)) of an independent one (a '
-        'first-order Gauss-Markov error), whatever the GNSS rate; 0 = every epoch '
-        'independent.', 's', low=0.0)
+        10.0, 'Correlation time tau of the GNSS errors (a first-order Gauss-Markov process): '
+        'an epoch dt after the last is worth tanh(dt / (2 tau)) of an independent one in '
+        "the likelihood, whatever the GNSS rate, and the 'learned' bias hypotheses "
+        'decorrelate with it; 0 = every epoch independent. Chosen among 2.5, 10 and 30 s '
+        'on the first half of the smartLoc Berlin drive (filter seeds 1-3); reported on '
+        'its second half and the robustness variants.', 's', low=0.0)
     likelihood: str = parameter(
         ROBUST, "'particle_raim' (the paper's mixture) or 'robust' (Gaussian with an "
         'outlier floor).', choices=LIKELIHOODS)
@@ -332,7 +334,8 @@ class BiasConfig(_Part):
     bias_cn0_knee_dbhz: float = parameter(
         41.6, 'Below this C/N0 the bias grows 10 dB per decade.', 'dB-Hz', low=0.0)
     bias_correlation_time_s: float = parameter(
-        50.0, 'Correlation time of the biases (smartLoc: about 50 s).', 's', low=0.0)
+        50.0, "Correlation time of the 'cn0' biases (smartLoc: about 50 s; the 'learned' "
+        'ones take error_correlation_time_s).', 's', low=0.0)
 
     @property
     def model(self) -> BiasModel:
@@ -601,8 +604,13 @@ class FilterConfig:
 
     @property
     def bias(self) -> BiasModel:
-        """The bias model of the bias hypotheses (``bias_hypotheses.model``)."""
-        return self.bias_hypotheses.model
+        """The bias model of the bias hypotheses: ``bias_hypotheses.model``, with the
+        correlation time of the GNSS errors (``error_correlation_time_s``) for the
+        'learned' hypotheses: one error process, one correlation time."""
+        model = self.bias_hypotheses.model
+        if self.bias_model == BIAS_LEARNED:
+            model = dataclasses.replace(model, correlation_time_s=self.error_correlation_time_s)
+        return model
 
 
 #: ``(attribute of FilterConfig, part class)`` in parameter order.

@@ -160,7 +160,7 @@ class ParticleFilter:
         self.posterior_log_w: np.ndarray | None = None  # (S, N)
         # The M posteriors of the last update as the risk bound saw them.
         self.posterior_set: integrity.PosteriorSet | None = None
-        self.bias = BiasHypotheses(config.bias_hypotheses.model, config.n_posteriors, self.rng)
+        self.bias = BiasHypotheses(config.bias, config.n_posteriors, self.rng)
         self.errors = AdaptiveErrorModel(config.error_window_s)
         self.consistency = ConsistencyMonitor(config.consistency_suspect_nats,
                                               config.consistency_recover_nats)
@@ -193,8 +193,7 @@ class ParticleFilter:
         self.particles = self.log_w = None
         self.posteriors = self.posterior_log_w = None
         self.posterior_set = None
-        self.bias = BiasHypotheses(self.config.bias_hypotheses.model, self.config.n_posteriors,
-                                   self.rng)
+        self.bias = BiasHypotheses(self.config.bias, self.config.n_posteriors, self.rng)
         self.errors = AdaptiveErrorModel(self.config.error_window_s)
         self.consistency.reset()
         self.distance_since_init_m = 0.0
@@ -240,9 +239,9 @@ class ParticleFilter:
     def set_parameters(self, **changes) -> None:
         """Change parameters between epochs (validated; the old ones stay on error)."""
         new = replace(self.config, **changes)
-        if (new.bias_hypotheses.model != self.config.bias_hypotheses.model
+        if (new.bias != self.config.bias
                 or new.n_posteriors != self.config.n_posteriors):
-            self.bias = BiasHypotheses(new.bias_hypotheses.model, new.n_posteriors, self.rng)
+            self.bias = BiasHypotheses(new.bias, new.n_posteriors, self.rng)
         if new.n_particles != self.config.n_particles and self.initialised:
             idx = SYSTEMATIC.resize(self.log_w, self.rng, new.n_particles)
             self.particles = self.particles[idx]
