@@ -300,11 +300,14 @@ def run_robustness(drive: Drive, cells: list[Cell], seeds: list[int],
         progress: A progress bar on stderr.
 
     Returns:
-        ``{'cells': [...], 'failed': [...], 'cluster', 'seconds', 'runs_computed', ...}``.
+        ``{'cells': [...], 'failed': [...], 'cluster', 'seconds', 'runs_computed', ...}``;
+        ``failed`` lists the runs that failed (``cell``, ``seed``, ``error``) and the cells
+        that could not be made (``seed`` None).
 
     Raises:
         RobustnessError: Fewer than two seeds, or no cell.
-        DatasetError: The drive has no truth, or a cell's variation leaves no epoch.
+        DatasetError: The drive has no truth (a cell whose variation leaves no epoch is
+            reported in ``failed`` and its entry's ``error``; the others run).
         campaign_cluster.ClusterError: The cluster cannot be started or reached.
     """
     seeds = list(dict.fromkeys(int(s) for s in seeds))
@@ -317,8 +320,14 @@ def run_robustness(drive: Drive, cells: list[Cell], seeds: list[int],
     start = time.monotonic()
     drives, first_of = {}, {}
     data, same_as = {}, {}
+    failed = []
     for cell in cells:
-        made = cell_drive(drive, cell, duration_s, fault_seed)
+        try:
+            made = cell_drive(drive, cell, duration_s, fault_seed)
+        except DatasetError as err:      # e.g. a start after the end: this cell only
+            data[cell.name] = {'error': str(err)}
+            failed.append({'cell': cell.name, 'seed': None, 'error': str(err)})
+            continue
         digest = drive_digest(made)
         data[cell.name] = {**_data_info(drive, made), 'digest': digest}
         if digest in first_of:
@@ -328,7 +337,6 @@ def run_robustness(drive: Drive, cells: list[Cell], seeds: list[int],
             drives[cell.name] = made
     tasks = [(f'{name}-s{seed}', name, (seed, config)) for name in drives for seed in seeds]
     runs: dict[str, list[dict]] = {name: [] for name in drives}
-    failed = []
     bar = tqdm(total=len(tasks), unit='run', disable=not progress, file=sys.stderr,
                dynamic_ncols=True, desc='robustness')
     try:
@@ -357,8 +365,13 @@ def run_robustness(drive: Drive, cells: list[Cell], seeds: list[int],
         entry = {'name': cell.name, 'description': cell.description,
                  'variation': {'kind': cell.kind, 'value': _plain(cell.value)},
                  'same_data_as': same_as.get(cell.name), 'data': data[cell.name]}
-        entry.update(summarize_cell(runs[source]) if runs[source] else
-                     {'seeds': [], 'pass': False, 'error': 'every run failed'})
+        if 'error' in data[cell.name]:
+            entry.update(seeds=[], error=data[cell.name]['error'])
+        elif runs[source]:
+            entry.update(summarize_cell(runs[source]))
+        else:
+            entry.update(seeds=[], error='every run failed')
+        entry.setdefault('pass', False)
         summaries.append(entry)
     wall = [r['wall_seconds'] for rs in runs.values() for r in rs]
     return {'cells': summaries, 'failed': failed, 'seeds': seeds,

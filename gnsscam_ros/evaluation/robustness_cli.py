@@ -10,7 +10,8 @@ Examples::
     gnsscam_eval robustness --list-cells
 
 Exit codes as every ``gnsscam_eval`` command: 0 done (whether or not the cells meet
-their targets: the table and the JSON say), 1 some runs failed (the others are reported),
+their targets: the table and the JSON say), 1 some runs failed or a cell could not be
+made (e.g. a start after the drive's end; the others are reported),
 2 bad arguments, 3 unreadable input (folder, files) or unreachable cluster, 4 an output
 that exists (without ``--force``) or cannot be written, 130 interrupted.
 """
@@ -113,7 +114,8 @@ def robustness_table(result: dict) -> str:
     rows = []
     for c in result['cells']:
         if 'mi_rate' not in c:
-            rows.append([c['name'], c['data']['gnss_epochs']] + ['-'] * 9 + ['FAIL'])
+            rows.append([c['name'], c['data'].get('gnss_epochs', 0)] + [None] * 9
+                        + [f"no: {c.get('error', 'not run')}"])
             continue
         failed = [k for k, t in c['targets'].items() if not t['pass']]
         rows.append([
@@ -209,8 +211,9 @@ def run_robustness_command(args: argparse.Namespace, argv) -> int:
     if code != EXIT_OK:
         return code
     if result['failed']:
-        return _error(f"{len(result['failed'])} runs failed (listed in the JSON's "
-                      "'failed'); their cells are summarised without them", EXIT_RUNS_FAILED)
+        return _error(f"{len(result['failed'])} runs or cells failed (listed in the "
+                      "JSON's 'failed'); the cells are summarised without them",
+                      EXIT_RUNS_FAILED)
     return EXIT_OK
 
 
