@@ -204,3 +204,30 @@ def test_exit_codes_are_gnsscam_evals():
     assert robustness_cli.EXIT_INPUT == cli.EXIT_INPUT
     assert robustness_cli.EXIT_OUTPUT == cli.EXIT_OUTPUT
     assert robustness_cli.EXIT_INTERRUPTED == cli.EXIT_INTERRUPTED
+
+
+@pytest.mark.slow
+def test_the_default_matrix_runs_on_the_excerpt(tmp_path, capsys):
+    """Every cell of the default matrix, 2 seeds, 10 s each. The excerpt is the first 60 s
+    of the Berlin file: the 60 s and 120 s starts have no data in it and are reported as
+    such (exit 1), every other cell is measured."""
+    out_json = tmp_path / 'matrix.json'
+    code = eval_main(['robustness', str(SMARTLOC_EXCERPT), '--seeds', '2', '--duration-s',
+                      '10', '--particles', '200', '--sequential', '--quiet', '--json',
+                      str(out_json)])
+    assert code == 1
+    assert 'runs or cells failed' in capsys.readouterr().err
+    result = json.loads(out_json.read_text())
+    assert [c['name'] for c in result['cells']] == [c.name for c in DEFAULT_CELLS]
+    no_data = {f['cell'] for f in result['failed']}
+    assert no_data == {'start_60s', 'start_120s'}
+    assert all(f['seed'] is None and 'no GNSS epoch' in f['error'] for f in result['failed'])
+    for c in result['cells']:
+        if c['name'] in no_data:
+            assert not c['pass'] and 'no GNSS epoch' in c['error']
+            continue
+        assert all(f in c for f in CELL_FIELDS), c['name']
+        assert c['mi_rate']['n'] > 0 and len(c['runs']) == 2
+    shared = {c['name']: c['same_data_as'] for c in result['cells'] if c['same_data_as']}
+    assert shared == {'gnss_5hz': 'baseline', 'start_0s': 'baseline'}
+    assert result['runs_computed'] == 2 * (len(DEFAULT_CELLS) - 4)
