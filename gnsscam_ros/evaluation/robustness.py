@@ -318,29 +318,15 @@ def run_robustness(drive: Drive, cells: list[Cell], seeds: list[int],
     if drive.truth is None:
         raise DatasetError(f'{drive.name}: no ground truth, nothing to evaluate against')
     start = time.monotonic()
-    drives, first_of = {}, {}
-    data, same_as = {}, {}
-    failed = []
-    for cell in cells:
-        try:
-            made = cell_drive(drive, cell, duration_s, fault_seed)
-        except DatasetError as err:      # e.g. a start after the end: this cell only
-            data[cell.name] = {'error': str(err)}
-            failed.append({'cell': cell.name, 'seed': None, 'error': str(err)})
-            continue
-        digest = drive_digest(made)
-        data[cell.name] = {**_data_info(drive, made), 'digest': digest}
-        if digest in first_of:
-            same_as[cell.name] = first_of[digest]
-        else:
-            first_of[digest] = cell.name
-            drives[cell.name] = made
+    drives, data, same_as, failed = _cell_drives(drive, cells, duration_s, fault_seed)
     tasks = [(f'{name}-s{seed}', name, (seed, config)) for name in drives for seed in seeds]
     runs: dict[str, list[dict]] = {name: [] for name in drives}
     bar = tqdm(total=len(tasks), unit='run', disable=not progress, file=sys.stderr,
                dynamic_ncols=True, desc='robustness')
     try:
-        with CaseRunner(scheduler, workers, sequential) as runner:
+        # Nothing to run (no cell has data): no cluster to start.
+        with CaseRunner(scheduler if tasks else None, workers,
+                        sequential or not tasks) as runner:
             ready = time.monotonic()
             bar.set_postfix_str(f"{runner.info['kind']}, {runner.info['workers']} workers")
             label_of = {label: (name, args[0]) for label, name, args in tasks}
@@ -359,20 +345,7 @@ def run_robustness(drive: Drive, cells: list[Cell], seeds: list[int],
         bar.close()
     running = time.monotonic() - ready
     cluster['startup_seconds'] = ready - start
-    summaries = []
-    for cell in cells:
-        source = same_as.get(cell.name, cell.name)
-        entry = {'name': cell.name, 'description': cell.description,
-                 'variation': {'kind': cell.kind, 'value': _plain(cell.value)},
-                 'same_data_as': same_as.get(cell.name), 'data': data[cell.name]}
-        if 'error' in data[cell.name]:
-            entry.update(seeds=[], error=data[cell.name]['error'])
-        elif runs[source]:
-            entry.update(summarize_cell(runs[source]))
-        else:
-            entry.update(seeds=[], error='every run failed')
-        entry.setdefault('pass', False)
-        summaries.append(entry)
+    summaries = [_cell_entry(cell, data, same_as, runs) for cell in cells]
     wall = [r['wall_seconds'] for rs in runs.values() for r in rs]
     return {'cells': summaries, 'failed': failed, 'seeds': seeds,
             'fault_seed': int(fault_seed), 'duration_s': duration_s,
@@ -383,6 +356,43 @@ def run_robustness(drive: Drive, cells: list[Cell], seeds: list[int],
             'seconds': time.monotonic() - start, 'running_seconds': running,
             'cells_passed': sum(bool(c.get('pass')) for c in summaries),
             'all_pass': all(c.get('pass') for c in summaries)}
+
+
+def _cell_drives(drive: Drive, cells: list[Cell], duration_s, fault_seed):
+    """Every cell's data: ``(drives to run {name: drive}, data info {name: ...},
+    same_as {name: earlier cell with the same data}, failed [cells without data])``."""
+    drives, first_of, data, same_as, failed = {}, {}, {}, {}, []
+    for cell in cells:
+        try:
+            made = cell_drive(drive, cell, duration_s, fault_seed)
+        except DatasetError as err:      # e.g. a start after the end: this cell only
+            data[cell.name] = {'error': str(err)}
+            failed.append({'cell': cell.name, 'seed': None, 'error': str(err)})
+            continue
+        digest = drive_digest(made)
+        data[cell.name] = {**_data_info(drive, made), 'digest': digest}
+        if digest in first_of:
+            same_as[cell.name] = first_of[digest]
+        else:
+            first_of[digest] = cell.name
+            drives[cell.name] = made
+    return drives, data, same_as, failed
+
+
+def _cell_entry(cell: Cell, data: dict, same_as: dict, runs: dict) -> dict:
+    """A cell's entry of the JSON: what it is, its data, and its figures (or why none)."""
+    entry = {'name': cell.name, 'description': cell.description,
+             'variation': {'kind': cell.kind, 'value': _plain(cell.value)},
+             'same_data_as': same_as.get(cell.name), 'data': data[cell.name]}
+    mine = runs.get(same_as.get(cell.name, cell.name), [])
+    if 'error' in data[cell.name]:
+        entry.update(seeds=[], error=data[cell.name]['error'])
+    elif mine:
+        entry.update(summarize_cell(mine))
+    else:
+        entry.update(seeds=[], error='every run failed')
+    entry.setdefault('pass', False)
+    return entry
 
 
 def _plain(value):
