@@ -30,9 +30,10 @@ from dataclasses import dataclass
 import numpy as np
 
 # Bias models of the posteriors behind the risk bound (the ``bias_model`` parameter).
-BIAS_CN0 = 'cn0'         # Gauss-Markov bias per satellite, size from C/N0 (default)
+BIAS_LEARNED = 'learned'  # Gauss-Markov bias per satellite, size: learned error model
+BIAS_CN0 = 'cn0'         # Gauss-Markov bias per satellite, size from C/N0 and constants
 BIAS_NONE = 'none'       # motion perturbations only (the paper's construction)
-BIAS_MODELS = (BIAS_CN0, BIAS_NONE)
+BIAS_MODELS = (BIAS_LEARNED, BIAS_CN0, BIAS_NONE)
 
 #: Covariance floor added before inverting particle covariances [m^2]: a set collapsed by
 #: resampling must not give a singular matrix.
@@ -119,16 +120,24 @@ class BiasHypotheses:
         # (system, sv) key -> (stamp_ns of the bias, (M,) biases [m]).
         self._biases: dict[int, tuple[int, np.ndarray]] = {}
 
-    def biases_at(self, stamp_ns: int, keys: np.ndarray, cn0_dbhz: np.ndarray) -> np.ndarray:
+    def biases_at(self, stamp_ns: int, keys: np.ndarray, cn0_dbhz: np.ndarray,
+                  sigma_m: np.ndarray | None = None) -> np.ndarray:
         """Advance the biases of the satellites in view to ``stamp_ns``, (k, M) [m].
+
+        ``sigma_m`` (k,) gives each satellite's bias standard deviation [m] (the learned
+        error model's); None takes it from the model's C/N0 law.
 
         A satellite seen for the first time (or again after a long gap) draws its biases
         from the stationary distribution; one seen before moves by the Gauss-Markov step
         ``b <- phi b + sqrt(1 - phi^2) sigma xi``, ``phi = exp(-dt / tau)``, with the sigma
         of its current C/N0.
         """
-        rms = 0.0 if self.residual_var_m2 is None else float(np.sqrt(self.residual_var_m2))
-        sigma = self.model.sigma_m(cn0_dbhz, rms)
+        if sigma_m is None:
+            rms = (0.0 if self.residual_var_m2 is None
+                   else float(np.sqrt(self.residual_var_m2)))
+            sigma = self.model.sigma_m(cn0_dbhz, rms)
+        else:
+            sigma = np.asarray(sigma_m, dtype=float)
         tau = self.model.correlation_time_s
         # One call: the same stream as one draw of M per satellite, in order.
         draws = self.rng.standard_normal((keys.shape[0], self.n))

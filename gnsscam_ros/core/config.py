@@ -39,10 +39,15 @@ from pathlib import Path
 
 import numpy as np
 
-from .bias import BIAS_CN0, BIAS_MODELS, BIAS_NONE, MAX_TRACKED_SATELLITES, BiasModel
+from .bias import BIAS_LEARNED, BIAS_MODELS, BIAS_NONE, MAX_TRACKED_SATELLITES, BiasModel
 from .fusion import MAX_CAMERA_MATCHES
 from .gnss import LIKELIHOODS, MAX_SATELLITES, ROBUST
 from .integrity import EXACT, INVERSE_METHODS
+
+#: Values of the ``error_model`` parameter.
+ERROR_ADAPTIVE = 'adaptive'
+ERROR_STATED = 'stated'
+ERROR_MODELS = (ERROR_ADAPTIVE, ERROR_STATED)
 
 #: Key of the field metadata that holds a parameter's description.
 _META = 'gnsscam_parameter'
@@ -271,17 +276,29 @@ class GnssConfig(_Part):
         0.0, 'Satellites below this elevation are dropped.', 'deg', low=-90.0, high=90.0)
     cn0_mask_dbhz: float = parameter(
         0.0, 'Satellites below this C/N0 are dropped.', 'dB-Hz', low=0.0, high=100.0)
+    error_model: str = parameter(
+        ERROR_ADAPTIVE, "'adaptive' (the pseudorange error mixture is learned online from "
+        'the residuals, per C/N0 class, over error_window_s; the stated variances are not '
+        "used; core.error_model) or 'stated' (the receiver's variances, "
+        'measurement_var_m2 and the outlier constants below).', choices=ERROR_MODELS)
+    error_window_s: float = parameter(
+        60.0, 'Sliding window of residuals from which the adaptive error model is learned '
+        '(the horizon of the adaptive mixtures of libRSF).', 's', low=1.0)
     measurement_var_m2: float = parameter(
-        10.0, 'Pseudorange variance (paper Table 1: 10).', 'm^2', low=0.0, low_open=True)
+        10.0, "Pseudorange variance (paper Table 1: 10; error_model 'stated').", 'm^2',
+        low=0.0, low_open=True)
     use_reported_variance: bool = parameter(
-        True, "Use max(measurement_var_m2, the receiver's variance).")
+        True, "Use max(measurement_var_m2, the receiver's variance) (error_model "
+        "'stated').")
     clock_kernel_max_m: float = parameter(
         3.0, "Cap on how much the prior's spread widens the clock's inlier kernel. NLOS "
         'errors are positive; a kernel wide enough to take them in biases the clock, and '
         'through it the height, by tens of metres.', 'm', low=0.0)
     error_correlation_time_s: float = parameter(
-        5.0, 'GNSS errors closer in time than this are not independent evidence: each '
-        "epoch's log-likelihood is tempered by min(1, dt / this); 0 = off.", 's', low=0.0)
+        2.5, 'Correlation time tau of the GNSS errors as the likelihood counts evidence: an '
+        'epoch dt after the last is worth tanh(dt / (2 tau)) of an independent one (a '
+        'first-order Gauss-Markov error), whatever the GNSS rate; 0 = every epoch '
+        'independent.', 's', low=0.0)
     likelihood: str = parameter(
         ROBUST, "'particle_raim' (the paper's mixture) or 'robust' (Gaussian with an "
         'outlier floor).', choices=LIKELIHOODS)
@@ -300,9 +317,12 @@ class BiasConfig(_Part):
     """Bias hypotheses of the posteriors behind the risk bound (``core.bias``)."""
 
     bias_model: str = parameter(
-        BIAS_CN0, "'cn0' (each posterior carries a Gauss-Markov pseudorange bias per "
-        'satellite, its size from C/N0, propagated into the estimate; core.bias) or '
-        "'none' (posteriors differ by motion perturbations only, as in the paper).",
+        BIAS_LEARNED, "'learned' (each posterior carries a Gauss-Markov pseudorange bias per "
+        'satellite with the standard deviation of its signal class in the learned error '
+        "model, propagated into the estimate; core.bias, core.error_model), 'cn0' (the "
+        'same, its size from C/N0 and the constants below, which were calibrated on the '
+        "smartLoc drive: kept for comparison) or 'none' (posteriors differ by motion "
+        'perturbations only, as in the paper).',
         choices=BIAS_MODELS)
     bias_floor_m: float = parameter(
         2.0, 'Smallest bias standard deviation at high C/N0.', 'm', low=0.0)
@@ -370,6 +390,19 @@ class IntegrityConfig(_Part):
         "the bias hypotheses start from none and need the filter's own memory to grow into "
         'it (measured: the level fell below the error at the end of acquisition on the '
         'emulated drive).', 's', low=0.0)
+
+    consistency_suspect_nats: float = parameter(
+        2.0, 'The cloud counts as inconsistent with the measurements (ERROR, the protection '
+        'level covering the snapshot solution) while the CUSUM of the log likelihood ratio '
+        '"cloud moved onto the snapshot solution" against "cloud" is at least this '
+        '(core.consistency): odds of e^2 = 7 to 1.', 'nats', low=0.0, low_open=True)
+    consistency_recover_nats: float = parameter(
+        6.0, 'At this statistic (odds of 400 to 1) the filter recovers: recovery_share of '
+        'the cloud moves onto the snapshot solution and integrity settles again.', 'nats',
+        low=0.0, low_open=True)
+    recovery_share: float = parameter(
+        0.5, 'Share of the cloud moved onto the snapshot solution at a recovery.', low=0.0,
+        high=1.0, low_open=True)
 
     @property
     def alert_limits_m(self) -> np.ndarray:

@@ -22,6 +22,7 @@ from typing import Protocol
 
 import numpy as np
 
+from .error_model import AdaptiveErrorModel
 from .frames import LocalFrame, sagnac_corrected
 # The checks need no kernel: gnss_node imports them alone (no numba).
 from .gnss_checks import (MAX_PSEUDORANGE_M, MAX_SATELLITE_RADIUS_M,  # noqa: F401
@@ -50,6 +51,10 @@ class PreparedEpoch:
         n_systems: Number of distinct constellations S.
         sv_key: (k,) ``system * 1000 + sv_id``, one key per satellite across epochs.
         cn0_dbhz: (k,) carrier-to-noise density ratios [dB-Hz] (NaN when unknown).
+        outlier_prob: (k,) share of the robust likelihood's outlier part per satellite
+            (None: the likelihood's own ``outlier_prob``).
+        outlier_density: (k,) density of the outlier part [1/m] (None: one over the
+            likelihood's ``outlier_range_m``).
     """
 
     sv_enu_m: np.ndarray
@@ -59,10 +64,24 @@ class PreparedEpoch:
     n_systems: int
     sv_key: np.ndarray
     cn0_dbhz: np.ndarray
+    outlier_prob: np.ndarray | None = None
+    outlier_density: np.ndarray | None = None
+
+    def outlier_model(self, outlier_prob: float, outlier_range_m: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """``(share (k,), density (k,))`` of the outlier part: the epoch's own (learned)
+        where it has them, else the given constants."""
+        k = self.pr_m.shape[0]
+        share = (np.full(k, float(outlier_prob)) if self.outlier_prob is None
+                 else self.outlier_prob)
+        density = (np.full(k, 1.0 / outlier_range_m) if self.outlier_density is None
+                   else self.outlier_density)
+        return share, density
 
 
 def prepare_epoch(epoch: GnssEpoch, frame: LocalFrame, rx_enu_m: np.ndarray,
-                  measurement_var_m2: float, use_reported_variance: bool) -> PreparedEpoch:
+                  measurement_var_m2: float, use_reported_variance: bool,
+                  error_model: AdaptiveErrorModel | None = None) -> PreparedEpoch:
     """Correct Earth rotation, move satellites to ENU and drop single-satellite systems.
 
     A constellation seen through one satellite only fixes its own clock: its residual is
@@ -75,19 +94,28 @@ def prepare_epoch(epoch: GnssEpoch, frame: LocalFrame, rx_enu_m: np.ndarray,
         rx_enu_m: (3,) approximate receiver position for the signal flight time [m].
         measurement_var_m2: Default pseudorange variance [m^2].
         use_reported_variance: Use the larger of the default and the epoch's own variances.
+        error_model: The learned error model: it gives every satellite its core spread
+            and outlier part from its signal class, and the two arguments above are not
+            used (None: the stated variances and the likelihood's constants).
     """
     sys_index, n_systems = gnss_kernels.constellation_index(
         np.asarray(epoch.system, dtype=np.int64))
     multi = sys_index >= 0
     rx_ecef = frame.enu_to_ecef(rx_enu_m)
     sv_ecef = sagnac_corrected(epoch.sv_pos_ecef_m[multi], rx_ecef)
-    var = np.full(int(multi.sum()), float(measurement_var_m2))
-    if use_reported_variance:
-        var = np.maximum(var, epoch.var_m2[multi])
+    cn0 = np.asarray(epoch.cn0_dbhz[multi], dtype=float)
+    share = density = None
+    if error_model is not None:
+        sigma, share, density = error_model.satellite_model(cn0)
+    else:
+        var = np.full(int(multi.sum()), float(measurement_var_m2))
+        if use_reported_variance:
+            var = np.maximum(var, epoch.var_m2[multi])
+        sigma = np.sqrt(var)
     return PreparedEpoch(sv_enu_m=frame.ecef_to_enu(sv_ecef), pr_m=epoch.pr_m[multi].copy(),
-                         sigma_m=np.sqrt(var), sys_index=sys_index[multi],
+                         sigma_m=sigma, sys_index=sys_index[multi],
                          n_systems=int(n_systems), sv_key=satellite_key(epoch, 1000)[multi],
-                         cn0_dbhz=np.asarray(epoch.cn0_dbhz[multi], dtype=float))
+                         cn0_dbhz=cn0, outlier_prob=share, outlier_density=density)
 
 
 def clock_weights(prep: PreparedEpoch, centre_m: np.ndarray, spread_m: float,
@@ -123,21 +151,24 @@ def clock_corrected_residuals(positions_m: np.ndarray, prep: PreparedEpoch,
                                             clock_weights, prep.n_systems)
 
 
-def robust_scale(sigma_m: np.ndarray, outlier_prob: float, outlier_range_m: float,
-                 log_range: float = 690.0) -> tuple[np.ndarray, float, int]:
-    """The robust model's per-satellite density ``scale_k exp(-z_k^2 / 2) + floor`` as the
-    kernels take it: ``(log scale_k (k,), floor, group)`` with
-    ``scale_k = (1 - eps) / (sigma_k sqrt(2 pi))``, ``floor = eps / range_out`` and
-    ``group`` the number of densities whose product stays within ``exp(+-log_range)``
-    (the kernel takes one log per group; 690: float64, 87: float32); 0 when a single
-    density may already lie outside it (a zero floor)."""
+def robust_scale(sigma_m: np.ndarray, outlier_prob: np.ndarray, outlier_density: np.ndarray,
+                 log_range: float = 690.0) -> tuple[np.ndarray, np.ndarray, int]:
+    """The robust model's per-satellite density ``scale_k exp(-z_k^2 / 2) + floor_k`` as
+    the kernels take it: ``(log scale_k (k,), floor_k (k,), group)`` with
+    ``scale_k = (1 - eps_k) / (sigma_k sqrt(2 pi))``, ``floor_k = eps_k d_k`` (``d_k``
+    the outlier density) and ``group`` the number of densities whose product stays within
+    ``exp(+-log_range)`` (the kernel takes one log per group; 690: float64, 87: float32);
+    0 when a single density may already lie outside it (a zero floor)."""
+    outlier_prob = np.broadcast_to(np.asarray(outlier_prob, dtype=float), sigma_m.shape)
     log_scale = np.log1p(-outlier_prob) - np.log(sigma_m) - LOG_SQRT_2PI
-    floor = outlier_prob / outlier_range_m
-    # Every density lies between the floor and the largest scale plus the floor.
+    floor = np.ascontiguousarray(outlier_prob * np.broadcast_to(outlier_density,
+                                                                sigma_m.shape))
+    # Every density lies between its floor and its scale plus its floor.
     with np.errstate(divide='ignore'):                  # no floor: log 0 = -inf
-        log_floor = float(np.log(floor))
-    log_largest = float(np.logaddexp(log_scale.max(initial=-np.inf), log_floor))
-    per_term = max(abs(log_floor), abs(log_largest), 1e-3)
+        log_floor = np.log(floor)
+    log_largest = np.logaddexp(log_scale, log_floor)
+    per_term = max(float(np.abs(log_floor).max(initial=0.0)),
+                   float(np.abs(log_largest).max(initial=0.0)), 1e-3)
     return log_scale, floor, int(log_range / per_term) if np.isfinite(per_term) else 0
 
 
@@ -210,7 +241,8 @@ def robust_inlier_shares(positions_m: np.ndarray, log_w: np.ndarray, prep: Prepa
         average over the particles normalised to sum to one (the robust likelihood's
         mixture weights, reported with the epoch).
     """
-    log_scale, floor, _ = robust_scale(prep.sigma_m, outlier_prob, outlier_range_m)
+    log_scale, floor, _ = robust_scale(prep.sigma_m,
+                                       *prep.outlier_model(outlier_prob, outlier_range_m))
     return gnss_kernels.robust_inlier_shares(
         np.ascontiguousarray(positions_m, dtype=float), np.ascontiguousarray(log_w, float),
         prep.sv_enu_m, prep.pr_m, 1.0 / prep.sigma_m, prep.sys_index, clock_weights,
@@ -314,8 +346,8 @@ class RobustLikelihood:
         joint = np.empty(sets.shape[:2])
         prior_log_w = np.ascontiguousarray(prior_log_w, dtype=float)
         inv_sigma = 1.0 / prep.sigma_m
-        log_scale, floor, group = robust_scale(prep.sigma_m, self.outlier_prob,
-                                               self.outlier_range_m, SINGLE_LOG_RANGE)
+        outliers = prep.outlier_model(self.outlier_prob, self.outlier_range_m)
+        log_scale, floor, group = robust_scale(prep.sigma_m, *outliers, SINGLE_LOG_RANGE)
         geometry = (relative_geometry(sets, prep, clock_weights)
                     if self.single_precision and group >= 1 else None)
         if geometry is not None:
@@ -323,13 +355,12 @@ class RobustLikelihood:
                 sets, geometry.centre_m, geometry.unit, geometry.base_m,
                 geometry.half_inv_range, geometry.max_offset_m, prep.sv_enu_m, prep.pr_m,
                 inv_sigma, prep.sys_index, clock_weights, prep.n_systems, log_scale,
-                float(floor), group, float(evidence), prior_log_w, joint)
+                floor, group, float(evidence), prior_log_w, joint)
             return GnssLikelihood(joint=joint, total=total)
-        log_scale, floor, group = robust_scale(prep.sigma_m, self.outlier_prob,
-                                               self.outlier_range_m)
+        log_scale, floor, group = robust_scale(prep.sigma_m, *outliers)
         total = gnss_kernels.robust_joint(
             sets, prep.sv_enu_m, prep.pr_m, inv_sigma, prep.sys_index,
-            clock_weights, prep.n_systems, log_scale, float(floor), max(group, 1),
+            clock_weights, prep.n_systems, log_scale, floor, max(group, 1),
             float(evidence), prior_log_w, joint)
         return GnssLikelihood(joint=joint, total=total)
 

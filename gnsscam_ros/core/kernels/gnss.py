@@ -125,8 +125,9 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
                  group, evidence, prior_log_w, joint):
     """Joint log-weights under the robust likelihood, for S sets of N particles.
 
-    ``log L = sum_k log(scale_k exp(-z_k^2 / 2) + floor)`` with
-    ``scale_k = (1 - eps) / (sigma_k sqrt(2 pi))`` and ``floor = eps / range_out``: one
+    ``log L = sum_k log(scale_k exp(-z_k^2 / 2) + floor_k)`` with
+    ``scale_k = (1 - eps_k) / (sigma_k sqrt(2 pi))`` and ``floor_k = eps_k d_k`` (``d_k``
+    the outlier density of the satellite, ``core.error_model``): one
     ``exp`` per satellite, one ``log`` per ``group`` satellites (the product of that many
     densities stays within the floating-point range; ``core.gnss.robust_scale``).
 
@@ -139,7 +140,7 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
         clock_w: (k,) clock weights, summing to one per constellation.
         n_systems: Number of constellations.
         log_scale: (k,) log of each satellite's Gaussian scale (above).
-        floor: Outlier floor (above).
+        floor: (k,) outlier floor of each satellite (above).
         group: Satellites per log.
         evidence: Tempering exponent of the log-likelihood.
         prior_log_w: (N,) prior log-weights.
@@ -167,10 +168,10 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
                 log_sum[b] = 0.0
             count = 0
             for j in range(k):
-                ls, isg = log_scale[j], inv_sigma[j]
+                ls, isg, fl = log_scale[j], inv_sigma[j], floor[j]
                 for b in range(m):
                     zj = r[j, b] * isg
-                    prod[b] *= elementary.exp(ls - 0.5 * zj * zj) + floor
+                    prod[b] *= elementary.exp(ls - 0.5 * zj * zj) + fl
                 count += 1
                 if count == group:
                     _fold_logs(prod, log_sum, m)
@@ -220,7 +221,7 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
     clock_w32 = clock_w.astype(f32)
     inv_sigma32 = inv_sigma.astype(f32)
     log_scale32 = log_scale.astype(f32)
-    floor32 = f32(floor)
+    floor32 = floor.astype(f32)
     half = f32(0.5)
     one = f32(1.0)
     zero = f32(0.0)
@@ -277,11 +278,11 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
                 log_sum[b] = 0.0
             count = 0
             for j in range(k):
-                ls, isg = log_scale32[j], inv_sigma32[j]
+                ls, isg, fl = log_scale32[j], inv_sigma32[j], floor32[j]
                 r_j, clock_c = r[j], clock[sys_index[j]]
                 for b in range(m):
                     zj = (r_j[b] - clock_c[b]) * isg
-                    prod[b] *= elementary.exp32(ls - half * zj * zj) + floor32
+                    prod[b] *= elementary.exp32(ls - half * zj * zj) + fl
                 count += 1
                 if count == group:
                     _fold_logs(prod, log_sum, m)
@@ -374,7 +375,7 @@ def robust_inlier_shares(points, log_w, sv, pr, inv_sigma, sys_index, clock_w, n
                          log_scale, floor):
     """Per-satellite inlier probabilities of one set under the robust model.
 
-    ``p_k = d_k / (d_k + floor)``, ``d_k = scale_k exp(-z_k^2 / 2)``, per particle.
+    ``p_k = d_k / (d_k + floor_k)``, ``d_k = scale_k exp(-z_k^2 / 2)``, per particle.
 
     Returns:
         ``(weighted (k,), share (k,))``: the average of ``p_k`` under ``log_w`` (what the
@@ -399,12 +400,12 @@ def robust_inlier_shares(points, log_w, sv, pr, inv_sigma, sys_index, clock_w, n
         for b in range(m):
             w[b] = elementary.exp(log_w[start + b])
         for j in range(k):
-            ls, isg = log_scale[j], inv_sigma[j]
+            ls, isg, fl = log_scale[j], inv_sigma[j], floor[j]
             r_j, sum_w, sum_p = r[j], lanes_w[j], lanes_p[j]
             for b in range(m):
                 zj = r_j[b] * isg
                 dens = elementary.exp(ls - 0.5 * zj * zj)
-                p = dens / (dens + floor)
+                p = dens / (dens + fl)
                 sum_w[b] += w[b] * p
                 sum_p[b] += p
     weighted = np.zeros(k)
