@@ -104,25 +104,29 @@ def test_cell_figures_follow_from_the_runs():
     assert set(TARGETS) == set(cell['targets'])
 
 
-def test_recoveries_are_read_from_the_run_when_the_filter_reports_them(
-        smartloc_excerpt, monkeypatch):
+def test_recoveries_are_read_from_the_evaluation(smartloc_excerpt, monkeypatch):
     cells = select_cells(['baseline'])
     config = campaign_config(n_particles=200)
-    plain = run_robustness(smartloc_excerpt, cells, [0, 1], config, duration_s=8.0,
-                           sequential=True, progress=False)
-    assert plain['cells'][0]['recoveries'] == {'total': 0, 'reported': False,
-                                               'per_run': [0, 0]}
     evaluate = robustness.evaluate_drive_record
 
-    def reporting(drive, cfg, seed=0, progress=False):
-        result, record = evaluate(drive, cfg, seed, progress)
-        return {**result, 'recoveries': seed + 1}, record
+    def run_with(recoveries):
+        def patched(drive, cfg, seed=0, progress=False):
+            result, record = evaluate(drive, cfg, seed, progress)
+            assert result['recoveries'] == record.recoveries >= 0   # what the runner says
+            result = {k: v for k, v in result.items() if k != 'recoveries'}
+            if recoveries is not None:
+                result['recoveries'] = recoveries(seed)
+            return result, record
 
-    monkeypatch.setattr(robustness, 'evaluate_drive_record', reporting)
-    out = run_robustness(smartloc_excerpt, cells, [0, 1], config, duration_s=8.0,
-                         sequential=True, progress=False)
-    assert out['cells'][0]['recoveries'] == {'total': 3, 'reported': True,
-                                             'per_run': [1, 2]}
+        monkeypatch.setattr(robustness, 'evaluate_drive_record', patched)
+        out = run_robustness(smartloc_excerpt, cells, [0, 1], config, duration_s=8.0,
+                             sequential=True, progress=False)
+        return out['cells'][0]['recoveries']
+
+    assert run_with(lambda seed: seed + 1) == {'total': 3, 'reported': True,
+                                               'per_run': [1, 2]}
+    # An evaluation without the count: the field is there, 0, and says so.
+    assert run_with(None) == {'total': 0, 'reported': False, 'per_run': [0, 0]}
 
 
 @pytest.mark.slow

@@ -43,9 +43,9 @@ horizontal by default):
   ratio to the WLS 2D RMSE of the cell;
 * ``protection_level``: median and p95 over every seed's epochs (inf counts as inf);
   ``median_error_m``; ``pl_to_error_ratio`` = median PL / median error;
-* ``recoveries``: the runs' ``recoveries`` count (the evaluation JSON's key of that
-  name, or the run record's attribute), summed; 0 with ``reported: false`` when the
-  filter does not report it;
+* ``recoveries``: the runs' ``recoveries`` (the evaluation JSON's key: epochs at which
+  the filter recovered, ``runner.RunRecord.recoveries``), summed; 0 with ``reported:
+  false`` when the evaluation does not report it;
 * ``targets``: mean MI <= 0.10, its upper bound <= 0.15, RMSE <= 0.5 x WLS, median PL
   <= 3 x median error (:data:`TARGETS`); ``pass`` when all hold.
 """
@@ -203,7 +203,7 @@ def run_seed(drive: Drive, seed: int, config: FilterConfig) -> dict:
     diff = record.estimate_enu_m - record.truth_enu_m
     error = (np.hypot(diff[:, 0], diff[:, 1]) if config.horizontal_risk
              else np.linalg.norm(diff, axis=1))
-    recoveries = result.get('recoveries', getattr(record, 'recoveries', None))
+    recoveries = result.get('recoveries')
     pl = result['protection_level']
     return {'seed': int(seed), 'mi_epochs': int(pl['mi_epochs']), 'epochs': int(pl['epochs']),
             'rmse_2d_m': result['rmse_2d_m'],
