@@ -196,6 +196,10 @@ def test_bad_input_and_arguments_get_the_documented_exit_codes(tmp_path, capsys)
     assert eval_main(['robustness', str(SMARTLOC_EXCERPT), '--cells', 'nope']) == 2
     assert "unknown cell 'nope'" in capsys.readouterr().err
     assert eval_main(['robustness', str(SMARTLOC_EXCERPT), '--seeds', '1']) == 2
+    for flag in ('--first-seed', '--fault-seed'):
+        assert eval_main(['robustness', str(SMARTLOC_EXCERPT), flag, '-1']) == 2
+        assert f'{flag} must be >= 0' in capsys.readouterr().err
+    assert eval_main(['robustness', str(SMARTLOC_EXCERPT), '--particles', '0']) == 2
     assert eval_main(['robustness', str(SMARTLOC_EXCERPT), '--sequential',
                       '--scheduler', 'tcp://127.0.0.1:1']) == 2
     assert eval_main(['robustness', '--list-cells']) == 0

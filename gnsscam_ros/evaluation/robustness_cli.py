@@ -171,6 +171,10 @@ def run_robustness_command(args: argparse.Namespace, argv) -> int:
         cells = select_cells(args.cells)
         if args.seeds < 2:
             raise RobustnessError(f'--seeds must be at least 2, got {args.seeds}')
+        for flag, value in (('--first-seed', args.first_seed),
+                            ('--fault-seed', args.fault_seed)):
+            if value < 0:            # numpy's generators take seeds >= 0 only
+                raise RobustnessError(f'{flag} must be >= 0, got {value}')
         if args.sequential and args.scheduler:
             raise RobustnessError('--sequential and --scheduler exclude each other')
         if args.workers is not None and args.workers < 1:
