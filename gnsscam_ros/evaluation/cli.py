@@ -38,6 +38,7 @@ from .campaign_summary import campaign_tables
 from .evaluate import evaluate_drive_record
 from .report import (INTEGRITY_HEADERS, integrity_rows, protection_level_headers,
                      protection_level_rows, stanford_line)
+from .robustness_cli import add_robustness_parser, run_robustness_command
 
 EXIT_OK, EXIT_USAGE, EXIT_INPUT, EXIT_OUTPUT = 0, 2, 3, 4
 #: Some campaign cases failed (the others are written; a rerun retries them).
@@ -187,6 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
     bag.add_argument('--namespace', default='/', help='namespace of the recorded topics')
     bag.add_argument('--origin', type=float, nargs=3, metavar=('LAT', 'LON', 'ALT'),
                      help='map frame origin, when no bag has map/origin')
+    add_robustness_parser(sub)
     for p in (smart, emu, bag):
         p.add_argument('--epochs-csv', type=Path, metavar='FILE',
                        help='write one row per GNSS epoch (estimate in WGS84, protection '
@@ -353,6 +355,8 @@ def load_drive(args: argparse.Namespace):
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.command == 'robustness':
+        return run_robustness_command(args, sys.argv[1:] if argv is None else argv)
     for path in (args.json, None if args.command == 'campaign' else args.epochs_csv):
         if path is not None and path.exists() and not args.force:
             print(f'gnsscam_eval: {path} exists; pass --force to replace it',
