@@ -10,7 +10,8 @@ Exit codes of the node executables (:func:`.runtime.run_node`, pipeline_node):
   fatal log line when a node's worker failed: :meth:`GnssCamNode.fail`), also when the
   failure shut the context down as a stop does;
 * 2 (:data:`EXIT_PARAMETER`): a parameter refused at start-up (wrong type, out of range,
-  refused by the node's checks), one line on stderr naming it;
+  refused by the node's checks), or ROS arguments that cannot be used (a ``--params-file``
+  that does not exist or does not parse), one line on stderr naming it;
 * 3 (:data:`EXIT_INPUT`): an input file named by a parameter cannot be used
   (camera_node ``database_path`` missing or not a map database), one line on stderr.
 """
