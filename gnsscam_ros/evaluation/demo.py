@@ -57,6 +57,7 @@ from ..io.tables import format_table
 from ..live.replay import replay_through_nodes, use_dds_profile
 from ..nodes.camera_node import DEFAULTS as CAMERA_DEFAULTS
 from .bag_eval import evaluate_result_bag_epochs
+from .cli import DEFAULT_SEED
 from .plots import integrity_plots, risk_plot, trajectory_plot
 from .report import stanford_line
 from .runner import (RunRecord, accuracy, offline_camera_matches, run_epochs,
@@ -270,13 +271,15 @@ def _rows(key: str, result: dict) -> list[list]:
 
 
 # ============================================================================ main
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The demo's command line."""
     parser = argparse.ArgumentParser(prog='gnsscam demo', description=__doc__.split('\n')[0])
     parser.add_argument('--shared', type=Path, default=Path('../shared'),
                         help='folder holding data/smartloc (default %(default)s)')
     parser.add_argument('--out', type=Path, default=Path('out'),
                         help='results root; each run writes a new sub-folder')
-    parser.add_argument('--seed', type=int, default=1, help='filter seed (default 1)')
+    parser.add_argument('--seed', type=int, default=DEFAULT_SEED,
+                        help='filter seed (default %(default)s, as gnsscam_eval)')
     parser.add_argument('--particles', type=int, default=FilterConfig().n_particles,
                         help='particles per posterior N (default %(default)s)')
     parser.add_argument('--duration-s', type=float, default=150.0,
@@ -294,7 +297,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--cache', type=Path,
                         default=Path(os.environ.get('GNSSCAM_CACHE_DIR', '.cache/gnsscam')),
                         help='map database cache (default %(default)s)')
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     config = FilterConfig(n_particles=args.particles, alert_limit_m=ALERT_LIMIT_M)
     stages = Stages()
     out_dir = new_run_folder(args.out)
