@@ -36,6 +36,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.serialization import deserialize_message
 
 from diagnostic_msgs.msg import DiagnosticArray
+from std_srvs.srv import Trigger
+
 from msg_adapters import (NEW_BASE, OK, WARN, MessageError, StampGate, make_diagnostic_array,
                           make_status)
 
@@ -274,7 +276,10 @@ class GnssCamNode(Node):
     """Base of the gnsscam_ros nodes.
 
     Declares ``diagnostics_period_s``, publishes ``diagnostics`` periodically with the
-    node's counters (subclasses add their own state through :meth:`diagnostic_summary`),
+    node's counters and ``newest_input_stamp_ns`` (the newest stamp its inputs accepted;
+    subclasses add their own state through :meth:`diagnostic_summary`), offers ``~/reset``
+    (``std_srvs/Trigger``: forget the inputs' time base and the state built on it,
+    :meth:`reset_time_base_now`),
     and validates parameter updates: each declared parameter may carry a validator and a
     read-only flag; :meth:`validate_parameters` sees the whole update and may refuse it with
     a reason (the old values stay); :meth:`apply_parameters` applies accepted ones.
@@ -303,6 +308,7 @@ class GnssCamNode(Node):
                      (0.05, 3600.0), read_only=True)
         self._diag_timer = self.create_timer(self.param('diagnostics_period_s'),
                                              self.publish_diagnostics)
+        self._reset_service = self.create_service(Trigger, '~/reset', self._on_reset)
 
     # ------------------------------------------------------------------ parameters
     def declare(self, name: str, default, description: str, value_range=None,
@@ -462,6 +468,11 @@ class GnssCamNode(Node):
             return          # shutting down: a timer that fires now has nowhere to publish
         level, message, extra = self.diagnostic_summary()
         values = {**self.stats.values(), **self.link_counts(), **extra}
+        newest = [h.gate.newest_ns for h in self.inputs.values() if h.gate.newest_ns is not None]
+        if newest:
+            # A replay compares its bag's start with it: a bag that does not continue
+            # the nodes' time base resets them first (live.player).
+            values['newest_input_stamp_ns'] = max(newest)
         status = make_status(f'{self.get_name()}: status', level, message, values,
                              hardware_id='gnsscam_ros')
         self._diag_pub.publish(make_diagnostic_array(self.now_ns(),
@@ -517,6 +528,29 @@ class GnssCamNode(Node):
 
     def on_time_base_changed(self, topic: str, stamp_ns: int) -> None:
         """Forget what the node keeps of the old time base (override)."""
+
+    def reset_time_base_now(self, reason: str) -> None:
+        """Start afresh on request: every input forgets its stream (the next stamp of each
+        is taken as its start) and :meth:`on_reset` drops the state built on the old time
+        base. Counted ``resets``."""
+        for handler in self.inputs.values():
+            handler.gate.reset()
+        self.stats.count('resets')
+        self.get_logger().warning(f'reset ({reason}): inputs take their next stamps as a new '
+                                  'time base')
+        self.on_reset(reason)
+
+    def on_reset(self, reason: str) -> None:
+        """Drop the state of the old time base after a reset (override; default: as for a
+        new time base an input adopted)."""
+        self.on_time_base_changed('~/reset', 0)
+
+    def _on_reset(self, request, response):
+        # Served by the node's executor, between its input callbacks: no input is halfway.
+        self.reset_time_base_now('requested on ~/reset')
+        response.success = True
+        response.message = f'{self.get_name()}: time base and state reset'
+        return response
 
     # ---------------------------------------------------------------------- failure
     def fail(self, what: str) -> None:

@@ -402,6 +402,11 @@ class FusionNode(GnssCamNode):
         epoch) can never be combined with the new stamps."""
         self.reset_time_base(f'{topic}: new time base at {stamp_ns} ns')
 
+    def on_reset(self, reason: str) -> None:
+        """``~/reset``: the engine's time-base reset (queued epochs, motion, camera
+        matches, the particle filter); the next usable fix initialises the filter."""
+        self.reset_time_base(reason)
+
     def on_timer(self) -> None:
         """Run epochs whose wait for their inputs is over; report STALE without GNSS."""
         if not self.context.ok():
