@@ -8,7 +8,7 @@ a node's state afresh on request.
 """
 import pytest
 import rclpy
-from conftest import RosGraph
+from conftest import RosGraph, wait_until
 from std_srvs.srv import Trigger
 
 from gnsscam_ros.bags.convert import convert_drive
@@ -85,6 +85,50 @@ def test_a_second_replay_into_running_nodes_is_processed(drive_bag, running_node
     assert all(node.stats.get('resets') == 1 for node in nodes.values())
 
 
+@pytest.mark.slow
+def test_nodes_take_a_bag_played_again_at_once_without_a_reset(drive_bag, running_nodes,
+                                                               monkeypatch):
+    """A player that knows nothing of the nodes (``ros2 bag play``: no reset, no flow
+    control): the nodes facing it see a new publisher going back in time, fusion_node sees
+    its inputs go back together; each takes the new time base at once."""
+    monkeypatch.setattr(BagReplayer, '_reset_nodes_of_another_time_base', lambda self: None)
+    _, bag = drive_bag
+    graph, namespace, nodes = running_nodes
+
+    def play_plain():
+        replayer = BagReplayer(bag, rate=RATE, wait_s=30.0, flow_control=False,
+                               context=graph.ctx, namespace=namespace)
+        try:
+            return replayer.play()
+        finally:
+            replayer.destroy_node()
+
+    fusion = nodes['fusion_node']
+
+    def epochs_run():
+        # Without flow control the replay hears no integrity_risk: the filter counts.
+        return sum(v for k, v in fusion.stats.counters.items() if k.startswith('epochs_'))
+
+    first = play_plain()
+    wait_until(lambda: epochs_run() >= 0.95 * first.gnss_epochs, 30.0, 'first pass')
+    refused = {name: dict(node.stats.rejected) for name, node in nodes.items()}
+    before = epochs_run()
+    second = play_plain()
+    assert second.reset_nodes == []
+    wait_until(lambda: epochs_run() - before >= 0.95 * second.gnss_epochs, 30.0,
+               'second pass')
+    assert epochs_run() - before >= 0.95 * second.gnss_epochs, (epochs_run(), before)
+    for name in ('gnss_node', 'imu_node', 'fusion_node'):
+        assert nodes[name].stats.get('time_base_changed') == 1, name
+    # gnss_node and imu_node refused nothing of the second pass (taken at its first
+    # message); fusion_node at most what came before its inputs agreed.
+    for name in ('gnss_node', 'imu_node'):
+        assert dict(nodes[name].stats.rejected) == refused[name], name
+    extra = {k: v - refused['fusion_node'].get(k, 0)
+             for k, v in nodes['fusion_node'].stats.rejected.items()}
+    assert sum(extra.values()) <= 1, extra
+
+
 def call_reset(graph, namespace, node):
     client = graph.probe.create_client(Trigger, f'{namespace}/{node}/reset')
     try:
@@ -126,3 +170,22 @@ def test_summary_text_never_prints_unknowns():
     assert '578 published; none acknowledged' in text
     summary.gnss_epochs_processed = 570
     assert '570 processed by the filter, dropped 8' in summary.text()
+
+
+def test_gate_takes_a_new_publisher_going_back_at_once():
+    from msg_adapters.gate import ADVANCE, NEW_BASE, StampGate
+    import msg_adapters as ma
+    s = 10 ** 9
+    gate = StampGate()
+    for k in range(100):
+        assert gate.admit(1000 * s + k * s) == ADVANCE
+    # The old publisher going back: a glitch, refused (far) or passed on (within).
+    with pytest.raises(ma.MessageError):
+        gate.admit(500 * s)
+    # A new publisher going forward far is not trusted either.
+    with pytest.raises(ma.MessageError):
+        gate.admit(5000 * s, new_publisher=True)
+    # A new publisher starting earlier: a bag played again, at once.
+    assert gate.admit(1000 * s, new_publisher=True) == NEW_BASE
+    assert gate.newest_ns == 1000 * s and gate.time_base_changes == 1
+    assert gate.admit(1001 * s) == ADVANCE

@@ -241,10 +241,10 @@ def write_result(args: argparse.Namespace, result: dict, epochs=None, label: str
         print(f'\nwrote {args.epochs_csv} ({len(epochs)} GNSS epochs)')
     if getattr(args, 'plots', None) is not None and epochs is not None:
         # matplotlib takes ~0.7 s to import: only when figures are asked for.
-        from .plots import integrity_plots
+        from .plots import dataset_title, integrity_plots
         name = ''.join(c if c.isalnum() or c in '-_.' else '_' for c in label)
         try:
-            paths = integrity_plots(args.plots, name, label, epochs.stamp_ns,
+            paths = integrity_plots(args.plots, name, dataset_title(label), epochs.stamp_ns,
                                     epochs.horizontal_error_m, epochs.protection_level_m,
                                     epochs.integrity, alert_limit_m)
         except OSError as err:

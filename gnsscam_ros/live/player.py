@@ -144,7 +144,7 @@ class BagReplayer(Node):
         kwargs.setdefault('start_parameter_services', False)
         super().__init__(node_name, **kwargs)
         self.flow = FlowControl(self.ack_timeout_s, self.gnss_grace_s,
-                                stopped=lambda: self._stop or not self.context.ok(),
+                                stopped=self._stopping,
                                 warn=self.get_logger().warning)
         self._cond = self.flow.cond         # one lock for the flow and the replay's state
         self._epochs_seen: set[int] = set()
@@ -303,7 +303,7 @@ class BagReplayer(Node):
                         out.append(f'a subscriber on {topic}')
             return out
 
-        while missing() and time.monotonic() < deadline and not self._stop:
+        while missing() and time.monotonic() < deadline and not self._stopping():
             time.sleep(0.02)
         for topic, stream in self._streams.items():
             if self._bag_pubs[topic].get_subscription_count() == 0:
@@ -360,7 +360,7 @@ class BagReplayer(Node):
             return [f'{key} >= {least}' for key, least in wanted
                     if max(_as_int(r.get(key)) for r in reports) < least]
 
-        while not self._stop:
+        while not self._stopping():
             left = unmet()
             now = time.monotonic()
             if left == []:
@@ -397,7 +397,7 @@ class BagReplayer(Node):
         """Call ``~/reset`` of every node that offers it when one of them holds another
         time base (a downstream node would otherwise keep the old one); each answer is
         waited for, at most :data:`RESET_TIMEOUT_S`."""
-        if self._stop or not self._nodes_of_another_time_base():
+        if self._stopping() or not self._nodes_of_another_time_base():
             return
         prefix = schema.qualified('', self.get_namespace())
         with self._cond:
@@ -414,7 +414,8 @@ class BagReplayer(Node):
                 client.wait_for_service(timeout_sec=RESET_TIMEOUT_S)
                 future = client.call_async(Trigger.Request())
                 deadline = time.monotonic() + RESET_TIMEOUT_S
-                while not future.done() and time.monotonic() < deadline and not self._stop:
+                while (not future.done() and time.monotonic() < deadline
+                       and not self._stopping()):
                     time.sleep(0.01)
                 answer = future.result() if future.done() else None
             finally:
@@ -425,8 +426,13 @@ class BagReplayer(Node):
                 self.get_logger().warning(f'{name}: no answer within {RESET_TIMEOUT_S:g} s; '
                                           'the node may refuse the first messages')
 
+    def _stopping(self) -> bool:
+        """A stop was asked for, or the context is down (Ctrl-C: rclpy's signal handler
+        shuts it down): every wait of the replay ends."""
+        return self._stop or not self.context.ok()
+
     def _sleep_until(self, t_wall: float) -> None:
-        while not self._stop:
+        while not self._stopping():
             left = t_wall - time.monotonic()
             if left <= 0:
                 return
@@ -452,14 +458,15 @@ class BagReplayer(Node):
         summary = ReplaySummary(bag=self.bag, rate=self.rate)
         gnss_stamps: list[int] = []
         try:
-            waiting = time.monotonic()
-            self._discover()
-            started = time.monotonic()
-            summary.start, summary.start_wait_s = self._start_mode, started - waiting
-            summary.reset_nodes = list(self.reset_nodes)
+            waiting = started = time.monotonic()
             try:
-                self._publish_all(summary, gnss_stamps)
-                self.flow.drain()
+                self._discover()
+                started = time.monotonic()
+                summary.start, summary.start_wait_s = self._start_mode, started - waiting
+                summary.reset_nodes = list(self.reset_nodes)
+                if not self._stopping():
+                    self._publish_all(summary, gnss_stamps)
+                    self.flow.drain()
             except (KeyboardInterrupt, ExternalShutdownException):
                 # Ctrl-C: stop after the current message and report what was played.
                 summary.interrupted = True

@@ -182,14 +182,19 @@ class SequenceGaps:
     def __init__(self, streams: int = 8):
         self._newest: list[int] = []         # per stream, most recently seen last
         self._streams = int(streams)
+        #: The last message observed began a stream beside others already tracked (a
+        #: publisher new to the topic, or one restarted).
+        self.new_stream = False
 
     def observe(self, sequence_number) -> int:
         """Messages lost just before this one (0 when unknown)."""
+        self.new_stream = False
         if not sequence_number or sequence_number < 0:
             return 0                     # not reported by this middleware
         seq = int(sequence_number)
         below = [i for i, newest in enumerate(self._newest) if newest < seq]
         if not below:
+            self.new_stream = bool(self._newest)
             self._newest.append(seq)
             del self._newest[:-self._streams]
             return 0
@@ -508,23 +513,53 @@ class GnssCamNode(Node):
             each would otherwise reset the node once more) and :meth:`on_time_base_changed`
             resets what the node keeps of the old time base.
         """
-        gate = self.inputs[topic].gate
+        handler = self.inputs[topic]
+        gate = handler.gate
+        refused = None
         try:
-            verdict = gate.admit(stamp_ns, time.monotonic())
+            # A publisher new to the topic whose stamps go back: a bag played again.
+            verdict = gate.admit(stamp_ns, time.monotonic(),
+                                 new_publisher=handler.gaps.new_stream)
         except MessageError as err:
-            self.warn_rejected(topic, err.reason, str(err))
+            verdict, refused = None, err
+        if verdict != NEW_BASE and self._rewound_together(gate, stamp_ns):
+            verdict, refused = gate.adopt(stamp_ns), None
+        if refused is not None:
+            self.warn_rejected(topic, refused.reason, str(refused))
             return None
         if verdict == NEW_BASE:
             for other in self.inputs.values():
                 if other.gate is not gate:
                     other.gate.reset()
             self.stats.count('time_base_changed')
+            how = ('a new publisher going back in time' if handler.gaps.new_stream else
+                   f'{gate.confirm} consistent messages over {gate.span_s:g} s away from the '
+                   'stream before')
             self.get_logger().warning(
-                f'{topic}: new time base adopted at {stamp_ns} ns ({gate.confirm} consistent '
-                f'messages over {gate.span_s:g} s away from the stream before): state of the '
-                'old one reset')
+                f'{topic}: new time base adopted at {stamp_ns} ns ({how}): state of the old '
+                'one reset')
             self.on_time_base_changed(topic, stamp_ns)
         return verdict
+
+    #: The inputs come from nodes that publish in stamp order (fusion_node's come from
+    #: gnss_node, imu_node and camera_node): two of them going back in time together can
+    #: only be a new time base upstream, taken at once (see :meth:`_rewound_together`).
+    ordered_inputs = False
+
+    def _rewound_together(self, gate: StampGate, stamp_ns: int) -> bool:
+        """With :attr:`ordered_inputs`: ``stamp_ns`` goes back on its input while another
+        input's recent messages went back to the same time (within the stamp window).
+
+        A bag played again reaches such a node through nodes that took it as a new time
+        base at once (its stream comes from a new publisher); their outputs go back from
+        the same publishers, so without this the node would wait for
+        ``NEW_TIME_BASE_MESSAGES`` of one input over ``NEW_TIME_BASE_SPAN_S``.
+        """
+        if not self.ordered_inputs or gate.rewinding_ns != stamp_ns:
+            return False
+        return any(other.gate is not gate and other.gate.rewinding_ns is not None
+                   and abs(other.gate.rewinding_ns - stamp_ns) <= gate.window_ns
+                   for other in self.inputs.values())
 
     def on_time_base_changed(self, topic: str, stamp_ns: int) -> None:
         """Forget what the node keeps of the old time base (override)."""

@@ -289,6 +289,10 @@ class FusionNode(GnssCamNode):
                 'satellite_limit': cfg.satellite_limit, 'map_origin': origin,
                 'seed': self.param('seed'), 'kernels_ready_s': round(self.kernel_warm_up_s, 2)}
 
+    # gnss/measurements, odometry/dead_reckoning and camera/matches come from the other
+    # nodes, each in stamp order: going back together is a new time base upstream.
+    ordered_inputs = True
+
     def reset_time_base(self, reason: str) -> None:
         """The inputs adopt a new time base (their stamps jumped on purpose): drop what is
         buffered and start the filter again from the next fix (``EpochEngine.
