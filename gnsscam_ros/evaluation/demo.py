@@ -49,10 +49,10 @@ from ..bags.convert import convert_drive
 from ..bags.read import read_drive, read_results
 from ..core.filter import FilterConfig
 from ..core.frames import LocalFrame
-from ..core.warmup import warm_up_kernels
 from ..core.fusion import CameraMeasurement
 from ..core.motion import DeadReckoningConfig
 from ..core.types import Drive
+from ..core.warmup import warm_up_kernels
 from ..datasets.cut import cut_drive
 from ..datasets.emulated.camera import with_camera
 from ..datasets.emulated.drive import make_emulated_drive
@@ -197,8 +197,8 @@ def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed
         stages: Stage timer.
         layout: Where the nodes run (``live.replay.LAYOUTS``).
         database: Map database for the camera (None: GNSS only).
-        keep_bags: Keep the dataset bag and the result bag (else removed once the
-            results are written).
+        keep_bags: Keep the dataset bag, the result bag and the map database file (else
+            removed once the results are written).
 
     Returns:
         The dataset's results (metrics of the nodes, the offline run and WLS; replay and
@@ -283,8 +283,10 @@ def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed
     result['bags']['kept'] = keep_bags
     write_json_atomic(folder / 'results.json', result)
     if not keep_bags:
+        # The nodes' inputs and outputs; the map database is a copy of the cached one.
         for path in (bag, result_bag):
             shutil.rmtree(path, ignore_errors=True)
+        (folder / 'map_database.npz').unlink(missing_ok=True)
     return result
 
 
@@ -333,8 +335,9 @@ def build_parser() -> argparse.ArgumentParser:
                         choices=('processes', 'threads', 'pipeline'),
                         help='where the nodes run (default %(default)s)')
     parser.add_argument('--keep-bags', action='store_true',
-                        help='keep the dataset and result bags (about 1.3 GB with the '
-                        'camera images; by default removed once evaluated)')
+                        help='keep the dataset and result bags and the map database the '
+                        'nodes read (about 1.4 GB with the camera images; by default removed '
+                        'once evaluated)')
     parser.add_argument('--cache', type=Path,
                         default=Path(os.environ.get('GNSSCAM_CACHE_DIR', '.cache/gnsscam')),
                         help='map database cache (default %(default)s)')
@@ -371,11 +374,11 @@ def _map_database(args: argparse.Namespace, drive: Drive, stages: Stages):
     built: dict[str, int] = {}
 
     def progress(stage: str, done: int, total: int) -> None:
-        # Called only while building: a cache hit is silent.
-        step = max(total // 10, 1)
-        if done == total or done % step == 0:
+        # Called only while building (a cache hit is silent); one line per tenth.
+        tenth = 10 * done // max(total, 1)
+        if tenth > built.get(stage, -1):
             print(f'[demo]   {stage}: {done}/{total}', file=sys.stderr, flush=True)
-        built[stage] = done
+            built[stage] = tenth
 
     database = stages.run('emulated: map database of the route (from the cache, or '
                           f'rendered and built once into {args.cache})',

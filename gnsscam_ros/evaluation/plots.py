@@ -47,11 +47,14 @@ def _panel_layout(truth_enu: np.ndarray, panels: int) -> tuple[int, int, tuple]:
     (side by side, a wide smartLoc track left most of each panel blank)."""
     span = np.ptp(truth_enu[:, :2], axis=0) if len(truth_enu) else np.ones(2)
     ratio = float(np.clip((span[1] + 1.0) / (span[0] + 1.0), 0.3, 3.0))   # height/width
-    width = 7.0 if ratio < 1.0 else 7.0 / ratio
-    height = width * ratio
+    legend_in = 1.0                      # below each panel
     if ratio < 1.0:
-        return panels, 1, (width, height * panels + 0.8)
-    return 1, panels, (width * panels, height + 0.8)
+        width = 7.0
+        return panels, 1, (width, (width * ratio + legend_in) * panels + 0.6)
+    height = 7.0
+    # Not narrower than the legend and title need (the x limits widen to fill it).
+    width = max(height / ratio, 3.5)
+    return 1, panels, (width * panels, height + legend_in + 0.6)
 
 
 def trajectory_plot(path: Path, title: str, truth_enu: np.ndarray,
@@ -79,8 +82,9 @@ def trajectory_plot(path: Path, title: str, truth_enu: np.ndarray,
         ax.set_aspect('equal', adjustable='datalim')
         ax.set_xlabel('east [m]')
         ax.set_ylabel('north [m]')
-        ax.set_title(f'{name}: 2D RMSE {np.sqrt(np.mean(err ** 2)):.1f} m', fontsize=10)
-        ax.legend(loc='best', fontsize=8)
+        ax.set_title(f'{name}\n2D RMSE {np.sqrt(np.mean(err ** 2)):.1f} m', fontsize=10)
+        # Below the panel: inside, it covered part of the track.
+        ax.legend(loc='upper center', bbox_to_anchor=(0.5, -0.1), fontsize=8)
     fig.suptitle(title)
     return _save(fig, path)
 
