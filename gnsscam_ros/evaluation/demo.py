@@ -452,10 +452,11 @@ def run_demo(args: argparse.Namespace, out_dir: Path, stages: Stages) -> None:
     print()
     for key, r in results.items():
         rep = r['replay']
+        done = ('none acknowledged' if rep['gnss_epochs_processed'] is None else
+                f'{rep["gnss_epochs_processed"]} processed, dropped {rep["dropped_gnss_epochs"]}')
         print(f'{key}: replay {rep["bag_span_s"]:.0f} s of data in {rep["wall_s"]:.1f} s = '
               f'{rep["speed_x_real_time"]:.1f}x real time; GNSS epochs {rep["gnss_epochs"]} '
-              f'published, {rep["gnss_epochs_processed"]} processed, dropped '
-              f'{rep["dropped_gnss_epochs"]}; nodes vs offline estimates differ by at most '
+              f'published, {done}; nodes vs offline estimates differ by at most '
               f'{r["max_estimate_difference_m"]:.2g} m over {r["common_epochs"]} epochs')
     summary = {'results': results, 'stages_s': stages.times, 'total_s': stages.total_s,
                'out_dir': str(out_dir)}
