@@ -75,6 +75,7 @@ def test_a_second_replay_into_running_nodes_is_processed(drive_bag, running_node
     first = play(bag, graph, namespace)
     assert_complete(first)
     second = play(bag, graph, namespace)
+    print(f'first: {first.text()}\nsecond: {second.text()}')     # pytest -s shows them
     assert_complete(second)
     # The nodes held the first pass's time base: the replay reset each of them first
     # (fresh nodes are not reset: a first replay equals the offline run).
