@@ -289,6 +289,10 @@ class FusionNode(GnssCamNode):
                 'satellite_limit': cfg.satellite_limit, 'map_origin': origin,
                 'seed': self.param('seed'), 'kernels_ready_s': round(self.kernel_warm_up_s, 2)}
 
+    # gnss/measurements, odometry/dead_reckoning and camera/matches come from the other
+    # nodes, each in stamp order: going back together is a new time base upstream.
+    ordered_inputs = True
+
     def reset_time_base(self, reason: str) -> None:
         """The inputs adopt a new time base (their stamps jumped on purpose): drop what is
         buffered and start the filter again from the next fix (``EpochEngine.
@@ -401,6 +405,11 @@ class FusionNode(GnssCamNode):
         keeps of the old one (queued epochs, motion, camera matches, the filter's last
         epoch) can never be combined with the new stamps."""
         self.reset_time_base(f'{topic}: new time base at {stamp_ns} ns')
+
+    def on_reset(self, reason: str) -> None:
+        """``~/reset``: the engine's time-base reset (queued epochs, motion, camera
+        matches, the particle filter); the next usable fix initialises the filter."""
+        self.reset_time_base(reason)
 
     def on_timer(self) -> None:
         """Run epochs whose wait for their inputs is over; report STALE without GNSS."""
