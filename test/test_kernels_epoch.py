@@ -86,8 +86,8 @@ def oracle_choice(filt: ParticleFilter, epoch, motion, camera):
 
 @pytest.mark.parametrize('error_model', ['adaptive', 'stated'])
 @pytest.mark.parametrize('with_camera', [False, True])
-def test_an_epoch_through_the_kernels_is_the_epoch_through_the_oracles(with_camera,
-                                                                        error_model):
+def test_an_epoch_through_the_kernels_is_the_epoch_through_the_oracles(
+        with_camera, error_model):
     rng = np.random.default_rng(2)
     config = FilterConfig(n_particles=400, acquisition_particles=0, n_posteriors=12,
                           n_motion_samples=6, heading_acquisition_m=16.0,
