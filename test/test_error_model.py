@@ -104,3 +104,18 @@ def test_the_adaptive_filter_does_not_depend_on_the_stated_variances(scale):
     stated = run('stated', 1.0), run('stated', 4.0)
     assert any(not np.array_equal(a.position_enu_m, b.position_enu_m)
                for a, b in zip(*stated))
+
+
+@pytest.mark.parametrize('rate_hz', [1.0, 5.0])
+def test_the_correlation_time_of_gauss_markov_errors_is_recovered_at_any_rate(rate_hz):
+    # Twelve satellites, each a Gauss-Markov error of 3 m with tau = 5 s, for 120 s.
+    rng = np.random.default_rng(8)
+    tau, dt, k = 5.0, 1.0 / rate_hz, 12
+    phi = np.exp(-dt / tau)
+    model = AdaptiveErrorModel(window_s=120.0, prior_correlation_time_s=30.0)
+    assert model.correlation_time_s == 30.0                     # the prior before data
+    e = rng.normal(0.0, 3.0, k)
+    for i in range(int(120 * rate_hz)):
+        e = phi * e + np.sqrt(1.0 - phi * phi) * rng.normal(0.0, 3.0, k)
+        model.observe(int(i * dt * S), e, np.full(k, 47.0), 0, np.arange(k))
+    assert model.correlation_time_s == pytest.approx(tau, rel=0.25)

@@ -121,11 +121,13 @@ class BiasHypotheses:
         self._biases: dict[int, tuple[int, np.ndarray]] = {}
 
     def biases_at(self, stamp_ns: int, keys: np.ndarray, cn0_dbhz: np.ndarray,
-                  sigma_m: np.ndarray | None = None) -> np.ndarray:
+                  sigma_m: np.ndarray | None = None,
+                  correlation_time_s: float | None = None) -> np.ndarray:
         """Advance the biases of the satellites in view to ``stamp_ns``, (k, M) [m].
 
-        ``sigma_m`` (k,) gives each satellite's bias standard deviation [m] (the learned
-        error model's); None takes it from the model's C/N0 law.
+        ``sigma_m`` (k,) gives each satellite's bias standard deviation [m] and
+        ``correlation_time_s`` their correlation time [s] (the learned error model's);
+        None takes them from the model (its C/N0 law, its correlation time).
 
         A satellite seen for the first time (or again after a long gap) draws its biases
         from the stationary distribution; one seen before moves by the Gauss-Markov step
@@ -138,12 +140,13 @@ class BiasHypotheses:
             sigma = self.model.sigma_m(cn0_dbhz, rms)
         else:
             sigma = np.asarray(sigma_m, dtype=float)
-        tau = self.model.correlation_time_s
+        tau = (self.model.correlation_time_s if correlation_time_s is None
+               else float(correlation_time_s))
         # One call: the same stream as one draw of M per satellite, in order.
         draws = self.rng.standard_normal((keys.shape[0], self.n))
         key_list = keys.tolist()
         if len(set(key_list)) < len(key_list):
-            out = self._advance_one_by_one(stamp_ns, key_list, sigma, draws)
+            out = self._advance_one_by_one(stamp_ns, key_list, sigma, draws, tau)
         else:
             known = [self._biases.get(key) for key in key_list]
             # Every satellite at once: a new one (no stamp) draws from the stationary
@@ -172,10 +175,9 @@ class BiasHypotheses:
         return out
 
     def _advance_one_by_one(self, stamp_ns: int, keys: list, sigma: np.ndarray,
-                            draws: np.ndarray) -> np.ndarray:
+                            draws: np.ndarray, tau: float) -> np.ndarray:
         """:meth:`biases_at` for an epoch that lists a satellite twice (the second sees
         the first's bias)."""
-        tau = self.model.correlation_time_s
         out = np.empty((len(keys), self.n))
         for i, key in enumerate(keys):
             known = self._biases.get(key)

@@ -298,10 +298,12 @@ class GnssConfig(_Part):
     error_correlation_time_s: float = parameter(
         10.0, 'Correlation time tau of the GNSS errors (a first-order Gauss-Markov process): '
         'an epoch dt after the last is worth tanh(dt / (2 tau)) of an independent one in '
-        "the likelihood, whatever the GNSS rate, and the 'learned' bias hypotheses "
-        'decorrelate with it; 0 = every epoch independent. Chosen among 2.5, 10 and 30 s '
-        'on the first half of the smartLoc Berlin drive (filter seeds 1-3); reported on '
-        'its second half and the robustness variants.', 's', low=0.0)
+        "the likelihood, whatever the GNSS rate (and the 'learned' bias hypotheses' memory "
+        'until the error model has measured its own); 0 = every epoch independent. A '
+        'measured correlation would make the likelihood bolder where errors decorrelate '
+        'fast, and a wrong lock likelier; this fixed value keeps it. Chosen among 2.5, 10 '
+        'and 30 s on the first half of the smartLoc Berlin drive (filter seeds 1-3); '
+        'reported on its second half and the robustness variants.', 's', low=0.0)
     likelihood: str = parameter(
         ROBUST, "'particle_raim' (the paper's mixture) or 'robust' (Gaussian with an "
         'outlier floor).', choices=LIKELIHOODS)
@@ -538,7 +540,8 @@ class FilterConfig:
     def bias(self) -> BiasModel:
         """The bias model of the bias hypotheses: ``bias_hypotheses.model``, with the
         correlation time of the GNSS errors (``error_correlation_time_s``) for the
-        'learned' hypotheses: one error process, one correlation time."""
+        'learned' hypotheses (which take the error model's measured one once it has
+        it)."""
         model = self.bias_hypotheses.model
         if self.bias_model == BIAS_LEARNED:
             model = dataclasses.replace(model, correlation_time_s=self.error_correlation_time_s)

@@ -29,6 +29,12 @@ constellation, inflated by ``sqrt(V / (V - p))`` (``V`` the expected number of
 line-of-sight satellites under the current fit, ``p`` unknowns): the fix absorbs part of
 the errors of the satellites it rests on, their residuals alone would understate them.
 
+How long the line-of-sight errors persist is learned alongside
+(:attr:`AdaptiveErrorModel.correlation_time_s`): the correlation of each satellite's
+residual with its own about ``CORRELATION_LAG_S`` earlier, over the window, read as that
+of a first-order Gauss-Markov process, ``tau = -lag / ln rho``. The lag is in seconds,
+not epochs, so the estimate does not depend on the GNSS rate.
+
 The same fit drives the GNSS likelihood (core spread and outlier share per satellite,
 :meth:`AdaptiveErrorModel.satellite_model`), the size of the bias hypotheses behind the
 protection level (:meth:`AdaptiveErrorModel.bias_sigma_m`) and the consistency test of the
@@ -56,6 +62,15 @@ N_CLASSES = UNKNOWN_CLASS + 1
 EM_ITERATIONS = 3
 #: Most residuals the window holds (60 s of 60 satellites at 5 Hz fit).
 MAX_SAMPLES = 20_000
+#: Lag at which the time correlation is measured [s]; a pair may be half of it off.
+CORRELATION_LAG_S = 2.0
+#: Residuals beyond this many core standard deviations of their class are clipped there
+#: for the correlation: a large NLOS error persists, but must not decide it alone.
+CORRELATION_CLIP_SD = 3.0
+#: Pairs before the measured correlation time replaces the prior one.
+CORRELATION_MIN_PAIRS = 50
+#: Shortest correlation time reported [s].
+MIN_CORRELATION_TIME_S = 0.1
 
 
 def signal_class(cn0_dbhz: np.ndarray) -> np.ndarray:
@@ -169,12 +184,20 @@ class AdaptiveErrorModel:
 
     Args:
         window_s: Length of the window of residuals [s].
+        prior_correlation_time_s: Correlation time before enough residual pairs [s].
         priors: The mixture's priors.
     """
 
-    def __init__(self, window_s: float = 60.0, priors: ErrorPriors = ErrorPriors()):
+    def __init__(self, window_s: float = 60.0, prior_correlation_time_s: float = 10.0,
+                 priors: ErrorPriors = ErrorPriors()):
         self.window_s = float(window_s)
+        self.prior_correlation_time_s = float(prior_correlation_time_s)
         self.priors = priors
+        # Per satellite key: (stamp_ns, residual) of the last two lags.
+        self._history: dict[int, list[tuple[int, float]]] = {}
+        # Sums of the lagged pairs, forgotten over the window: xy, xx, yy, lag, count.
+        self._pairs = np.zeros(5)
+        self._pairs_stamp_ns: int | None = None
         self._stamp_ns = np.zeros(MAX_SAMPLES, dtype=np.int64)
         self._class = np.zeros(MAX_SAMPLES, dtype=np.int64)
         self._residual_m = np.zeros(MAX_SAMPLES)
@@ -195,7 +218,7 @@ class AdaptiveErrorModel:
         return self._count
 
     def observe(self, stamp_ns: int, residual_m: np.ndarray, cn0_dbhz: np.ndarray,
-                n_unknowns: int) -> None:
+                n_unknowns: int, keys: np.ndarray | None = None) -> None:
         """Add one epoch's residuals at the estimate and refit the mixture.
 
         Args:
@@ -203,6 +226,8 @@ class AdaptiveErrorModel:
             residual_m: (k,) clock-corrected residuals of a fix [m].
             cn0_dbhz: (k,) C/N0 of the satellites [dB-Hz] (NaN: unknown).
             n_unknowns: Position and clock unknowns the fix took from them.
+            keys: (k,) one key per satellite across epochs, for the time correlation
+                (None: not measured).
         """
         r = np.asarray(residual_m, dtype=float)
         keep = np.isfinite(r)
@@ -219,8 +244,53 @@ class AdaptiveErrorModel:
         if line_of_sight <= n_unknowns + 1.0:
             return                         # too little redundancy to say anything
         r = r * np.sqrt(line_of_sight / (line_of_sight - n_unknowns))
+        if keys is not None:
+            clip = CORRELATION_CLIP_SD * s0
+            self._observe_pairs(stamp_ns, np.asarray(keys)[keep], np.clip(r, -clip, clip))
         self._append(stamp_ns, r, cls)
         self._refit()
+
+    def _observe_pairs(self, stamp_ns: int, keys: np.ndarray, r: np.ndarray) -> None:
+        """Pair each satellite's residual with its own about ``CORRELATION_LAG_S``
+        earlier and fold the pairs into the sums."""
+        if self._pairs_stamp_ns is not None:
+            dt_s = max((stamp_ns - self._pairs_stamp_ns) * 1e-9, 0.0)
+            self._pairs *= np.exp(-dt_s / self.window_s)
+        self._pairs_stamp_ns = stamp_ns
+        lag_ns = int(CORRELATION_LAG_S * 1e9)
+        pairs = []
+        for key, value in zip(keys.tolist(), r.tolist()):
+            past = self._history.setdefault(key, [])
+            while past and stamp_ns - past[0][0] > 2 * lag_ns:
+                past.pop(0)
+            gaps = [abs(stamp_ns - then - lag_ns) for then, _ in past]
+            if gaps and min(gaps) <= lag_ns // 2:
+                then, old = past[int(np.argmin(gaps))]
+                pairs.append((value, old, (stamp_ns - then) * 1e-9))
+            past.append((stamp_ns, value))
+        for key in [k for k, past in self._history.items()
+                    if not past or stamp_ns - past[-1][0] > 2 * lag_ns]:
+            del self._history[key]
+        if pairs:
+            x, y, lag = np.array(pairs).T
+            self._pairs += (float(x @ y), float(x @ x), float(y @ y), float(lag.sum()),
+                            float(x.shape[0]))
+
+    @property
+    def correlation_time_s(self) -> float:
+        """How long the errors persist [s]: ``-lag / ln rho`` of the residual pairs in the
+        window (the prior before ``CORRELATION_MIN_PAIRS``), between
+        ``MIN_CORRELATION_TIME_S`` and the window."""
+        xy, xx, yy, lag, count = self._pairs
+        if count < CORRELATION_MIN_PAIRS or xx <= 0.0 or yy <= 0.0:
+            return self.prior_correlation_time_s
+        rho = xy / np.sqrt(xx * yy)
+        if rho <= 0.0:
+            return MIN_CORRELATION_TIME_S
+        if rho >= 1.0:
+            return self.window_s
+        return float(np.clip(-(lag / count) / np.log(rho), MIN_CORRELATION_TIME_S,
+                             self.window_s))
 
     def _append(self, stamp_ns: int, r: np.ndarray, cls: np.ndarray) -> None:
         horizon = stamp_ns - int(self.window_s * 1e9)
@@ -277,4 +347,4 @@ class AdaptiveErrorModel:
 
     def reset(self) -> None:
         """Forget the window (a new drive or a reset filter)."""
-        self.__init__(self.window_s, self.priors)
+        self.__init__(self.window_s, self.prior_correlation_time_s, self.priors)

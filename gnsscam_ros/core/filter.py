@@ -161,7 +161,7 @@ class ParticleFilter:
         # The M posteriors of the last update as the risk bound saw them.
         self.posterior_set: integrity.PosteriorSet | None = None
         self.bias = BiasHypotheses(config.bias, config.n_posteriors, self.rng)
-        self.errors = AdaptiveErrorModel(config.error_window_s)
+        self.errors = AdaptiveErrorModel(config.error_window_s, config.error_correlation_time_s)
         self.consistency = ConsistencyMonitor(config.consistency_suspect_nats,
                                               config.consistency_recover_nats)
         self._consistency_state = ConsistencyState()
@@ -194,7 +194,8 @@ class ParticleFilter:
         self.posteriors = self.posterior_log_w = None
         self.posterior_set = None
         self.bias = BiasHypotheses(self.config.bias, self.config.n_posteriors, self.rng)
-        self.errors = AdaptiveErrorModel(self.config.error_window_s)
+        self.errors = AdaptiveErrorModel(self.config.error_window_s,
+                                         self.config.error_correlation_time_s)
         self.consistency.reset()
         self.distance_since_init_m = 0.0
         self.acquired_stamp_ns = None
@@ -467,7 +468,8 @@ class ParticleFilter:
         if adaptive:
             at_snap = gnss.clock_weights(prep, snap, cfg.clock_kernel_max_m)
             residual = gnss.clock_corrected_residuals(snap[None], prep, at_snap)[0]
-            self.errors.observe(stamp_ns, residual, prep.cn0_dbhz, 3 + prep.n_systems)
+            self.errors.observe(stamp_ns, residual, prep.cn0_dbhz, 3 + prep.n_systems,
+                                prep.sv_key)
         shift = np.zeros(cloud.shape[1])
         shift[:2] = snap[:2] - centre[:2]
         moved = (cloud + shift)[None]
@@ -586,16 +588,18 @@ class ParticleFilter:
             # take an inlier's error, the core of its class. The update weighed each
             # satellite with tempering times inlier probability over its variance.
             at_estimate = gnss.clock_corrected_residuals(mean[None], prep, clock_w)[0]
-            learned = (self.errors.satellite_model(prep.cn0_dbhz)[0]
-                       if cfg.bias_model == BIAS_LEARNED else None)
+            learned = cfg.bias_model == BIAS_LEARNED
+            sigma = self.errors.satellite_model(prep.cn0_dbhz)[0] if learned else None
+            # How long an inlier's error persists, as measured (core.error_model).
+            tau = self.errors.correlation_time_s if learned else None
             self.bias.observe_residuals(stamp_ns, at_estimate, inlier, 3 + prep.n_systems)
             weights = evidence * inlier / prep.sigma_m ** 2
             line = prep.sv_enu_m - mean
             line /= np.linalg.norm(line, axis=1, keepdims=True)
             _, prior_cov = weighted_mean_cov(pos[chosen], prior_log_w)
             offsets = self.bias.update(
-                self.bias.biases_at(stamp_ns, prep.sv_key, prep.cn0_dbhz, learned), line,
-                weights,
+                self.bias.biases_at(stamp_ns, prep.sv_key, prep.cn0_dbhz, sigma, tau),
+                line, weights,
                 prep.sys_index, prep.n_systems, prior_cov, cov).copy()
         posteriors = integrity.PosteriorSet(pos, post_log_w, index, offsets,
                                             cfg.horizontal_risk)
