@@ -1,7 +1,9 @@
 """RINEX observation and broadcast navigation files -> a Drive of corrected epochs.
 
-Reading is done by georinex (RINEX 2.11 and 3.0x, observation and navigation, gzip) with
-hatanaka for Hatanaka-compressed ``.crx``/``.crx.gz`` files; the orbit and correction maths
+Observation files are read by georinex (RINEX 2.11 and 3.0x, gzip) with hatanaka for
+Hatanaka-compressed ``.crx``/``.crx.gz`` files; navigation files by the record reader of
+:mod:`.rinex_check` (georinex 1.16 loses Galileo and BeiDou records); the orbit and
+correction maths
 is the project's core (``core.ephemeris``, ``core.corrections``, ``core.preprocess``).
 Why these libraries: ``docs/rinex.md`` (measured against gnss_lib_py and pyrtklib).
 
@@ -16,9 +18,9 @@ the file gives dB-Hz (RINEX 3 always; RINEX 2 when the values are above 10, else
 the 0-9 signal-strength flags some converters write, and C/N0 is unknown).
 
 Navigation records kept: GPS, Galileo I/NAV (the E1 group delay ``BGD(E1,E5b)``; F/NAV
-records carry the E5a one), BeiDou D1/D2 (``TGD1`` for B1I), GLONASS. Health: GPS
-``health == 0``, Galileo all health and validity bits zero, BeiDou ``SatH1 == 0``, GLONASS
-``health == 0``.
+records carry the E5a one), BeiDou D1/D2 (``TGD1`` for B1I), GLONASS. Health: the record's
+health field is zero (GPS SV health, Galileo health and validity bits, BeiDou SatH1,
+GLONASS health).
 """
 from __future__ import annotations
 
@@ -34,7 +36,7 @@ from ..core.ephemeris import (BDT_MINUS_GPS_S, BDT_WEEK_OFFSET, MAX_AGE_S, SECON
 from ..core.preprocess import Navigation, ObservationEpoch
 from ..core.types import BEIDOU, GALILEO, GLONASS, GPS, QZSS, SBAS
 from .errors import DatasetError
-from .rinex_check import check_structure
+from .rinex_check import check_structure, read_nav_records
 
 #: RINEX system letter -> system code (0: a system the wire has no code for).
 SYSTEM_OF_LETTER = {'G': GPS, 'R': GLONASS, 'E': GALILEO, 'C': BEIDOU, 'J': QZSS, 'S': SBAS,
@@ -74,73 +76,73 @@ def _georinex_load(path: Path, text: str, **kwargs):
 
 
 # ----------------------------------------------------------------------- navigation
-def _records(ds) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
-    """Rows of a georinex navigation Dataset that hold a record: (time labels, sv names,
-    variables)."""
-    valid = np.isfinite(ds['SVclockBias'].values)
-    t_idx, s_idx = np.nonzero(valid)
-    names = np.asarray(ds.sv.values).astype(str)[s_idx]
-    times = np.asarray(ds.time.values)[t_idx]
-    values = {v: np.asarray(ds[v].values, dtype=float)[t_idx, s_idx] for v in ds.data_vars
-              if ds[v].dtype.kind == 'f'}
-    return times, names, np.char.ljust(names, 3), values
+#: Keplerian record layout (RINEX 3 table A8/A10/A14, RINEX 2 table A4): index of each
+#: number in a record (epoch line first: af0 af1 af2, then broadcast orbits 1-7).
+KEPLER_FIELDS = {'af0': 0, 'af1': 1, 'af2': 2, 'crs': 4, 'delta_n': 5, 'm0': 6, 'cuc': 7,
+                 'ecc': 8, 'cus': 9, 'sqrt_a': 10, 'toe': 11, 'cic': 12, 'omega0': 13,
+                 'cis': 14, 'i0': 15, 'crc': 16, 'omega': 17, 'omega_dot': 18, 'idot': 19,
+                 'data_source': 20, 'week': 21, 'health': 24, 'group_a': 25, 'group_b': 26}
+#: GLONASS record layout (RINEX 3 table A11): -TauN, +GammaN, then X, Y, Z blocks.
+GLONASS_FIELDS = {'tau_n': 0, 'gamma_n': 1, 'x': 3, 'vx': 4, 'ax': 5, 'health': 6, 'y': 7,
+                  'vy': 8, 'ay': 9, 'channel': 10, 'z': 11, 'vz': 12, 'az': 13}
 
 
-def _kepler(system: int, times, names, v: dict) -> KeplerEphemerides:
-    prn = np.array([int(n[1:]) for n in names], dtype=np.int64)
+def _kepler(system: int, epochs: np.ndarray, prn: np.ndarray,
+            v: np.ndarray) -> KeplerEphemerides:
+    """Keplerian records of one system; ``v`` is (n, 29) in the KEPLER_FIELDS layout."""
+    f = {name: v[:, i] for name, i in KEPLER_FIELDS.items()}
     if system == BEIDOU:
-        week = v['BDTWeek'] + BDT_WEEK_OFFSET
+        week = f['week'] + BDT_WEEK_OFFSET
         shift = -BDT_MINUS_GPS_S                     # BDT labels -> GPS seconds: + 14 s
-        group = v['TGD1']
-        healthy = v['SatH1'] == 0
+        group = f['group_a']                         # TGD1 (B1I)
     elif system == GALILEO:
-        week, shift, group = v['GALWeek'], 0.0, v['BGDe5b']
-        healthy = v['health'] == 0
+        week, shift, group = f['week'], 0.0, f['group_b']   # BGD(E1, E5b), I/NAV
     else:
-        week, shift, group = v['GPSWeek'], 0.0, v['TGD']
-        healthy = v['health'] == 0
-    toe_sow = v['Toe']
-    toe = week * SECONDS_PER_WEEK + toe_sow + shift
-    toc = gps_seconds(times) + shift
+        week, shift, group = f['week'], 0.0, f['group_a']   # TGD
+    toe = week * SECONDS_PER_WEEK + f['toe'] + shift
     return KeplerEphemerides(
-        system=system, prn=prn, toe_s=toe, toe_sow_s=toe_sow, toc_s=toc,
-        af0_s=v['SVclockBias'], af1=v['SVclockDrift'], af2_per_s=v['SVclockDriftRate'],
-        group_delay_s=np.nan_to_num(group), healthy=healthy & np.isfinite(toe),
-        sqrt_a=v['sqrtA'], ecc=v['Eccentricity'], i0=v['Io'], idot=v['IDOT'],
-        omega0=v['Omega0'], omega_dot=v['OmegaDot'], omega=v['omega'], m0=v['M0'],
-        delta_n=v['DeltaN'], cuc=v['Cuc'], cus=v['Cus'], crc=v['Crc'], crs=v['Crs'],
-        cic=v['Cic'], cis=v['Cis'])
+        system=system, prn=prn, toe_s=toe, toe_sow_s=f['toe'],
+        toc_s=gps_seconds(epochs) + shift,
+        af0_s=f['af0'], af1=f['af1'], af2_per_s=np.nan_to_num(f['af2']),
+        group_delay_s=np.nan_to_num(group),
+        healthy=(f['health'] == 0) & np.isfinite(toe) & np.isfinite(f['sqrt_a']),
+        sqrt_a=f['sqrt_a'], ecc=f['ecc'], i0=f['i0'], idot=f['idot'], omega0=f['omega0'],
+        omega_dot=f['omega_dot'], omega=f['omega'], m0=f['m0'], delta_n=f['delta_n'],
+        cuc=f['cuc'], cus=f['cus'], crc=f['crc'], crs=f['crs'], cic=f['cic'], cis=f['cis'])
 
 
-def _glonass(times, names, v: dict) -> GlonassEphemerides:
-    utc = gps_seconds(times)
+def _glonass(epochs: np.ndarray, prn: np.ndarray, v: np.ndarray) -> GlonassEphemerides:
+    """GLONASS records; the epochs are UTC."""
+    f = {name: v[:, i] for name, i in GLONASS_FIELDS.items()}
+    utc = gps_seconds(epochs)
     toe = utc + np.array([gps_minus_utc_s(t) for t in utc])
-    pos = np.stack([v['X'], v['Y'], v['Z']], axis=1)
-    vel = np.stack([v['dX'], v['dY'], v['dZ']], axis=1)
-    acc = np.stack([v['dX2'], v['dY2'], v['dZ2']], axis=1)
     # RINEX stores km, km/s, km/s^2.
     return GlonassEphemerides(
-        prn=np.array([int(n[1:]) for n in names], dtype=np.int64), toe_s=toe,
-        pos_m=pos * 1e3, vel_mps=vel * 1e3, acc_mps2=acc * 1e3,
-        tau_n_s=v['SVclockBias'], gamma_n=v['SVrelFreqBias'],
-        freq_channel=np.nan_to_num(v['FreqNum']), healthy=v['health'] == 0)
+        prn=prn, toe_s=toe, pos_m=np.stack([f['x'], f['y'], f['z']], axis=1) * 1e3,
+        vel_mps=np.stack([f['vx'], f['vy'], f['vz']], axis=1) * 1e3,
+        acc_mps2=np.stack([f['ax'], f['ay'], f['az']], axis=1) * 1e3,
+        tau_n_s=f['tau_n'], gamma_n=f['gamma_n'], freq_channel=np.nan_to_num(f['channel']),
+        healthy=f['health'] == 0)
 
 
 def _concat(parts: list):
     """Records of one system from several files, as one set."""
     if len(parts) == 1:
         return parts[0]
-    fields = {f.name: f for f in dataclasses.fields(parts[0])}
     merged = {}
-    for name in fields:
-        first = getattr(parts[0], name)
-        merged[name] = (np.concatenate([getattr(p, name) for p in parts])
-                        if isinstance(first, np.ndarray) else first)
+    for fld in dataclasses.fields(parts[0]):
+        first = getattr(parts[0], fld.name)
+        merged[fld.name] = (np.concatenate([getattr(p, fld.name) for p in parts])
+                            if isinstance(first, np.ndarray) else first)
     return type(parts[0])(**merged)
 
 
 def read_navigation(paths: list[Path]) -> Navigation:
     """Broadcast navigation from one or more RINEX 2/3 navigation files.
+
+    Parsed by :func:`.rinex_check.read_nav_records` (fixed-format records, checked with
+    line numbers): georinex 1.16 returns empty arrays for the RINEX 3.03/3.05 Galileo
+    and BeiDou files of ``data/rinex/nya1`` without an error (``docs/rinex.md``).
 
     Raises:
         DatasetError: A file is missing, truncated, corrupt or holds no record of a
@@ -149,30 +151,28 @@ def read_navigation(paths: list[Path]) -> Navigation:
     by_system: dict[int, list] = {}
     alpha = beta = None
     for path in map(Path, paths):
-        _, text = check_structure(path, 'nav')
-        ds = _georinex_load(path, text)
-        iono = ds.attrs.get('ionospheric_corr_GPS')
-        if alpha is None and iono is not None and len(iono) == 8:
-            alpha, beta = np.asarray(iono[:4], dtype=float), np.asarray(iono[4:], dtype=float)
-        if 'SVclockBias' not in ds.data_vars:
-            raise DatasetError(f'{path}: no navigation records')
-        times, names, _, values = _records(ds)
+        _, records, iono = read_nav_records(path)
+        if alpha is None and iono:
+            alpha, beta = np.asarray(iono['alpha']), np.asarray(iono['beta'])
         found = False
-        for letter in sorted({n[0] for n in names}):
+        for letter in sorted({r[0] for r in records}):
             system = SYSTEM_OF_LETTER.get(letter, 0)
-            pick = np.char.startswith(names, letter)
-            sub = {k: x[pick] for k, x in values.items()}
-            if system == GLONASS:
-                part = _glonass(times[pick], names[pick], sub)
-            elif system in (GPS, GALILEO, BEIDOU):
-                if system == GALILEO and 'DataSrc' in sub:
-                    inav = (sub['DataSrc'].astype(np.int64) & 0b101) != 0
-                    sub = {k: x[inav] for k, x in sub.items()}
-                    part = _kepler(system, times[pick][inav], names[pick][inav], sub)
-                else:
-                    part = _kepler(system, times[pick], names[pick], sub)
-            else:
+            if system not in (GPS, GLONASS, GALILEO, BEIDOU):
                 continue
+            mine = [r for r in records if r[0] == letter]
+            width = max(len(r[3]) for r in mine)
+            values = np.array([r[3] + [np.nan] * (width - len(r[3])) for r in mine])
+            epochs = np.array([r[2] for r in mine], dtype='datetime64[ns]')
+            prn = np.array([r[1] for r in mine], dtype=np.int64)
+            if system == GLONASS:
+                part = _glonass(epochs, prn, values)
+            else:
+                if system == GALILEO:
+                    # I/NAV records (data source bits 0 or 2): the E1 group delay.
+                    source = np.nan_to_num(values[:, KEPLER_FIELDS['data_source']])
+                    inav = (source.astype(np.int64) & 0b101) != 0
+                    epochs, prn, values = epochs[inav], prn[inav], values[inav]
+                part = _kepler(system, epochs, prn, values)
             by_system.setdefault(system, []).append(part)
             found = found or len(part) > 0
         if not found:
@@ -194,12 +194,14 @@ class ObservationFile:
             in an epoch are left out of it).
         approx_ecef_m: The header's APPROX POSITION XYZ [m] (None when absent or zero).
         interval_s: Nominal epoch interval [s] (from the stamps).
+        antenna_delta_enu_m: (3,) antenna reference point from the marker, local ENU [m].
     """
 
     path: Path
     epochs: list
     approx_ecef_m: np.ndarray | None
     interval_s: float
+    antenna_delta_enu_m: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(3))
 
 
 def _pick_code(ds, names: np.ndarray, version: float) -> tuple[np.ndarray, np.ndarray]:
@@ -247,8 +249,8 @@ def read_observations(path: Path, duration_s: float | None = None) -> Observatio
     kwargs = {}
     if duration_s:
         start = np.datetime64(header.first_epoch, 'ns')
-        kwargs['tlim'] = (str(start), str(start + np.timedelta64(int(duration_s * 1e9),
-                                                                  'ns')))
+        end = start + np.timedelta64(int(duration_s * 1e9), 'ns')
+        kwargs['tlim'] = (str(start), str(end))
     ds = _georinex_load(path, text, **kwargs)
     if 'time' not in ds.sizes or ds.sizes['time'] == 0:
         raise DatasetError(f'{path}: no observation epochs')
@@ -274,7 +276,8 @@ def read_observations(path: Path, duration_s: float | None = None) -> Observatio
     approx = (np.asarray(approx, dtype=float) if approx is not None
               and np.linalg.norm(approx) > 1e6 else None)
     interval = float(np.median(np.diff(gps_ns)) / 1e9) if len(gps_ns) > 1 else 0.0
-    return ObservationFile(path, epochs, approx, interval)
+    return ObservationFile(path, epochs, approx, interval,
+                           np.asarray(header.antenna_delta_enu_m, dtype=float))
 
 
 def check_navigation_covers(nav: Navigation, obs: ObservationFile) -> None:

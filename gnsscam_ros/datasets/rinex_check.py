@@ -15,6 +15,8 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from .errors import DatasetError
 
 #: Largest file read [bytes after decompression] (a day of 1 Hz multi-GNSS is ~500 MB).
@@ -32,12 +34,15 @@ class RinexHeader:
         file_type: 'O' observation or a navigation type ('N', 'G', ...).
         time_system: Time system of TIME OF FIRST OBS ('' when not given).
         first_epoch: ISO time of the first observation epoch ('' for navigation files).
+        antenna_delta_enu_m: (east, north, up) of the antenna reference point from the
+            marker (ANTENNA: DELTA H/E/N) [m].
     """
 
     version: float
     file_type: str
     time_system: str
     first_epoch: str
+    antenna_delta_enu_m: tuple = (0.0, 0.0, 0.0)
 
 
 def open_text(path: Path) -> str:
@@ -88,10 +93,17 @@ def _header(path: Path, lines: list[str]) -> tuple[RinexHeader, int, dict]:
     time_system = first = ''
     n_obs: dict = {}
     pending_sys = ''
+    delta = (0.0, 0.0, 0.0)
     for i, line in enumerate(lines[:5000]):
         label = line[60:80].strip()
         if label == 'END OF HEADER':
-            return RinexHeader(version, file_type, time_system, first), i + 1, n_obs
+            return RinexHeader(version, file_type, time_system, first, delta), i + 1, n_obs
+        if label == 'ANTENNA: DELTA H/E/N':
+            try:
+                h, e, n = (float(v) for v in line[:42].split())
+            except ValueError:
+                raise DatasetError(f'{path}:{i + 1}: bad ANTENNA: DELTA H/E/N') from None
+            delta = (e, n, h)
         if label == '# / TYPES OF OBSERV' and line[:6].strip():
             n_obs['n_obs'] = _int(path, i, line[:6])
         elif label == 'SYS / # / OBS TYPES':
@@ -167,36 +179,100 @@ def _check_obs2(path: Path, lines: list[str], start: int, n_obs: int) -> None:
         i = need
 
 
-def _check_nav(path: Path, header: RinexHeader, lines: list[str], start: int) -> None:
+def _value(path: Path, line_no: int, field: str) -> float:
+    field = field.strip().replace('D', 'E').replace('d', 'e')
+    if not field:
+        return float('nan')
+    try:
+        return float(field)
+    except ValueError:
+        raise DatasetError(f'{path}:{line_no}: {field!r} is not a number') from None
+
+
+def _record_epoch(path: Path, line_no: int, text: str, version: float) -> np.datetime64:
+    """The epoch of a navigation record's first line (in the system's own time scale)."""
+    try:
+        parts = text.split()
+        y, mo, d, h, mi = (int(v) for v in parts[:5])
+        sec = float(parts[5])
+    except (ValueError, IndexError):
+        raise DatasetError(f'{path}:{line_no}: corrupt navigation record epoch') from None
+    if version < 3:
+        y += 2000 if y < 80 else 1900
+    try:
+        return (np.datetime64(f'{y:04d}-{mo:02d}-{d:02d}T{h:02d}:{mi:02d}', 'ns')
+                + np.timedelta64(int(round(sec * 1e9)), 'ns'))
+    except ValueError:
+        raise DatasetError(f'{path}:{line_no}: impossible navigation record date') from None
+
+
+def _parse_nav(path: Path, header: RinexHeader, lines: list[str], start: int) -> list:
+    """Every navigation record: ``(letter, prn, epoch, values)`` with the record's numbers
+    in file order (broadcast orbit 0..n; blank fields NaN)."""
+    records = []
     i = start
-    v2_lines = 4 if header.file_type == 'G' else 8
+    v2_letter = 'R' if header.file_type == 'G' else 'G'
     while i < len(lines):
         line = lines[i]
         if not line.strip():
             i += 1
             continue
         if header.version >= 3:
-            n = NAV_RECORD_LINES.get(line[:1])
+            letter = line[:1]
+            n = NAV_RECORD_LINES.get(letter)
             if n is None or not line[1:3].strip().isdigit():
                 raise DatasetError(f'{path}:{i + 1}: expected a navigation record starting '
                                    'with a satellite (G01, E11, ...)')
-            first_value = 23
+            prn, epoch_text, first, rest = int(line[1:3]), line[3:23], 23, 4
         else:
-            n, first_value = v2_lines, 22
+            letter, n = v2_letter, 4 if v2_letter == 'R' else 8
+            if not line[:2].strip().isdigit():
+                raise DatasetError(f'{path}:{i + 1}: expected a navigation record starting '
+                                   'with a satellite number')
+            prn, epoch_text, first, rest = int(line[:2]), line[2:22], 22, 3
         if i + n > len(lines):
             raise DatasetError(f'{path}:{i + 1}: navigation record of {n} lines cut short '
                                '(truncated)')
+        epoch = _record_epoch(path, i + 1, epoch_text, header.version)
+        values = []
         for j in range(n):
-            text = lines[i + j][first_value if j == 0 else (4 if header.version >= 3 else 3):]
-            for k in range(0, len(text.rstrip()), 19):
-                field = text[k:k + 19].strip().replace('D', 'E').replace('d', 'e')
-                if field:
-                    try:
-                        float(field)
-                    except ValueError:
-                        raise DatasetError(f'{path}:{i + j + 1}: {field!r} is not a '
-                                           'number') from None
+            text = lines[i + j]
+            offset = first if j == 0 else rest
+            count = 3 if j == 0 else 4
+            values += [_value(path, i + j + 1, text[offset + 19 * k:offset + 19 * (k + 1)])
+                       for k in range(count)]
+        records.append((letter, prn, epoch, values))
         i += n
+    return records
+
+
+def read_nav_records(path: Path) -> tuple[RinexHeader, list, dict]:
+    """The records of a RINEX 2/3 navigation file (checked as they are read) and the
+    header's GPS Klobuchar coefficients (``{'alpha': [4], 'beta': [4]}``, empty when the
+    header has none).
+
+    Raises:
+        DatasetError: One line naming the file and the line at fault.
+    """
+    path = Path(path)
+    lines = open_text(path).splitlines()
+    header, start, _ = _header(path, lines)
+    if header.file_type not in ('N', 'G'):
+        raise DatasetError(f'{path}:1: RINEX type {header.file_type!r}, a navigation '
+                           "file ('N') was expected")
+    iono: dict = {}
+    for i, line in enumerate(lines[:start]):
+        label = line[60:80].strip()
+        key = {'ION ALPHA': 'alpha', 'ION BETA': 'beta'}.get(label)
+        if key is None and label == 'IONOSPHERIC CORR' and line[:4] in ('GPSA', 'GPSB'):
+            key = 'alpha' if line[:4] == 'GPSA' else 'beta'
+        if key is not None:
+            body = line[2:50] if label.startswith('ION ') else line[5:53]
+            iono[key] = [_value(path, i + 1, body[12 * k:12 * (k + 1)]) for k in range(4)]
+    records = _parse_nav(path, header, lines, start)
+    if not records:
+        raise DatasetError(f'{path}: no navigation records after the header')
+    return header, records, iono if len(iono) == 2 else {}
 
 
 def check_structure(path: Path, kind: str) -> tuple[RinexHeader, str]:
@@ -204,7 +280,7 @@ def check_structure(path: Path, kind: str) -> tuple[RinexHeader, str]:
 
     Args:
         path: The file.
-        kind: 'obs' or 'nav' (what the caller needs).
+        kind: 'obs' (navigation files are read by :func:`read_nav_records`).
 
     Returns:
         The header facts and the (decompressed) text.
@@ -225,10 +301,7 @@ def check_structure(path: Path, kind: str) -> tuple[RinexHeader, str]:
         else:
             _check_obs2(path, lines, start, n_obs.get('n_obs', 0))
     else:
-        if header.file_type not in ('N', 'G'):
-            raise DatasetError(f'{path}:1: RINEX type {header.file_type!r}, a navigation '
-                               "file ('N') was expected")
-        _check_nav(path, header, lines, start)
+        raise ValueError(f'unknown kind {kind!r}; navigation files: read_nav_records')
     if start >= len(lines) or not any(line.strip() for line in lines[start:start + 50]):
         raise DatasetError(f'{path}: no records after the header')
     return header, text
