@@ -106,20 +106,29 @@ def test_glonass_integration_matches_adaptive_integrator():
     assert np.linalg.norm(back[0] - state[0, :3]) > 1e6       # it moved
 
 
-def test_beidou_geo_stays_over_one_spot():
-    nav = read_navigation(NYA1_NAV)
-    bds = nav.ephemerides[BEIDOU]
-    geo = np.flatnonzero(ephemeris.is_beidou_geo(bds.prn) & bds.healthy)
-    if geo.size == 0:
-        pytest.fail('the BeiDou fixture has no GEO record')
-    row = geo[:1]
-    t0 = float(bds.toe_s[row[0]])
-    p0, _ = bds.position(row, np.array([t0]))
-    p1, _ = bds.position(row, np.array([t0 + 3600.0]))
-    assert abs(np.linalg.norm(p0) - 42.164e6) < 2e5
-    # Geostationary: inclined by a few degrees at most, it moves < ~1,000 km in an hour
-    # (an inertial-frame error would sweep 11,000 km).
-    assert np.linalg.norm(p1 - p0) < 1.5e6
+def geo_record(prn: int) -> ephemeris.KeplerEphemerides:
+    """A BeiDou record on a geostationary orbit: mean motion = Earth rotation, elements in
+    the GEO reference frame (inclined by -5 deg about x, ICD 5.2.4.12)."""
+    gm, omega_e = ephemeris.GM_M3PS2[BEIDOU], ephemeris.OMEGA_E_RPS[BEIDOU]
+    one, zero = np.ones(1), np.zeros(1)
+    return ephemeris.KeplerEphemerides(
+        system=BEIDOU, prn=np.array([prn]), toe_s=zero, toe_sow_s=zero, toc_s=zero,
+        af0_s=zero, af1=zero, af2_per_s=zero, group_delay_s=zero, healthy=np.array([True]),
+        sqrt_a=one * (gm / omega_e ** 2) ** (1.0 / 6.0), ecc=zero, i0=one * np.radians(-5.0),
+        idot=zero, omega0=zero, omega_dot=zero, omega=zero, m0=zero, delta_n=zero,
+        cuc=zero, cus=zero, crc=zero, crs=zero, cic=zero, cis=zero)
+
+
+def test_beidou_geo_rotation_gives_a_fixed_equatorial_point():
+    geo = geo_record(3)
+    t = np.array([0.0, 3600.0, 6 * 3600.0])
+    p, _ = geo.position(np.zeros(3, dtype=int), t)
+    assert np.allclose(np.linalg.norm(p, axis=1), 42.164e6, rtol=1e-3)
+    assert np.all(np.abs(p[:, 2]) < 1.0)                       # equatorial
+    assert np.linalg.norm(p - p[0], axis=1).max() < 1.0        # fixed over the Earth
+    # The same elements read as a MEO/IGSO satellite give a 5 deg inclined orbit.
+    meo, _ = geo_record(30).position(np.zeros(3, dtype=int), t)
+    assert np.abs(meo[:, 2]).max() > 1e6
 
 
 def test_no_usable_satellites_one_line_and_exit_code(tmp_path, capsys):
