@@ -77,7 +77,9 @@ def main(src: Path) -> None:
     write('brdc1180.21n', nav_records_v2(nav, lambda t: t.split()[3] in ('16', '18', '20')))
     sp3 = (src / 'slac' / 'COD0MGXFIN_20211180000_01D_05M_ORB.SP3').read_text().splitlines()
     stars = [i for i, line in enumerate(sp3) if line.startswith('*')]
-    write('COD0MGXFIN_20211180000_01D_05M_ORB.SP3', sp3[:stars[0]] + sp3[stars[18]:stars[22]] + ['EOF'])
+    # Epochs 18-21: 19:30-19:45, where the CLK file starts.
+    write('COD0MGXFIN_20211180000_01D_05M_ORB.SP3',
+          sp3[:stars[0]] + sp3[stars[18]:stars[22]] + ['EOF'])
     clk = (src / 'slac' / 'COD0MGXFIN_20211180000_01D_30S_CLK.CLK').read_text().splitlines()
     head, body = header_and_body(clk)
     write('COD0MGXFIN_20211180000_01D_30S_CLK.CLK',
