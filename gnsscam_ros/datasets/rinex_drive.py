@@ -47,7 +47,8 @@ def static_odometry(start_ns: int, end_ns: int) -> OdometrySeries:
 
 def load_rinex(obs_path: Path, nav_paths: list[Path], static: bool = False,
                station_ecef_m: np.ndarray | None = None, duration_s: float | None = None,
-               config: PreprocessConfig | None = None, name: str | None = None) -> Drive:
+               config: PreprocessConfig | None = None, name: str | None = None,
+               systems: tuple[int, ...] | None = None) -> Drive:
     """Corrected epochs of a RINEX observation file.
 
     Args:
@@ -58,6 +59,8 @@ def load_rinex(obs_path: Path, nav_paths: list[Path], static: bool = False,
         duration_s: Only the first seconds of the file [s].
         config: Preprocessing parameters.
         name: Run name (default: the observation file's stem).
+        systems: Keep only these system codes (None: every system with navigation); the
+            others are counted as ``system_excluded``.
 
     Returns:
         The drive; ``info['skipped_satellites']`` counts the satellites left out by
@@ -80,8 +83,15 @@ def load_rinex(obs_path: Path, nav_paths: list[Path], static: bool = False,
         result = pre.process(raw)
         for reason, n in result.skipped.items():
             skipped[reason] = skipped.get(reason, 0) + n
-        unusable += int(result.epoch.n_sv < MIN_SATELLITES)
-        epochs.append(result.epoch)
+        epoch = result.epoch
+        if systems is not None:
+            keep = np.isin(epoch.system, systems)
+            if not keep.all():
+                skipped['system_excluded'] = (skipped.get('system_excluded', 0)
+                                              + int((~keep).sum()))
+                epoch = epoch.subset(keep)
+        unusable += int(epoch.n_sv < MIN_SATELLITES)
+        epochs.append(epoch)
     if unusable == len(epochs):
         raise DatasetError(f'{obs.path}: no epoch has {MIN_SATELLITES} usable satellites '
                            f'(skipped over {len(epochs)} epochs: {skipped or "none"})')
@@ -101,6 +111,7 @@ def load_rinex(obs_path: Path, nav_paths: list[Path], static: bool = False,
         name=name or Path(obs_path).name.split('.')[0], origin_llh=None, gnss=epochs,
         odometry=odometry, imu=None, truth=truth,
         info={'observations': str(obs.path), 'navigation': list(nav.sources),
-              'static': bool(static), 'epochs': len(epochs), 'epochs_unusable': unusable,
+              'static': bool(static), 'systems': None if systems is None else list(systems),
+              'epochs': len(epochs), 'epochs_unusable': unusable,
               'skipped_satellites': skipped, 'interval_s': obs.interval_s,
               'license': ATTRIBUTION})

@@ -27,7 +27,7 @@ from ..datasets.emulated.drive import make_emulated_drive
 from ..datasets.errors import DatasetError
 from ..datasets.faults import FaultEpisodes, inject_pseudorange_faults
 from ..datasets.rinex_args import (add_rinex_arguments, load_rinex_args,
-                                   preprocessing_summary)
+                                   preprocessing_summary, station_figures)
 from ..datasets.smartloc import load_smartloc_args
 from ..io.atomic import (OutputExistsError, check_writable, write_csv_atomic,
                          write_json_atomic)
@@ -392,6 +392,9 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_INPUT
     if args.command == 'rinex':
         result['preprocessing'] = preprocessing_summary(drive)
+        result['station'] = station_figures(result, record.epochs)
+        print('station: ' + ', '.join(f'{k} {v:.3f}' for k, v in result['station'].items()
+                                      if v is not None))
     print_result(drive.name, result)
     return write_result(args, result, record.epochs, drive.name, config.alert_limit_m)
 
