@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.types import Drive
+from .android import load_android
 from .errors import DatasetError
 from .rinex import SYSTEM_OF_LETTER
 from .rinex_drive import load_rinex
@@ -94,3 +95,32 @@ def station_figures(result: dict, epochs) -> dict:
             'pl_to_error_ratio': (pl_med / err_med if pl_med is not None and err_med
                                   else None),
             'mi_rate': result['protection_level']['mi_rate']}
+
+
+def add_android_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--log FILE --nav FILE [--nav FILE ...] [--static] [--truth CSV] [--systems L]``."""
+    parser.add_argument('--log', type=Path, required=True,
+                        help='GnssLogger raw log (gnss_log.txt) or GSDC device_gnss.csv')
+    parser.add_argument('--nav', type=Path, action='append', required=True,
+                        help='RINEX broadcast navigation file of the same day; repeat for '
+                             'each system')
+    parser.add_argument('--static', action='store_true',
+                        help='the phone does not move: zero-motion odometry')
+    parser.add_argument('--truth', type=Path, help='GSDC ground_truth.csv')
+    parser.add_argument('--systems', default=None, metavar='LETTERS',
+                        help='use only these systems (G R E C)')
+
+
+def load_android_args(args: argparse.Namespace, quiet: bool = False) -> Drive:
+    """The drive of the ``android`` options (skips printed as for ``rinex``)."""
+    try:
+        systems = parse_systems(args.systems)
+    except ValueError as err:
+        raise DatasetError(str(err)) from err
+    drive = load_android(args.log, args.nav, static=args.static, truth_path=args.truth,
+                         systems=systems)
+    if not quiet:
+        print(f"android: {drive.info['epochs']} epochs, rows not used: "
+              f"{drive.info['rows_not_used'] or 'none'}, satellites skipped: "
+              f"{drive.info['skipped_satellites'] or 'none'}", file=sys.stderr)
+    return drive

@@ -45,6 +45,39 @@ def static_odometry(start_ns: int, end_ns: int) -> OdometrySeries:
                           yaw_rate_var=np.full(stamps.size, STATIC_YAW_RATE_VAR))
 
 
+def corrected_epochs(path: Path, observations: list, nav, config: PreprocessConfig | None,
+                     systems: tuple[int, ...] | None) -> tuple[list, dict, int]:
+    """Every observation epoch through one :class:`~..core.preprocess.Preprocessor`.
+
+    Returns:
+        The corrected epochs, the satellites skipped by reason (``system_excluded``: not in
+        ``systems``), and the number of epochs with fewer than :data:`MIN_SATELLITES`.
+
+    Raises:
+        DatasetError: No epoch has enough satellites (``path`` named, with the counts).
+    """
+    pre = Preprocessor(nav, config)
+    epochs, skipped = [], {}
+    unusable = 0
+    for raw in observations:
+        result = pre.process(raw)
+        for reason, n in result.skipped.items():
+            skipped[reason] = skipped.get(reason, 0) + n
+        epoch = result.epoch
+        if systems is not None:
+            keep = np.isin(epoch.system, systems)
+            if not keep.all():
+                skipped['system_excluded'] = (skipped.get('system_excluded', 0)
+                                              + int((~keep).sum()))
+                epoch = epoch.subset(keep)
+        unusable += int(epoch.n_sv < MIN_SATELLITES)
+        epochs.append(epoch)
+    if unusable == len(epochs):
+        raise DatasetError(f'{path}: no epoch has {MIN_SATELLITES} usable satellites '
+                           f'(skipped over {len(epochs)} epochs: {skipped or "none"})')
+    return epochs, skipped, unusable
+
+
 def load_rinex(obs_path: Path, nav_paths: list[Path], static: bool = False,
                station_ecef_m: np.ndarray | None = None, duration_s: float | None = None,
                config: PreprocessConfig | None = None, name: str | None = None,
@@ -76,25 +109,7 @@ def load_rinex(obs_path: Path, nav_paths: list[Path], static: bool = False,
     obs = read_observations(Path(obs_path), duration_s)
     nav = read_navigation([Path(p) for p in nav_paths])
     check_navigation_covers(nav, obs)
-    pre = Preprocessor(nav, config)
-    epochs, skipped = [], {}
-    unusable = 0
-    for raw in obs.epochs:
-        result = pre.process(raw)
-        for reason, n in result.skipped.items():
-            skipped[reason] = skipped.get(reason, 0) + n
-        epoch = result.epoch
-        if systems is not None:
-            keep = np.isin(epoch.system, systems)
-            if not keep.all():
-                skipped['system_excluded'] = (skipped.get('system_excluded', 0)
-                                              + int((~keep).sum()))
-                epoch = epoch.subset(keep)
-        unusable += int(epoch.n_sv < MIN_SATELLITES)
-        epochs.append(epoch)
-    if unusable == len(epochs):
-        raise DatasetError(f'{obs.path}: no epoch has {MIN_SATELLITES} usable satellites '
-                           f'(skipped over {len(epochs)} epochs: {skipped or "none"})')
+    epochs, skipped, unusable = corrected_epochs(obs.path, obs.epochs, nav, config, systems)
     odometry = (static_odometry(epochs[0].stamp_ns, epochs[-1].stamp_ns) if static
                 else None)
     truth = None
