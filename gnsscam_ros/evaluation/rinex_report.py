@@ -25,16 +25,45 @@ from ..io.atomic import OutputExistsError, write_json_atomic
 from .orbits import compare
 
 
+def render_tables(result: dict) -> str:
+    """The Markdown tables of ``docs/rinex.md`` from a result file (the test compares)."""
+    lines = ['| orbits | samples | 3D RMS [m] (target <= 2) | max [m] | clock samples | '
+             'clock RMS [m] (target <= 3) | clock RMS [ns] |', '|---|---|---|---|---|---|---|']
+    for name, o in sorted(result['orbits'].items()):
+        lines.append(f"| {name} | {o['orbit_samples']} | {o['orbit_3d_rms_m']:.2f} | "
+                     f"{o['orbit_3d_max_m']:.2f} | {o['clock_samples']} | "
+                     f"{o['clock_rms_m']:.2f} | {o['clock_rms_ns']:.2f} |")
+    lines += ['', '| station run | epochs | WLS horizontal RMS [m] (<= 3) | WLS vertical RMS [m] '
+              '(<= 6) | filter horizontal RMS [m] (<= WLS) | filter median horizontal error '
+              '[m] | median PL [m] | PL / error (<= 3) | MI rate (<= 0.10) |',
+              '|---|---|---|---|---|---|---|---|---|']
+    for name, st in sorted(result['stations'].items()):
+        f = st['station']
+        lines.append(f"| {name} | {st['epochs']} | {f['wls_horizontal_rms_m']:.2f} | "
+                     f"{f['wls_vertical_rms_m']:.2f} | {f['filter_horizontal_rms_m']:.2f} | "
+                     f"{f['filter_median_horizontal_error_m']:.2f} | "
+                     f"{f['median_protection_level_m']:.2f} | {f['pl_to_error_ratio']:.1f} | "
+                     f"{f['mi_rate']:.3f} |")
+    return '\n'.join(lines) + '\n'
+
+
 def main(argv: list[str] | None = None) -> int:
     """Exit 0 written, 3 bad input, 4 output refused."""
     parser = argparse.ArgumentParser(prog='python -m gnsscam_ros.evaluation.rinex_report')
-    parser.add_argument('--out', type=Path, required=True)
+    parser.add_argument('--out', type=Path, help='result file to write')
     parser.add_argument('--orbits', metavar='NAME:NAV:SP3:CLK', action='append', default=[])
     parser.add_argument('--station', metavar='NAME=JSON', action='append', default=[])
     parser.add_argument('--note', action='append', default=[],
                         help='free text kept in the file (e.g. the eval command lines)')
     parser.add_argument('--force', action='store_true')
+    parser.add_argument('--markdown', type=Path, metavar='JSON',
+                        help='only print the tables of an existing result file')
     args = parser.parse_args(argv if argv is not None else sys.argv[1:])
+    if args.markdown is not None:
+        print(render_tables(json.loads(args.markdown.read_text())), end='')
+        return 0
+    if args.out is None:
+        parser.error('--out is required (or --markdown)')
     result = {'date': datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'),
               'host': platform.node(), 'machine': platform.machine(),
               'command': 'python -m gnsscam_ros.evaluation.rinex_report ' + ' '.join(
