@@ -5,7 +5,8 @@ Hatanaka-compressed ``.crx``/``.crx.gz`` files; navigation files by the record r
 :mod:`.rinex_check` (georinex 1.16 loses Galileo and BeiDou records); the orbit and
 correction maths
 is the project's core (``core.ephemeris``, ``core.corrections``, ``core.preprocess``).
-Why these libraries: ``docs/rinex.md`` (measured against gnss_lib_py and pyrtklib).
+Why these libraries: ``docs/rinex.md`` (gnss_lib_py measured against them; pyrtklib by
+install size and API only).
 
 Before georinex parses a file, :func:`check_structure` walks its records and refuses a
 truncated or corrupt one with the file and line (georinex reads what it can of a damaged
