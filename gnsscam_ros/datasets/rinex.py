@@ -2,9 +2,9 @@
 
 Observation files are read by georinex (RINEX 2.11 and 3.0x, gzip) with hatanaka for
 Hatanaka-compressed ``.crx``/``.crx.gz`` files; navigation files by the record reader of
-:mod:`.rinex_check` (georinex 1.16 loses Galileo and BeiDou records); the orbit and
-correction maths
-is the project's core (``core.ephemeris``, ``core.corrections``, ``core.preprocess``).
+:mod:`.rinex_check` (georinex 1.16.2 loses Galileo and BeiDou records); the orbit and
+correction maths is the project's core (``core.ephemeris``, ``core.corrections``,
+``core.preprocess``).
 Why these libraries: ``docs/rinex.md`` (gnss_lib_py measured against them; pyrtklib by
 install size and API only).
 
