@@ -53,6 +53,32 @@ IMU_FRAME = 'imu'              # default frame of an IMU sample written alone
 #: satellite: ``x y z`` FLOAT64 satellite ECEF position [m], ``pseudorange`` FLOAT64 [m],
 #: ``variance`` FLOAT32 [m^2], ``cn0`` FLOAT32 [dB-Hz], ``elevation`` FLOAT32 [deg],
 #: ``sv_id`` UINT16, ``system`` UINT8; little endian, naturally aligned (1 pad byte at 47).
+#:
+#: **Input contract of ``gnss/pseudoranges``** (what a driver must put in it):
+#:
+#: * ``pseudorange``: the code pseudorange [m] with the *satellite* clock offset removed
+#:   (broadcast polynomial + relativistic term ``F e sqrt(A) sin E`` + the group delay of
+#:   the signal: TGD for GPS L1, BGD(E1,E5b) for Galileo E1, TGD1 for BeiDou B1I), and the
+#:   ionospheric and tropospheric delays removed (e.g. Klobuchar, Saastamoinen). The
+#:   *receiver* clock stays in it (the filter estimates one per system).
+#: * ``x y z``: the satellite's ECEF position at the signal's *transmission* time
+#:   (reception time - pseudorange / c - satellite clock), in the ECEF frame *of that
+#:   time*: not rotated for the Earth's rotation during the ~70 ms flight, which the
+#:   consumer applies (``core.frames.sagnac_corrected``).
+#: * ``header.stamp``: the receiver's measurement (reception) time as UTC, POSIX
+#:   seconds/nanoseconds (ROS time), i.e. GPS time - (GPS - UTC leap seconds, 18 s since
+#:   2017); stamps of one source must increase.
+#: * ``variance``: the pseudorange error variance [m^2] as a relative weight; when the
+#:   driver has none, put the elevation/C/N0 model of ``core.corrections`` or a constant
+#:   (10 m^2): the filter learns its error scale online, but ``gnss_node`` warns when the
+#:   post-fit residuals are implausibly large for it (``core.gnss_checks``). NaN is refused.
+#: * ``cn0``/``elevation``: NaN when unknown (never below a mask then).
+#:
+#: A driver with raw measurements (e.g. u-blox RXM-RAWX: ``prMes``, ``cno``, ``gnssId``,
+#: ``svId`` and the receiver time of week) fills ``core.preprocess.ObservationEpoch`` and
+#: calls ``core.preprocess.Preprocessor(navigation).process(obs).epoch`` with navigation
+#: from RXM-SFRBX or a RINEX file (``datasets.rinex.read_navigation``); the result goes out
+#: with ``msg_adapters.gnss_epoch_to_pointcloud2``.
 GNSS_DTYPE = np.dtype({
     'names': ['x', 'y', 'z', 'pseudorange', 'variance', 'cn0', 'elevation', 'sv_id', 'system'],
     'formats': ['<f8', '<f8', '<f8', '<f8', '<f4', '<f4', '<f4', '<u2', 'u1'],

@@ -5,6 +5,8 @@ Examples::
     gnsscam_convert emulated --seed 1 --out bags/emulated_s1
     gnsscam_convert emulated --seed 3 --faults 6 --duration-s 60 --out bags/short
     gnsscam_convert smartloc ../shared/data/smartloc --out bags/smartloc --storage sqlite3
+    gnsscam_convert rinex --obs slac1180.21o --nav brdc1180.21n --static --out bags/slac
+    gnsscam_convert android --log gnss_log.txt --nav BRDC00IGS_R_....rnx --out bags/phone
 
 Progress goes to stderr, the summary (topics, counts, duration, size, MB/s) to stdout.
 Exit codes: 0 done, 2 bad usage, 3 bad input (dataset or data a bag cannot hold),
@@ -27,6 +29,8 @@ from pathlib import Path
 from ..datasets.emulated.camera import with_camera
 from ..datasets.emulated.drive import make_emulated_drive
 from ..datasets.errors import DatasetError
+from ..datasets.rinex_args import (add_android_arguments, add_rinex_arguments,
+                                   load_android_args, load_rinex_args)
 from ..datasets.smartloc import load_smartloc_args
 from ..io.atomic import check_writable, write_json_atomic
 from ..io.partials import sweep_and_report
@@ -99,7 +103,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help='folder with *_Input.txt and *_GT.txt (or use --input/--truth)')
     smart.add_argument('--input', type=Path, help='input file (pseudorange3/odom3 lines)')
     smart.add_argument('--truth', type=Path, help='ground-truth file (point3 lines)')
-    for p in (emu, smart):
+    rinex = sub.add_parser('rinex', help='RINEX observations + broadcast navigation')
+    add_rinex_arguments(rinex, station_required=False)
+    android = sub.add_parser('android', help='Android GnssLogger raw log + RINEX navigation')
+    add_android_arguments(android)
+    for p in (emu, smart, rinex, android):
         p.add_argument('--out', type=Path, required=True,
                        help='bag folder to create (must not exist)')
         p.add_argument('--storage', choices=sorted(STORAGES), default='mcap',
@@ -117,6 +125,10 @@ def load(args: argparse.Namespace):
     """The drive named on the command line (emulated: with its camera stream)."""
     if args.dataset == 'smartloc':
         return load_smartloc_args(args.folder, args.input, args.truth)
+    if args.dataset == 'rinex':
+        return load_rinex_args(args, quiet=args.quiet)
+    if args.dataset == 'android':
+        return load_android_args(args, quiet=args.quiet)
     try:
         drive = make_emulated_drive(args.seed, faults=args.faults, bias_m=args.bias_m,
                                     nlos=not args.no_nlos, duration_s=args.duration_s)

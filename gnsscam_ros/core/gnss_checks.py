@@ -156,3 +156,20 @@ def satellite_reasons(epoch: GnssEpoch, elevation_mask_deg: float = 0.0,
 def satellite_key(epoch: GnssEpoch, base: int) -> np.ndarray:
     """``system * base + sv_id`` (int64): one key per satellite."""
     return epoch.system.astype(np.int64) * base + epoch.sv_id.astype(np.int64)
+
+
+#: Post-fit residuals this many times their stated standard deviation (robust RMS) mean
+#: that the stated variances are far too small or a correction is missing
+#: (``msg_adapters.wire``'s input contract); gnss_node warns.
+IMPLAUSIBLE_RESIDUAL_RATIO = 5.0
+
+
+def residual_ratio(residual_m: np.ndarray, var_m2: np.ndarray) -> float:
+    """Robust RMS of post-fit residuals normalised by their stated standard deviations
+    (1.48 x median |r / sigma|; ~1 when the variances are right). NaN without residuals."""
+    r = np.asarray(residual_m, dtype=float)
+    sigma = np.sqrt(np.asarray(var_m2, dtype=float))
+    ok = np.isfinite(r) & (sigma > 0)
+    if not ok.any():
+        return float('nan')
+    return float(1.4826 * np.median(np.abs(r[ok] / sigma[ok])))

@@ -5,6 +5,8 @@ Examples::
     gnsscam_eval smartloc ../shared/data/smartloc --json out.json
     gnsscam_eval emulated --faults 6 --bias-m 100 --seed 3 --json out.json
     gnsscam_eval smartloc ../shared/data/smartloc --epochs-csv epochs.csv --plots plots/
+    gnsscam_eval rinex --obs slac1180.21o --nav brdc1180.21n --static \
+        --station-ecef -2703115.921 -4291767.208 3854247.906 --json slac.json
 
 ``--epochs-csv FILE`` writes one row per GNSS epoch (updated or not; columns
 ``runner.EpochTable.CSV_COLUMNS``: ``stamp_ns`` the input's time, the estimate in WGS84
@@ -25,6 +27,8 @@ from ..core.config import ERROR_MODELS
 from ..datasets.emulated.drive import make_emulated_drive
 from ..datasets.errors import DatasetError
 from ..datasets.faults import FaultEpisodes, inject_pseudorange_faults
+from ..datasets.rinex_args import (add_rinex_arguments, load_rinex_args,
+                                   preprocessing_summary, station_figures)
 from ..datasets.smartloc import load_smartloc_args
 from ..io.atomic import (OutputExistsError, check_writable, write_csv_atomic,
                          write_json_atomic)
@@ -203,7 +207,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help='drive seed (default: --seed)')
     emu.add_argument('--duration-s', type=float, default=None, help='cut the drive short')
     emu.add_argument('--no-nlos', action='store_true', help='no NLOS errors')
-    for p in (smart, emu):
+    rinex = sub.add_parser('rinex', help='RINEX observations + broadcast navigation of a '
+                           'station with published coordinates')
+    add_rinex_arguments(rinex, station_required=True)
+    for p in (smart, emu, rinex):
         add_filter_arguments(p)
     camp = sub.add_parser('campaign', help="the paper's campaign on the emulated drive "
                           '(Tables 2-4, Figures 4-11) with confidence intervals, on Dask')
@@ -217,13 +224,13 @@ def build_parser() -> argparse.ArgumentParser:
     bag.add_argument('--origin', type=float, nargs=3, metavar=('LAT', 'LON', 'ALT'),
                      help='map frame origin, when no bag has map/origin')
     add_robustness_parser(sub)
-    for p in (smart, emu, bag):
+    for p in (smart, emu, bag, rinex):
         p.add_argument('--epochs-csv', type=Path, metavar='FILE',
                        help='write one row per GNSS epoch (estimate in WGS84, protection '
                        'level, risk bound, integrity OK/ERROR/STALE, error)')
         p.add_argument('--plots', type=Path, metavar='DIR',
                        help='write the Stanford diagram and the error/PL timeline here')
-    for p in (smart, emu, camp, bag):
+    for p in (smart, emu, camp, bag, rinex):
         p.add_argument('--json', type=Path, help='write the metrics as JSON')
         p.add_argument('--force', action='store_true', help='replace an existing --json')
         p.add_argument('--quiet', action='store_true', help='no progress output')
@@ -369,6 +376,8 @@ def _resuming(out: Path) -> bool:
 
 def load_drive(args: argparse.Namespace):
     """The drive named on the command line."""
+    if args.command == 'rinex':
+        return load_rinex_args(args, quiet=args.quiet)
     if args.command == 'smartloc':
         drive = load_smartloc_args(args.folder, args.input, args.truth)
         if args.inject_faults:
@@ -413,6 +422,11 @@ def main(argv: list[str] | None = None) -> int:
     except (DatasetError, ValueError) as err:
         print(f'gnsscam_eval: {err}', file=sys.stderr)
         return EXIT_INPUT
+    if args.command == 'rinex':
+        result['preprocessing'] = preprocessing_summary(drive)
+        result['station'] = station_figures(result, record.epochs)
+        print('station: ' + ', '.join(f'{k} {v:.3f}' for k, v in result['station'].items()
+                                      if v is not None))
     print_result(drive.name, result)
     return write_result(args, result, record.epochs, drive.name, config.alert_limit_m)
 

@@ -25,7 +25,8 @@ import numpy as np
 from sensor_msgs.msg import NavSatFix, NavSatStatus, PointCloud2
 
 from gnsscam_ros.core.frames import LocalFrame, sagnac_corrected
-from gnsscam_ros.core.gnss_checks import check_epoch
+from gnsscam_ros.core.gnss_checks import (IMPLAUSIBLE_RESIDUAL_RATIO, check_epoch,
+                                          residual_ratio)
 from gnsscam_ros.core.snapshot import solve_snapshot
 from gnsscam_ros.core.types import GnssEpoch
 from msg_adapters import (OK, WARN, GeodeticFix, MessageError, check_serialized_gnss,
@@ -172,6 +173,13 @@ class GnssNode(GnssCamNode):
             self.stats.count('fix_failed')
             return
         self._last_fix_ecef = fix.ecef_m
+        ratio = residual_ratio(fix.residual_m, epoch.var_m2)
+        if ratio > IMPLAUSIBLE_RESIDUAL_RATIO:
+            self.stats.count('implausible_variance')
+            self.get_logger().warning(
+                f'epoch {epoch.stamp_ns}: post-fit residuals are {ratio:.1f} x the stated '
+                'standard deviations: variances too small or corrections missing (input '
+                'contract: msg_adapters/wire.py)', throttle_duration_sec=10.0)
         frame = LocalFrame.from_ecef(fix.ecef_m)
         lat, lon, alt = frame.origin_llh
         cov = fix_covariance_enu(epoch, fix.ecef_m, var_floor)
