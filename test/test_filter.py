@@ -152,3 +152,19 @@ def test_same_seed_same_result():
         filt = ParticleFilter(config(), frame=FRAME, rng=np.random.default_rng(7))
         out.append(drive_east(filt, 8)[-1].position_enu_m)
     np.testing.assert_array_equal(out[0], out[1])
+
+
+def test_a_static_receiver_settles_without_a_heading_and_must_acquire_one_to_move():
+    cfg = config(integrity_settling_s=5.0, heading_acquisition_m=40.0)
+    filt = ParticleFilter(cfg, frame=FRAME, rng=np.random.default_rng(3))
+    still = MotionIncrement(1.0, 0.0, 0.0, 1e-6, 1e-8)
+    results = [filt.step(epoch_at([0.0, 0.0, 0.0], clock_m=5000.0, stamp_ns=i * SECOND),
+                         None if i == 0 else still) for i in range(8)]
+    # Never moved: the heading does not matter; integrity settles after 5 s.
+    assert [r.integrity_valid for r in results] == [False] * 5 + [True] * 3
+    # It moves: the heading it never needed is unknown, so acquisition and settling again.
+    moving = [filt.step(epoch_at([8.0 * k, 0.0, 0.0], clock_m=5000.0,
+                                 stamp_ns=(8 + k) * SECOND),
+                        MotionIncrement(1.0, 8.0, 0.0, 0.01, 1e-6)) for k in range(1, 8)]
+    assert not any(r.integrity_valid for r in moving)
+    assert all('settling' in r.integrity_reason for r in moving)

@@ -65,6 +65,9 @@ MAX_ORIGIN_DISTANCE_M = 100_000.0
 #: Heading uncertainty accrued over a dead-reckoning gap beyond which the heading counts
 #: as lost and is acquired again (distance ``heading_acquisition_m``) [rad].
 HEADING_LOST_RAD = 0.5
+#: Travel since the first fix up to which the vehicle counts as not having moved [m]: its
+#: heading, unknown, does not matter yet (a static receiver never needs it).
+STATIONARY_M = 0.5
 
 
 @dataclass
@@ -167,6 +170,7 @@ class ParticleFilter:
         self.last_stamp_ns: int | None = None
         self.distance_since_init_m = 0.0
         self.acquired_stamp_ns: int | None = None      # end of heading acquisition
+        self._settled_stationary = False                # settling while not yet moved
         self._motion_unknown_s = 0.0                    # of the epoch being processed
         self.last_result: EpochResult | None = None
 
@@ -198,6 +202,7 @@ class ParticleFilter:
         self.consistency.reset()
         self.distance_since_init_m = 0.0
         self.acquired_stamp_ns = None
+        self._settled_stationary = False
         self._motion_unknown_s = 0.0
         self.last_result = None
 
@@ -502,9 +507,17 @@ class ParticleFilter:
         risk, level = self._integrity(pos, post_log_w, chosen, mean, cov, epoch.stamp_ns,
                                       update)
         limit = float(cfg.alert_limits_m[0])
+        # The heading matters once the vehicle moves: settling starts when it is acquired,
+        # or at once while the vehicle has not moved (and again from acquisition if it
+        # starts to move before that).
+        acquiring = self.distance_since_init_m < cfg.heading_acquisition_m
+        stationary = self.distance_since_init_m <= STATIONARY_M
+        if self._settled_stationary and not stationary and acquiring:
+            self.acquired_stamp_ns = None
         if (self.acquired_stamp_ns is None and self._motion_unknown_s == 0.0
-                and self.distance_since_init_m >= cfg.heading_acquisition_m):
+                and (not acquiring or stationary)):
             self.acquired_stamp_ns = epoch.stamp_ns
+        self._settled_stationary = stationary and self.acquired_stamp_ns is not None
         settled_s = (-1.0 if self.acquired_stamp_ns is None
                      else (epoch.stamp_ns - self.acquired_stamp_ns) * 1e-9)
         consistency = self._consistency_state
