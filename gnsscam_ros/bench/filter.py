@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.engine import EpochEngine
-from ..core.filter import FilterConfig
+from ..core.filter import BIAS_MODELS, FilterConfig
 from ..core.frames import LocalFrame
 from ..core.fusion import CameraMeasurement
 from ..core.gnss import prepare_epoch
@@ -197,8 +197,9 @@ def main(argv: list[str] | None = None) -> int:
                         help='particle counts per posterior (default %(default)s)')
     parser.add_argument('--posteriors', type=int, default=BENCH_POSTERIORS,
                         help='posteriors M of the rows (default %(default)s)')
-    parser.add_argument('--bias-model', choices=('cn0', 'none'), default=None,
-                        help="'none': every posterior its own motion sample (the paper)")
+    parser.add_argument('--bias-model', choices=BIAS_MODELS, default=None,
+                        help="bias model of the rows (default: the package's); 'none': "
+                             'every posterior its own motion sample (the paper)')
     parser.add_argument('--likelihood', choices=('robust', 'particle_raim'), default=None)
     parser.add_argument('--camera-matches', type=int, default=CAMERA_MATCHES,
                         help='camera matches per epoch of the camera rows (0: none; '
