@@ -10,7 +10,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from rclpy.serialization import serialize_message
+from ros_harness import serialize_message  # skips this module without rclpy
 from sensor_msgs.msg import Image, PointCloud2
 
 import msg_adapters as ma
@@ -597,7 +597,7 @@ def _run_graph(drive, with_garbage: bool):
     """The nodes on an odometry + GNSS stream in lock step (each message handled before
     the next), malformed messages of every kind injected after the third epoch; the
     outputs per epoch and the nodes' diagnostics."""
-    from conftest import RosGraph
+    from ros_harness import RosGraph
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseWithCovarianceStamped, TwistWithCovarianceStamped
     from nav_msgs.msg import Odometry
@@ -867,7 +867,7 @@ def test_a_node_that_fails_while_running_exits_1(tmp_path, module, patches, topi
     import sys
     from pathlib import Path
 
-    from conftest import RosGraph, ros_env, stop
+    from ros_harness import RosGraph, ros_env, stop
     root = Path(__file__).resolve().parents[1]
     script = tmp_path / 'faulty.py'
     script.write_text(_FAULTY.format(module=module, patches=patches))

@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import RosGraph, ros_env, stop
+from ros_harness import RosGraph, ros_env, stop
 from diagnostic_msgs.msg import DiagnosticArray
 
 from msg_adapters import OK, STALE, IntegrityRisk, integrity_risk_to_msg

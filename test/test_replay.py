@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ros_harness import RosGraph, ros_env, wait_until  # skips without rclpy
 import rclpy
-from conftest import RosGraph, ros_env, wait_until
 from sensor_msgs.msg import Imu
 
 from gnsscam_ros.bags.convert import convert_drive
