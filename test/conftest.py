@@ -9,6 +9,8 @@ skipped, and so are the modules that import ros_harness.
 import importlib.util
 import itertools
 import os
+import signal
+import subprocess
 import time
 from pathlib import Path
 
@@ -92,3 +94,15 @@ def wait_until(condition, timeout_s: float, what: str) -> None:
     while not condition():
         assert time.monotonic() < deadline, f'timed out after {timeout_s} s: {what}'
         time.sleep(0.05)
+
+
+def stop_child(proc: subprocess.Popen, timeout_s: float = 20.0) -> int:
+    """SIGINT, then SIGKILL after ``timeout_s``; the exit status (a process that is no ROS
+    node; ros_harness.stop stops nodes with the nodes' own helper and fails on SIGKILL)."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        return proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        return proc.wait()
