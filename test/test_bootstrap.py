@@ -103,7 +103,8 @@ def test_run_verifies_before_it_writes_the_stamp():
         '`setup.py develop`', '')
     assert "'setuptools>=70.1,<80'" in body and "'pip>=23.1" in body
     # The stamp covers the bootstrap itself, so a fixed bootstrap repairs old venvs.
-    assert 'declare -f pick_python bootstrap' in body and 'check_bootstrap.py' in body
+    assert 'declare -f pick_python find_python312 tier_python bootstrap' in body
+    assert 'check_bootstrap.py' in body and 'constraints/*.txt' in body
 
 
 def test_setup_cfg_keeps_the_ament_layout():
