@@ -70,12 +70,19 @@ def smartloc_excerpt():
 # condition holds (never a fixed sleep; ros_harness.RosGraph), and a child process stopped
 # as Ctrl-C does (ros_harness.stop).
 _domains = itertools.count()
+# Under pytest-xdist (`-n 2`) each worker takes every n-th id of the run's sequence, so
+# two workers never share a domain; the run's base is the controller's process id.
+_WORKER = os.environ.get('PYTEST_XDIST_WORKER', '')
+_WORKERS = int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1')) if _WORKER else 1
+_WORKER_INDEX = int(_WORKER[2:]) if _WORKER.startswith('gw') else 0
+_RUN_BASE = 7 * (os.getppid() if _WORKER else os.getpid())
+_DOMAIN_SPAN = 209 - 209 % _WORKERS
 
 
 def ros_domain_id() -> int:
     """A ROS domain id no other test of this run uses (1-209; the replay's own default
     range, 220-232, stays free)."""
-    return 1 + (os.getpid() * 7 + next(_domains)) % 209
+    return 1 + (_RUN_BASE + _WORKERS * next(_domains) + _WORKER_INDEX) % _DOMAIN_SPAN
 
 
 def ros_env(tmp_path, domain: int, base: dict | None = None) -> dict:
@@ -85,6 +92,16 @@ def ros_env(tmp_path, domain: int, base: dict | None = None) -> dict:
                ROS_LOG_DIR=str(Path(tmp_path) / 'ros_log'), OPENBLAS_NUM_THREADS='1',
                PYTHONUNBUFFERED='1')
     return env
+
+
+@pytest.fixture
+def graph():
+    """A fresh :class:`ros_harness.RosGraph`, closed after the test (a test asking for it
+    is a ROS test: skipped without rclpy before this runs)."""
+    from ros_harness import RosGraph       # imports rclpy: only where a test asks for it
+    g = RosGraph()
+    yield g
+    g.close()
 
 
 def wait_until(condition, timeout_s: float, what: str) -> None:

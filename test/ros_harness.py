@@ -83,13 +83,6 @@ class RosGraph:
         rclpy.try_shutdown(context=self.ctx)
 
 
-@pytest.fixture
-def graph():
-    g = RosGraph()
-    yield g
-    g.close()
-
-
 def stop(proc: subprocess.Popen, timeout_s: float = 20.0) -> int:
     """SIGINT (Ctrl-C, as ros2 run forwards it) and the exit status; a process that does
     not stop within ``timeout_s`` is killed and the test fails."""

@@ -82,11 +82,25 @@ def test_imports_from_elsewhere_are_reported(tmp_path):
     assert problems[1].startswith('import no_such_module_xyz failed: ModuleNotFoundError')
 
 
-@pytest.mark.skipif(Path(sys.prefix).resolve() != (ROOT / '.venv').resolve(),
-                    reason='runs inside the project .venv only')
+def _tier_of_this_environment() -> str | None:
+    """'' in the project .venv, the tier's name in .venv-<tier>, None elsewhere."""
+    for tier in ('', 'debian-bookworm', 'ubuntu-noble'):
+        venv = ROOT / ('.venv' + (f'-{tier}' if tier else ''))
+        if Path(sys.prefix).resolve() == venv.resolve():
+            return tier
+    return None
+
+
+@pytest.mark.skipif(_tier_of_this_environment() is None,
+                    reason='runs inside the project .venv or a tier .venv-<tier> only')
 def test_this_environment_passes_the_check():
-    assert cb.check(ROOT, sys.prefix) == []
-    assert cb.main([str(ROOT), sys.prefix]) == 0
+    tier = _tier_of_this_environment()
+    args = [] if not tier else ['--constraints', str(ROOT / 'constraints' / f'{tier}.txt')]
+    if tier == 'ubuntu-noble':
+        args.append('--no-rclpy')
+    assert cb.check(ROOT, sys.prefix, constraints=(args[1] if args else None),
+                    ros=tier != 'ubuntu-noble') == []
+    assert cb.main([str(ROOT), sys.prefix] + args) == 0
     assert cb.main([]) == 2
 
 
