@@ -705,7 +705,7 @@ def test_single_malformed_messages_are_refused_counted_and_change_no_output(shor
     last = short_drive.gnss[-1].stamp_ns
     common = clean['pose'].keys() & dirty['pose'].keys()
     assert (clean['pose'].keys() ^ dirty['pose'].keys()) <= {last} and len(common) >= 5
-    # To rounding: numpy 1.24's SIMD reductions depend on the arrays' memory alignment, so
+    # To rounding: numpy 1.24's SIMD reductions may depend on the arrays' alignment, so
     # two runs of the same code may differ in the last bit (seen once in a covariance);
     # a refused message that reached the filter would move the estimate by metres.
     for stamp in common:
