@@ -10,6 +10,11 @@ least :data:`.limits.NEW_TIME_BASE_SPAN_S` (a burst of consistent garbage is ove
 milliseconds), the gate adopts the new time base and says so, so that the node can reset
 what it keeps of the old one. The gate never blocks for good.
 
+A stream that starts again from an earlier time *from a new publisher* (a bag played again
+by a new player process or node: its sequence numbers start anew) is a new time base at
+once: a glitch comes from the publisher of the stream, not with a new one, and a source
+restarted live (a driver, imu_node) goes on from a later time.
+
 Plain Python, no ROS: the nodes hold one gate per subscribed topic.
 """
 from __future__ import annotations
@@ -69,13 +74,35 @@ class StampGate:
         self._run_length = 0
         self._run_first_s = None
 
-    def admit(self, stamp_ns: int, received_s: float | None = None) -> str:
+    @property
+    def rewinding_ns(self) -> int | None:
+        """The last stamp of the current run of candidates when the run went back in
+        time (before the newest accepted stamp), else None."""
+        last, newest = self._run_last_ns, self.newest_ns
+        return last if last is not None and newest is not None and last < newest else None
+
+    def adopt(self, stamp_ns: int) -> str:
+        """Take ``stamp_ns`` as the newest stamp of a new time base (the caller knows it
+        is one, e.g. every input of a node went back together); :data:`NEW_BASE`."""
+        return self._adopt(int(stamp_ns))
+
+    def _adopt(self, stamp_ns: int) -> str:
+        """Take ``stamp_ns`` as the newest stamp of a new time base."""
+        self.newest_ns = stamp_ns
+        self._run_last_ns, self._run_length, self._run_first_s = None, 0, None
+        self.time_base_changes += 1
+        return NEW_BASE
+
+    def admit(self, stamp_ns: int, received_s: float | None = None,
+              new_publisher: bool = False) -> str:
         """Judge one stamp (of a message otherwise valid).
 
         Args:
             stamp_ns: The message's stamp [ns].
             received_s: When it was received (a monotonic clock) [s]; None: the run of a
                 new time base needs no receipt span (offline use).
+            new_publisher: The message is the first of a publisher that the stream did not
+                have before: one that goes back in time is a new time base at once.
 
         Returns:
             :data:`ADVANCE`, :data:`BEHIND` or :data:`NEW_BASE`.
@@ -94,6 +121,8 @@ class StampGate:
             self.newest_ns = stamp_ns
             self._run_last_ns, self._run_length, self._run_first_s = None, 0, None
             return ADVANCE
+        if new_publisher and offset < 0:
+            return self._adopt(stamp_ns)
         last = self._run_last_ns
         if last is not None and 0 < stamp_ns - last <= self.window_ns:
             self._run_length += 1
@@ -104,10 +133,7 @@ class StampGate:
         spanned = (received_s is None or self._run_first_s is None
                    or received_s - self._run_first_s >= self.span_s)
         if self._run_length >= self.confirm and spanned:
-            self.newest_ns = stamp_ns
-            self._run_last_ns, self._run_length, self._run_first_s = None, 0, None
-            self.time_base_changes += 1
-            return NEW_BASE
+            return self._adopt(stamp_ns)
         if offset <= 0 and -offset <= self.window_ns:
             return BEHIND
         raise MessageError(

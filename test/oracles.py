@@ -210,6 +210,24 @@ def robust_log_likelihood(z: np.ndarray, log_sigma: np.ndarray, outlier_prob: fl
     return OracleLikelihood(log_lik=log_lik, gamma=gamma)
 
 
+def mixture_log_likelihood(e: np.ndarray, core_sd: np.ndarray, wide_share: np.ndarray,
+                           wide_mean: np.ndarray, wide_sd: np.ndarray, fault_share: float,
+                           outlier_range_m: float) -> np.ndarray:
+    """Log-likelihood (..., ) of residuals e (..., k) under the learned error mixture,
+    written from its definition (core.gnss.robust_terms): a line-of-sight core
+    ``(1 - pi - eps) N(0, s0)``; an NLOS component of weight pi, flat over the delays
+    ``[0, mu + 2 s1]`` with half-Gaussian ends of deviation s0 (total mass pi); a flat
+    floor ``eps / range``."""
+    core = ((1.0 - wide_share - fault_share) / (core_sd * np.sqrt(2.0 * np.pi))
+            * np.exp(-0.5 * (e / core_sd) ** 2))
+    top = wide_mean + 2.0 * wide_sd
+    height = wide_share / (top + np.sqrt(2.0 * np.pi) * core_sd)
+    below = np.where(e < 0.0, e, 0.0)
+    above = np.where(e > top, e - top, 0.0)
+    wide = height * np.exp(-0.5 * ((below + above) / core_sd) ** 2)
+    return np.log(core + wide + fault_share / outlier_range_m).sum(axis=-1)
+
+
 # --------------------------------------------------------- motion (core.kernels.motion)
 def propagate(particles: np.ndarray, distance_m: np.ndarray, dyaw_rad: np.ndarray,
               dup_m: float, pos_var_m2: np.ndarray, yaw_var_rad2: float,

@@ -126,3 +126,47 @@ def test_setup_cfg_keeps_the_ament_layout():
     text = (ROOT / 'setup.cfg').read_text(encoding='utf-8')
     assert 'script_dir=$base/lib/gnsscam_ros' in text
     assert 'install_scripts=$base/lib/gnsscam_ros' in text
+
+
+def _dispatch(tmp_path, *args: str):
+    """The run script's job dispatch (its usage function and case statement, as written
+    there) run by bash for ``./run ARGS``, with the environment's set-up left out: the
+    jobs themselves are stand-ins on PATH that print their name."""
+    import subprocess
+    body = RUN[RUN.index('usage() {'):RUN.index('esac', RUN.index('case "$job" in')) + 4]
+    bin_dir = tmp_path / 'bin'
+    bin_dir.mkdir(exist_ok=True)
+    for name in ('python', 'flake8', 'gnsscam_bench', 'gnsscam_eval'):
+        stub = bin_dir / name
+        stub.write_text(f'#!/bin/sh\necho "{name} $*"\n')
+        stub.chmod(0o755)
+    harness = f'set -euo pipefail\nROOT=/x SHARED=/s CALLER_DIR="$PWD"\n{body}\n'
+    env = {'PATH': f'{bin_dir}:/usr/bin:/bin', 'HOME': str(tmp_path)}
+    return subprocess.run(['bash', '-c', harness, 'run', *args], env=env, cwd=tmp_path,
+                          capture_output=True, text=True, timeout=30)
+
+
+@pytest.mark.parametrize('args', [(), ('nonsense',), ('nonsense', '--flag')])
+def test_run_without_a_job_or_with_an_unknown_one_prints_the_usage_and_exits_2(
+        tmp_path, args):
+    """``./run`` alone started the whole demo; ``./run nonsense`` said
+    ``./run: line 114: exec: nonsense: not found``."""
+    result = _dispatch(tmp_path, *args)
+    assert result.returncode == 2, (result.stdout, result.stderr)
+    assert result.stdout == ''
+    assert result.stderr.count('usage: ./run JOB') == 1
+    assert './run demo' in result.stderr and './run COMMAND' in result.stderr
+    if args:
+        assert result.stderr.splitlines()[0] == (
+            './run: nonsense: neither a job nor a command of the environment')
+
+
+def test_run_jobs_and_installed_commands_still_dispatch(tmp_path):
+    demo = _dispatch(tmp_path, 'demo', '--keep-bags')
+    assert demo.returncode == 0 and demo.stdout.split() == [
+        'python', '-m', 'gnsscam_ros.evaluation.demo', '--shared', '/s', '--out', '/x/out',
+        '--keep-bags']
+    assert _dispatch(tmp_path, 'gnsscam_eval', '--help').stdout == 'gnsscam_eval --help\n'
+    assert _dispatch(tmp_path, 'bench').stdout == 'gnsscam_bench \n'
+    helped = _dispatch(tmp_path, '--help')
+    assert helped.returncode == 0 and 'usage: ./run JOB' in helped.stdout

@@ -80,7 +80,12 @@ def test_alert_limits_and_derived_values():
     assert config.alert_limits_m.tolist() == [8.0, 16.0, 25.0]
     assert FilterConfig(bias_model='none', n_posteriors=30).motion_sample_count == 30
     assert FilterConfig(n_posteriors=5, n_motion_samples=10).motion_sample_count == 5
-    assert config.bias == config.bias_hypotheses.model
+    # The 'cn0' hypotheses are the part's model; the 'learned' ones decorrelate with the
+    # GNSS errors (one error process, one correlation time).
+    cn0 = FilterConfig(bias_model='cn0')
+    assert cn0.bias == cn0.bias_hypotheses.model
+    assert config.bias.correlation_time_s == config.error_correlation_time_s
+    assert cn0.bias.correlation_time_s == cn0.bias_correlation_time_s
     assert config.bias.floor_m == config.bias_floor_m
 
 

@@ -61,3 +61,41 @@ def test_eval_emulated_short(tmp_path):
     result = json.loads(out.read_text())
     assert result['rmse_2d_m'] < result['baseline_wls']['rmse_2d_m']
     assert result['dataset']['faults'] == 4
+
+
+def test_eval_help_explains_every_filter_option(capsys):
+    """--target-risk had no help and --posteriors said "odometry perturbations M"."""
+    with pytest.raises(SystemExit):
+        cli.main(['emulated', '--help'])
+    text = ' '.join(capsys.readouterr().out.split())
+    text = text[text.index('filter:'):]          # the option list, not the usage line
+    assert 'posteriors M of the risk bound' in text
+    assert 'odometry perturbations' not in text
+    for option in ('--target-risk', '--alert-limits', '--seed'):
+        described = text.split(option, 1)[1].split(' --', 1)[0]
+        assert 'default' in described, (option, described)
+
+
+def test_eval_and_demo_share_the_default_seed():
+    from gnsscam_ros.evaluation import demo
+    parser = cli.build_parser()
+    assert parser.parse_args(['emulated']).seed == demo.build_parser().parse_args([]).seed == 1
+
+
+def test_eval_alert_limits_option(capsys):
+    args = cli.build_parser().parse_args(['emulated', '--alert-limits', '10', '25', '50'])
+    config = cli.config_from_args(args)
+    assert config.alert_limit_m == 10.0 and list(config.alert_limits_m) == [10.0, 25.0, 50.0]
+    with pytest.raises(SystemExit) as stop:          # argparse's usage error
+        cli.main(['emulated', '--alert-limits', '8', '-3', '--quiet'])
+    assert stop.value.code == 2
+    assert '--alert-limits: -3 is not a positive number of metres' in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_eval_reports_the_alert_limits_asked_for(tmp_path):
+    out = tmp_path / 'emu.json'
+    assert cli.main(['emulated', '--duration-s', '20', '--particles', '100', '--quiet',
+                     '--alert-limits', '12', '30', '--json', str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert set(result['integrity']) == {'12', '30'}

@@ -54,16 +54,22 @@ def oracle_choice(filt: ParticleFilter, epoch, motion, camera):
     centre, cov = oracles.weighted_mean_cov(priors[0, :, :3], filt.log_w)
     check = gnss.check_epoch(epoch)
     prep = gnss.prepare_epoch(epoch.subset(check.keep), filt.frame, centre,
-                              cfg.measurement_var_m2, cfg.use_reported_variance)
+                              cfg.measurement_var_m2, cfg.use_reported_variance,
+                              filt.errors if cfg.error_model == 'adaptive' else None)
     residual = prep.pr_m - oracles.ranges(centre[None], prep.sv_enu_m)[0]
     spread = min(float(np.sqrt(np.trace(cov))), cfg.clock_kernel_max_m)
     clock_w = oracles.clock_inlier_weights(residual, prep.sigma_m, prep.sys_index,
                                            prep.n_systems, spread)
     m, n = priors.shape[:2]
-    z = (oracles.clock_corrected_residuals(priors[..., :3].reshape(-1, 3), prep, clock_w)
-         / prep.sigma_m).reshape(m, n, -1)
-    log_lik = oracles.robust_log_likelihood(z, np.log(prep.sigma_m), cfg.outlier_prob,
-                                            cfg.outlier_range_m).log_lik
+    e = oracles.clock_corrected_residuals(priors[..., :3].reshape(-1, 3), prep,
+                                          clock_w).reshape(m, n, -1)
+    if prep.wide_share is None:
+        log_lik = oracles.robust_log_likelihood(e / prep.sigma_m, np.log(prep.sigma_m),
+                                                cfg.outlier_prob, cfg.outlier_range_m).log_lik
+    else:
+        log_lik = oracles.mixture_log_likelihood(e, prep.sigma_m, prep.wide_share,
+                                                 prep.wide_mean_m, prep.wide_sd_m,
+                                                 gnss.FAULT_SHARE, cfg.outlier_range_m)
     joint = filt.log_w + filt._evidence_weight(motion.dt_s) * log_lik
     if camera:
         total = np.log(np.exp(joint).sum(axis=1))
@@ -78,11 +84,14 @@ def oracle_choice(filt: ParticleFilter, epoch, motion, camera):
     return priors, joint - total[:, None], total
 
 
+@pytest.mark.parametrize('error_model', ['adaptive', 'stated'])
 @pytest.mark.parametrize('with_camera', [False, True])
-def test_an_epoch_through_the_kernels_is_the_epoch_through_the_oracles(with_camera):
+def test_an_epoch_through_the_kernels_is_the_epoch_through_the_oracles(
+        with_camera, error_model):
     rng = np.random.default_rng(2)
     config = FilterConfig(n_particles=400, acquisition_particles=0, n_posteriors=12,
-                          n_motion_samples=6, heading_acquisition_m=16.0)
+                          n_motion_samples=6, heading_acquisition_m=16.0,
+                          error_model=error_model)
     filt = ParticleFilter(config, frame=FRAME, rng=np.random.default_rng(7))
     for k in range(6):
         epoch, motion, _ = drive_epoch(k, rng)

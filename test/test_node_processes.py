@@ -229,6 +229,32 @@ def test_a_bad_start_up_parameter_prints_one_line_and_its_exit_code(
     assert [ln for ln in result.stderr.splitlines() if ln.strip()] == [line]
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize('executable', EXECUTABLES)
+def test_a_missing_params_file_is_named_and_exits_2(tmp_path, executable):
+    """rcl alone says "Failed to parse global arguments" (no file named) and the process
+    exited 0 as if stopped."""
+    module = 'pipeline' if executable == 'pipeline_node' else executable
+    result = subprocess.run(node_command(module, '--params-file', 'config/nope.yaml'),
+                            env=ros_env(tmp_path, ros_domain_id()), cwd=ROOT,
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2, result.stderr
+    assert [ln for ln in result.stderr.splitlines() if ln.strip()] == [
+        f'{executable}: --params-file config/nope.yaml: no such file']
+
+
+@pytest.mark.slow
+def test_a_params_file_that_does_not_parse_exits_2_naming_it(tmp_path):
+    bad = tmp_path / 'broken.yaml'
+    bad.write_text('fusion_node:\n  ros__parameters:\n    alert_limit_m: [1,\n')
+    result = subprocess.run(node_command('fusion_node', '--params-file', str(bad)),
+                            env=ros_env(tmp_path, ros_domain_id()), cwd=ROOT,
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2, result.stderr
+    ours = [ln for ln in result.stderr.splitlines() if ln.startswith('fusion_node:')]
+    assert len(ours) == 1 and str(bad) in ours[0], result.stderr
+
+
 def _wait_for_line(path: Path, text: str, proc, timeout_s: float) -> bool:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline and proc.poll() is None:

@@ -385,6 +385,26 @@ def test_integrity_is_stale_without_gnss_and_never_a_stale_ok(graph, drive):
 
 
 # =============================================================== camera keeps up
+def test_camera_without_database_reports_warn_matching_off(graph):
+    """Running without a camera map is supported: diagnostics say WARN (it reported ERROR,
+    a failure, for as long as the node ran), also while images arrive."""
+    g = graph
+    cam = g.add(CameraNode(context=g.ctx, parameter_overrides=overrides(
+        diagnostics_period_s=0.1)))
+    reports = g.collect(DiagnosticArray, 'diagnostics')
+    pub = g.publisher(Image, 'camera/image_raw')
+    g.connect(pub)
+    pub.publish(ma.array_to_image(synthetic_scene(0, seed=3), S))
+    g.spin_until(lambda: cam.stats.get('frames_without_match') == 1, what='the frame')
+    n_before = len(reports)
+    g.spin_until(lambda: len(reports) >= n_before + 2, what='diagnostics')
+    statuses = [s for m in reports for s in m.status if s.name == 'camera_node: status']
+    assert statuses
+    levels = {(int.from_bytes(s.level, 'little') if isinstance(s.level, bytes) else s.level,
+               s.message) for s in statuses}
+    assert levels == {(ma.WARN, 'no map database: matching off')}
+
+
 def test_camera_without_database_answers_every_frame_with_empty_matches(graph):
     """No map database (the default): each frame is refused and answered with an empty
     camera/matches of its stamp, which fusion_node takes as a frame without a match (a

@@ -298,8 +298,13 @@ def test_reset_time_base_drops_everything_and_accepts_an_earlier_time_base(drive
                      np.array([r.result.stamp_ns + day for r in after[1:]]))
     est = np.array([r.result.position_enu_m for r in after[1:]])
     err = np.hypot(*(est - truth)[:, :2].T)
-    # As a fresh start on this urban drive (the clean run's first fixes: 28.6, 28.2 m).
-    assert np.all(err < 40.0) and err[-1] < 20.0, err
+    # As a fresh start on the same inputs: a new engine's first errors on this urban drive
+    # reach tens of metres too; both converge.
+    fresh = small_engine(seed=2)
+    assert fresh.add_dead_reckoning(shifted[0]) == ADDED
+    new = [r for r in engine_reports(fresh, earlier, shifted[1:], None)][1:]
+    fresh_err = np.hypot(*(np.array([r.result.position_enu_m for r in new]) - truth)[:, :2].T)
+    assert err.max() < fresh_err.max() + 20.0 and err[-1] < 20.0, (err, fresh_err)
 
 
 # ====================================================================== bounded cost

@@ -30,9 +30,10 @@ from dataclasses import dataclass
 import numpy as np
 
 # Bias models of the posteriors behind the risk bound (the ``bias_model`` parameter).
-BIAS_CN0 = 'cn0'         # Gauss-Markov bias per satellite, size from C/N0 (default)
+BIAS_LEARNED = 'learned'  # Gauss-Markov bias per satellite, size: learned error model
+BIAS_CN0 = 'cn0'         # Gauss-Markov bias per satellite, size from C/N0 and constants
 BIAS_NONE = 'none'       # motion perturbations only (the paper's construction)
-BIAS_MODELS = (BIAS_CN0, BIAS_NONE)
+BIAS_MODELS = (BIAS_LEARNED, BIAS_CN0, BIAS_NONE)
 
 #: Covariance floor added before inverting particle covariances [m^2]: a set collapsed by
 #: resampling must not give a singular matrix.
@@ -119,22 +120,33 @@ class BiasHypotheses:
         # (system, sv) key -> (stamp_ns of the bias, (M,) biases [m]).
         self._biases: dict[int, tuple[int, np.ndarray]] = {}
 
-    def biases_at(self, stamp_ns: int, keys: np.ndarray, cn0_dbhz: np.ndarray) -> np.ndarray:
+    def biases_at(self, stamp_ns: int, keys: np.ndarray, cn0_dbhz: np.ndarray,
+                  sigma_m: np.ndarray | None = None,
+                  correlation_time_s: float | None = None) -> np.ndarray:
         """Advance the biases of the satellites in view to ``stamp_ns``, (k, M) [m].
+
+        ``sigma_m`` (k,) gives each satellite's bias standard deviation [m] and
+        ``correlation_time_s`` their correlation time [s] (the learned error model's);
+        None takes them from the model (its C/N0 law, its correlation time).
 
         A satellite seen for the first time (or again after a long gap) draws its biases
         from the stationary distribution; one seen before moves by the Gauss-Markov step
         ``b <- phi b + sqrt(1 - phi^2) sigma xi``, ``phi = exp(-dt / tau)``, with the sigma
         of its current C/N0.
         """
-        rms = 0.0 if self.residual_var_m2 is None else float(np.sqrt(self.residual_var_m2))
-        sigma = self.model.sigma_m(cn0_dbhz, rms)
-        tau = self.model.correlation_time_s
+        if sigma_m is None:
+            rms = (0.0 if self.residual_var_m2 is None
+                   else float(np.sqrt(self.residual_var_m2)))
+            sigma = self.model.sigma_m(cn0_dbhz, rms)
+        else:
+            sigma = np.asarray(sigma_m, dtype=float)
+        tau = (self.model.correlation_time_s if correlation_time_s is None
+               else float(correlation_time_s))
         # One call: the same stream as one draw of M per satellite, in order.
         draws = self.rng.standard_normal((keys.shape[0], self.n))
         key_list = keys.tolist()
         if len(set(key_list)) < len(key_list):
-            out = self._advance_one_by_one(stamp_ns, key_list, sigma, draws)
+            out = self._advance_one_by_one(stamp_ns, key_list, sigma, draws, tau)
         else:
             known = [self._biases.get(key) for key in key_list]
             # Every satellite at once: a new one (no stamp) draws from the stationary
@@ -163,10 +175,9 @@ class BiasHypotheses:
         return out
 
     def _advance_one_by_one(self, stamp_ns: int, keys: list, sigma: np.ndarray,
-                            draws: np.ndarray) -> np.ndarray:
+                            draws: np.ndarray, tau: float) -> np.ndarray:
         """:meth:`biases_at` for an epoch that lists a satellite twice (the second sees
         the first's bias)."""
-        tau = self.model.correlation_time_s
         out = np.empty((len(keys), self.n))
         for i, key in enumerate(keys):
             known = self._biases.get(key)

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 import operator
 import sys
 import textwrap
@@ -39,10 +38,16 @@ from pathlib import Path
 
 import numpy as np
 
-from .bias import BIAS_CN0, BIAS_MODELS, BIAS_NONE, MAX_TRACKED_SATELLITES, BiasModel
-from .fusion import MAX_CAMERA_MATCHES
+from .bias import BIAS_LEARNED, BIAS_MODELS, BIAS_NONE, BiasModel
 from .gnss import LIKELIHOODS, MAX_SATELLITES, ROBUST
 from .integrity import EXACT, INVERSE_METHODS
+from .memory_budget import (EPOCH_MEMORY_BUDGET_BYTES, MIN_SATELLITE_LIMIT,  # noqa: F401
+                            epoch_memory_bytes)
+
+#: Values of the ``error_model`` parameter.
+ERROR_ADAPTIVE = 'adaptive'
+ERROR_STATED = 'stated'
+ERROR_MODELS = (ERROR_ADAPTIVE, ERROR_STATED)
 
 #: Key of the field metadata that holds a parameter's description.
 _META = 'gnsscam_parameter'
@@ -271,17 +276,34 @@ class GnssConfig(_Part):
         0.0, 'Satellites below this elevation are dropped.', 'deg', low=-90.0, high=90.0)
     cn0_mask_dbhz: float = parameter(
         0.0, 'Satellites below this C/N0 are dropped.', 'dB-Hz', low=0.0, high=100.0)
+    error_model: str = parameter(
+        ERROR_ADAPTIVE, "'adaptive' (the pseudorange error mixture, a line-of-sight core and "
+        'an NLOS / multipath component per C/N0 class, is learned online by EM from the '
+        "residuals of each epoch's robust snapshot solution over error_window_s; the stated "
+        "variances are not used; core.error_model) or 'stated' (the receiver's variances, "
+        'measurement_var_m2 and the outlier constants below).', choices=ERROR_MODELS)
+    error_window_s: float = parameter(
+        60.0, 'Sliding window of residuals from which the adaptive error model is learned '
+        '(the horizon of the adaptive mixtures of libRSF).', 's', low=1.0)
     measurement_var_m2: float = parameter(
-        10.0, 'Pseudorange variance (paper Table 1: 10).', 'm^2', low=0.0, low_open=True)
+        10.0, "Pseudorange variance (paper Table 1: 10; error_model 'stated').", 'm^2',
+        low=0.0, low_open=True)
     use_reported_variance: bool = parameter(
-        True, "Use max(measurement_var_m2, the receiver's variance).")
+        True, "Use max(measurement_var_m2, the receiver's variance) (error_model "
+        "'stated').")
     clock_kernel_max_m: float = parameter(
         3.0, "Cap on how much the prior's spread widens the clock's inlier kernel. NLOS "
         'errors are positive; a kernel wide enough to take them in biases the clock, and '
         'through it the height, by tens of metres.', 'm', low=0.0)
     error_correlation_time_s: float = parameter(
-        5.0, 'GNSS errors closer in time than this are not independent evidence: each '
-        "epoch's log-likelihood is tempered by min(1, dt / this); 0 = off.", 's', low=0.0)
+        10.0, 'Correlation time tau of the GNSS errors (a first-order Gauss-Markov process): '
+        'an epoch dt after the last is worth tanh(dt / (2 tau)) of an independent one in '
+        "the likelihood, whatever the GNSS rate (and the 'learned' bias hypotheses' memory "
+        'until the error model has measured its own); 0 = every epoch independent. A '
+        'measured correlation would make the likelihood bolder where errors decorrelate '
+        'fast, and a wrong lock likelier; this fixed value keeps it. Chosen among 2.5, 10 '
+        'and 30 s on the first half of the smartLoc Berlin drive (filter seeds 1-3); '
+        'reported on its second half and the robustness variants.', 's', low=0.0)
     likelihood: str = parameter(
         ROBUST, "'particle_raim' (the paper's mixture) or 'robust' (Gaussian with an "
         'outlier floor).', choices=LIKELIHOODS)
@@ -300,9 +322,12 @@ class BiasConfig(_Part):
     """Bias hypotheses of the posteriors behind the risk bound (``core.bias``)."""
 
     bias_model: str = parameter(
-        BIAS_CN0, "'cn0' (each posterior carries a Gauss-Markov pseudorange bias per "
-        'satellite, its size from C/N0, propagated into the estimate; core.bias) or '
-        "'none' (posteriors differ by motion perturbations only, as in the paper).",
+        BIAS_LEARNED, "'learned' (each posterior carries a Gauss-Markov pseudorange bias per "
+        'satellite with the standard deviation of its signal class in the learned error '
+        "model, propagated into the estimate; core.bias, core.error_model), 'cn0' (the "
+        'same, its size from C/N0 and the constants below, which were calibrated on the '
+        "smartLoc drive: kept for comparison) or 'none' (posteriors differ by motion "
+        'perturbations only, as in the paper).',
         choices=BIAS_MODELS)
     bias_floor_m: float = parameter(
         2.0, 'Smallest bias standard deviation at high C/N0.', 'm', low=0.0)
@@ -312,7 +337,8 @@ class BiasConfig(_Part):
     bias_cn0_knee_dbhz: float = parameter(
         41.6, 'Below this C/N0 the bias grows 10 dB per decade.', 'dB-Hz', low=0.0)
     bias_correlation_time_s: float = parameter(
-        50.0, 'Correlation time of the biases (smartLoc: about 50 s).', 's', low=0.0)
+        50.0, "Correlation time of the 'cn0' biases (smartLoc: about 50 s; the 'learned' "
+        'ones take error_correlation_time_s).', 's', low=0.0)
 
     @property
     def model(self) -> BiasModel:
@@ -371,80 +397,24 @@ class IntegrityConfig(_Part):
         'it (measured: the level fell below the error at the end of acquisition on the '
         'emulated drive).', 's', low=0.0)
 
+    consistency_suspect_nats: float = parameter(
+        2.0, 'The cloud counts as inconsistent with the measurements (ERROR, the protection '
+        'level covering the snapshot solution) while the CUSUM of the log likelihood ratio '
+        '"cloud moved onto the snapshot solution" against "cloud" is at least this '
+        '(core.consistency): odds of e^2 = 7 to 1.', 'nats', low=0.0, low_open=True)
+    consistency_recover_nats: float = parameter(
+        6.0, 'At this statistic (odds of 400 to 1) the filter recovers: recovery_share of '
+        'the cloud moves onto the snapshot solution and integrity settles again.', 'nats',
+        low=0.0, low_open=True)
+    recovery_share: float = parameter(
+        0.5, 'Share of the cloud moved onto the snapshot solution at a recovery.', low=0.0,
+        high=1.0, low_open=True)
+
     @property
     def alert_limits_m(self) -> np.ndarray:
         """The flag's alert limit first, then the extra ones."""
         extra = [a for a in self.extra_alert_limits_m if a != self.alert_limit_m]
         return np.array([self.alert_limit_m, *extra], dtype=float)
-
-
-# ------------------------------------------------------------------------ memory
-#: Largest estimated peak memory of one epoch (:func:`epoch_memory_bytes`) a
-#: configuration may need [bytes]: a quarter of an 8 GB vehicle computer, which leaves
-#: the rest of the graph (camera_node's database, the DDS buffers) room. Every size this
-#: repository documents and benchmarks fits (``gnsscam_bench``: 100,000 particles x 10
-#: motion samples, with up to 50 satellites; bias_model 'none' with the default 200
-#: posteriors: 23), the sizes that die do not (n_particles = 10,000,000: 158 GiB at 16
-#: satellites; bias_model 'none' with n_posteriors = 10,000: 84 GiB).
-EPOCH_MEMORY_BUDGET_BYTES = 2 * 2 ** 30
-#: Fewest satellites per epoch a configuration must afford within the budget: one
-#: constellation in view (up to ~12) and some of a second; fewer would discard usable
-#: geometry in every epoch.
-MIN_SATELLITE_LIMIT = 16
-
-# Bytes per array element an epoch holds at its peak (README "Memory per epoch"), measured
-# with tracemalloc on the filter (numpy registers its buffers there) and rounded up to
-# what the code allocates at worst. S motion samples, N particles (the heading acquisition
-# set while it lasts), k satellites, K camera images, M posteriors of N_int particles:
-#: Per sample x particle: the propagated sets of this and the previous epoch (S, N, 4),
-#: the process noise, the joint and posterior log-weights.
-_BYTES_PER_SAMPLE_PARTICLE = 128
-#: Per sample x particle x satellite, held through the whole update: the normalised
-#: residuals z (S, N, k).
-_BYTES_RESIDUALS = 8
-#: ... and the likelihood's temporaries on top of them (particle_raim's E-step, 25 B
-#: measured; robust 8 B).
-_BYTES_LIKELIHOOD = 32
-#: Per image x sample x particle: the camera distributions and their mixture (33 B).
-_BYTES_CAMERA = 40
-#: Per posterior x particle: distances, weights, the protection level's tail partition
-#: and sort (41-64 B measured; 72 when the tail widens to the whole set).
-_BYTES_POSTERIOR_PARTICLE = 72
-#: Per posterior: the remembered bias of each tracked satellite and of the epoch's.
-_BYTES_POSTERIOR = 8 * (MAX_TRACKED_SATELLITES + MAX_SATELLITES)
-#: Fixed part (interpreter and small arrays).
-_BYTES_FIXED = 16 * 2 ** 20
-
-
-def epoch_memory_bytes(n_particles: int, acquisition_particles: int, n_posteriors: int,
-                       motion_samples: int, satellites: int = MAX_SATELLITES,
-                       camera_images: int = MAX_CAMERA_MATCHES) -> int:
-    """Estimated peak memory of one filter epoch [bytes], an upper bound of the measured
-    peaks (README "Memory per epoch": 37-88 % of it).
-
-    The residuals live through the update; the likelihood, the camera fusion and the
-    integrity bound come one after the other, so the largest of the three counts::
-
-        S N (128 + 8 k) + max(32 S N k, 40 K S N, 72 M N_int) + 8 (256 + 64) M + 16 MiB
-
-    with N the heading acquisition set (the larger of the two sizes) and N_int the evenly
-    thinned set the bound sees during acquisition (``SystematicResampler.thin``).
-
-    Args:
-        n_particles: N.
-        acquisition_particles: Set size during heading acquisition.
-        n_posteriors: M.
-        motion_samples: S (``FilterConfig.motion_sample_count``).
-        satellites: k (default: the most an epoch uses).
-        camera_images: K (default: the most an epoch fuses).
-    """
-    n = max(n_particles, acquisition_particles)
-    n_int = math.ceil(n / max(n // n_particles, 1))
-    sn = motion_samples * n
-    return int(_BYTES_FIXED + sn * (_BYTES_PER_SAMPLE_PARTICLE + _BYTES_RESIDUALS * satellites)
-               + max(_BYTES_LIKELIHOOD * sn * satellites, _BYTES_CAMERA * camera_images * sn,
-                     _BYTES_POSTERIOR_PARTICLE * n_posteriors * n_int)
-               + _BYTES_POSTERIOR * n_posteriors)
 
 
 def _gib(n_bytes: float) -> str:
@@ -568,8 +538,14 @@ class FilterConfig:
 
     @property
     def bias(self) -> BiasModel:
-        """The bias model of the bias hypotheses (``bias_hypotheses.model``)."""
-        return self.bias_hypotheses.model
+        """The bias model of the bias hypotheses: ``bias_hypotheses.model``, with the
+        correlation time of the GNSS errors (``error_correlation_time_s``) for the
+        'learned' hypotheses (which take the error model's measured one once it has
+        it)."""
+        model = self.bias_hypotheses.model
+        if self.bias_model == BIAS_LEARNED:
+            model = dataclasses.replace(model, correlation_time_s=self.error_correlation_time_s)
+        return model
 
 
 #: ``(attribute of FilterConfig, part class)`` in parameter order.

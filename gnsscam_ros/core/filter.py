@@ -18,8 +18,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from . import gnss, integrity
-from .bias import BIAS_CN0, BIAS_MODELS, BIAS_NONE, BiasHypotheses
-from .config import FilterConfig
+from .bias import BIAS_CN0, BIAS_LEARNED, BIAS_MODELS, BIAS_NONE, BiasHypotheses
+from .config import ERROR_ADAPTIVE, FilterConfig
+from .consistency import ConsistencyMonitor, ConsistencyState, snapshot_position
+from .error_model import AdaptiveErrorModel
 from .fusion import MAX_CAMERA_MATCHES, CameraMeasurement, camera_fusion
 from .frames import LocalFrame
 from .gnss import LIKELIHOODS, PARTICLE_RAIM, ROBUST
@@ -33,7 +35,8 @@ from .types import GnssEpoch
 
 # Importable from here as before: the parameter names and values of the configuration
 # (``core.config``), the likelihoods (``core.gnss``) and the bias models (``core.bias``).
-__all__ = ['BIAS_CN0', 'BIAS_MODELS', 'BIAS_NONE', 'HEADING_LOST_RAD', 'INVALID',
+__all__ = ['BIAS_CN0', 'BIAS_LEARNED', 'BIAS_MODELS', 'BIAS_NONE', 'HEADING_LOST_RAD',
+           'INVALID',
            'LIKELIHOODS', 'MAX_ORIGIN_DISTANCE_M', 'MAX_STATE_COORDINATE', 'PARTICLE_RAIM',
            'PROPAGATED', 'REINITIALISING', 'REJECTED', 'ROBUST', 'UPDATED', 'WAITING',
            'EpochResult', 'FilterConfig', 'ParticleFilter']
@@ -101,6 +104,11 @@ class EpochResult:
         camera_alpha: (K,) mixture weights alpha*_j of the chosen posterior.
         camera_kl_nats: (K,) KL(Q_j || P) of the chosen posterior.
         camera_excluded: The camera disagreed with GNSS and was left out this epoch.
+        consistency: The consistency test of the cloud against the measurements after
+            this epoch (``core.consistency``).
+        recovered: The filter recovered this epoch (part of the cloud moved onto the
+            snapshot solution).
+        recoveries: Recoveries since the filter was made.
     """
 
     stamp_ns: int
@@ -126,6 +134,9 @@ class EpochResult:
     camera_alpha: np.ndarray | None = None
     camera_kl_nats: np.ndarray | None = None
     camera_excluded: bool = False
+    consistency: ConsistencyState = field(default_factory=ConsistencyState)
+    recovered: bool = False
+    recoveries: int = 0
 
 
 class ParticleFilter:
@@ -150,7 +161,11 @@ class ParticleFilter:
         self.posterior_log_w: np.ndarray | None = None  # (S, N)
         # The M posteriors of the last update as the risk bound saw them.
         self.posterior_set: integrity.PosteriorSet | None = None
-        self.bias = BiasHypotheses(config.bias_hypotheses.model, config.n_posteriors, self.rng)
+        self.bias = BiasHypotheses(config.bias, config.n_posteriors, self.rng)
+        self.errors = AdaptiveErrorModel(config.error_window_s, config.error_correlation_time_s)
+        self.consistency = ConsistencyMonitor(config.consistency_suspect_nats,
+                                              config.consistency_recover_nats)
+        self._consistency_state = ConsistencyState()
         self.last_stamp_ns: int | None = None
         self.distance_since_init_m = 0.0
         self.acquired_stamp_ns: int | None = None      # end of heading acquisition
@@ -179,8 +194,10 @@ class ParticleFilter:
         self.particles = self.log_w = None
         self.posteriors = self.posterior_log_w = None
         self.posterior_set = None
-        self.bias = BiasHypotheses(self.config.bias_hypotheses.model, self.config.n_posteriors,
-                                   self.rng)
+        self.bias = BiasHypotheses(self.config.bias, self.config.n_posteriors, self.rng)
+        self.errors = AdaptiveErrorModel(self.config.error_window_s,
+                                         self.config.error_correlation_time_s)
+        self.consistency.reset()
         self.distance_since_init_m = 0.0
         self.acquired_stamp_ns = None
         self._motion_unknown_s = 0.0
@@ -224,9 +241,9 @@ class ParticleFilter:
     def set_parameters(self, **changes) -> None:
         """Change parameters between epochs (validated; the old ones stay on error)."""
         new = replace(self.config, **changes)
-        if (new.bias_hypotheses.model != self.config.bias_hypotheses.model
+        if (new.bias != self.config.bias
                 or new.n_posteriors != self.config.n_posteriors):
-            self.bias = BiasHypotheses(new.bias_hypotheses.model, new.n_posteriors, self.rng)
+            self.bias = BiasHypotheses(new.bias, new.n_posteriors, self.rng)
         if new.n_particles != self.config.n_particles and self.initialised:
             idx = SYSTEMATIC.resize(self.log_w, self.rng, new.n_particles)
             self.particles = self.particles[idx]
@@ -313,8 +330,7 @@ class ParticleFilter:
         prep = None
         if check.usable:
             centre, cov = weighted_mean_cov(priors[0, :, POS], self.log_w)
-            prep = gnss.prepare_epoch(epoch.subset(check.keep), self.frame, centre,
-                                      cfg.measurement_var_m2, cfg.use_reported_variance)
+            prep = self._prepare(epoch.subset(check.keep), centre)
             if prep.pr_m.shape[0] < prep.n_systems + 3:
                 prep = None
                 check = replace(check, usable=False,
@@ -329,9 +345,13 @@ class ParticleFilter:
         if not check.usable:
             return EpochResult(stamp_ns=epoch.stamp_ns, status=WAITING, reason=check.reason,
                                rejected=check.rejected)
+        usable = epoch.subset(check.keep)
+        # The learned model weighs the first fix (by C/N0), not the stated variances.
+        sigma = (self.errors.bias_sigma_m(usable.cn0_dbhz)
+                 if cfg.error_model == ERROR_ADAPTIVE else None)
         try:
-            fix = solve_snapshot(epoch.subset(check.keep),
-                                 measurement_var_m2=cfg.measurement_var_m2)
+            fix = solve_snapshot(usable, measurement_var_m2=cfg.measurement_var_m2,
+                                 sigma_m=sigma)
         except ValueError as err:
             return EpochResult(stamp_ns=epoch.stamp_ns, status=WAITING, reason=str(err),
                                rejected=check.rejected)
@@ -363,9 +383,15 @@ class ParticleFilter:
         priors = np.repeat(self.particles[None], cfg.motion_sample_count, axis=0)
         self._motion_unknown_s = 0.0
         centre, cov = weighted_mean_cov(self.particles[:, POS], self.log_w)
-        prep = gnss.prepare_epoch(epoch.subset(check.keep), self.frame, centre,
-                                  cfg.measurement_var_m2, cfg.use_reported_variance)
+        prep = self._prepare(epoch.subset(check.keep), centre)
         return self._update(epoch, check, priors, prep, centre, cov, dt_s=0.0)
+
+    def _prepare(self, epoch: GnssEpoch, centre: np.ndarray) -> gnss.PreparedEpoch:
+        """The epoch's satellites for the likelihood, with the error model in force."""
+        cfg = self.config
+        learned = self.errors if cfg.error_model == ERROR_ADAPTIVE else None
+        return gnss.prepare_epoch(epoch, self.frame, centre, cfg.measurement_var_m2,
+                                  cfg.use_reported_variance, learned)
 
     def _propagate_only(self, epoch: GnssEpoch, check: gnss.GnssCheck,
                         priors: np.ndarray) -> EpochResult:
@@ -393,6 +419,9 @@ class ParticleFilter:
         evidence = self._evidence_weight(dt_s)
         lik = self.likelihood.joint(priors, prep, clock_w, evidence, self.log_w)
         joint, total = lik.joint, lik.total
+        self._consistency_state = self._snapshot_step(epoch.stamp_ns, priors[0], prep,
+                                                      centre, spread_m, evidence,
+                                                      float(total[0]))
         fusion = None
         if camera and cfg.use_camera:
             # The cost is images x samples x particles: a bounded number of images.
@@ -422,6 +451,48 @@ class ParticleFilter:
         result.n_satellites = int(prep.pr_m.shape[0])
         return result
 
+    def _snapshot_step(self, stamp_ns: int, cloud: np.ndarray, prep: gnss.PreparedEpoch,
+                       centre: np.ndarray, spread_m: float, evidence: float,
+                       cloud_total: float) -> ConsistencyState:
+        """What the epoch's own robust snapshot solution tells: its residuals teach the
+        error model (``core.error_model``; the snapshot depends on this epoch alone, so
+        a filter locked onto a wrong place cannot teach the model that place), and the
+        cloud moved onto it is the alternative of the consistency test
+        (``core.consistency``)."""
+        cfg = self.config
+        adaptive = cfg.error_model == ERROR_ADAPTIVE
+        sigma = self.errors.bias_sigma_m(prep.cn0_dbhz) if adaptive else prep.sigma_m
+        snap = snapshot_position(prep.sv_enu_m, prep.pr_m, sigma, prep.sys_index,
+                                 prep.n_systems, centre)
+        if snap is None:
+            return self.consistency.observe(stamp_ns, float('nan'))
+        if adaptive:
+            at_snap = gnss.clock_weights(prep, snap, cfg.clock_kernel_max_m)
+            residual = gnss.clock_corrected_residuals(snap[None], prep, at_snap)[0]
+            self.errors.observe(stamp_ns, residual, prep.cn0_dbhz, 3 + prep.n_systems,
+                                prep.sv_key)
+        shift = np.zeros(cloud.shape[1])
+        shift[:2] = snap[:2] - centre[:2]
+        moved = (cloud + shift)[None]
+        clock_w = gnss.clock_weights(prep, centre + shift[:3], spread_m)
+        moved_total = float(self.likelihood.joint(moved, prep, clock_w, evidence,
+                                                  self.log_w).total[0])
+        return self.consistency.observe(stamp_ns, moved_total - cloud_total, evidence,
+                                        shift[:2])
+
+    def _recover(self, stamp_ns: int) -> None:
+        """Move a share of the cloud by the smoothed separation onto the snapshot
+        solutions (its shape kept), so that the likelihood decides between the two places
+        from now on."""
+        shift = self._consistency_state.shift_m
+        n = self.particles.shape[0]
+        moved = self.rng.choice(n, size=max(1, int(self.config.recovery_share * n)),
+                                replace=False)
+        self.particles = self.particles.copy()
+        self.particles[moved, :2] += shift
+        if self.acquired_stamp_ns is not None:
+            self.acquired_stamp_ns = stamp_ns               # settle again before OK
+
     def _finish(self, epoch: GnssEpoch, check: gnss.GnssCheck, priors: np.ndarray,
                 post_log_w: np.ndarray, chosen: int, total: np.ndarray,
                 update: tuple) -> EpochResult:
@@ -438,9 +509,17 @@ class ParticleFilter:
             self.acquired_stamp_ns = epoch.stamp_ns
         settled_s = (-1.0 if self.acquired_stamp_ns is None
                      else (epoch.stamp_ns - self.acquired_stamp_ns) * 1e-9)
+        consistency = self._consistency_state
+        if consistency.inconsistent and np.isfinite(consistency.separation_m):
+            # The estimate may be the wrong one of two places: the level covers the other.
+            level = max(level, consistency.separation_m)
         if self._motion_unknown_s > 0.0:
             reason = (f'dead reckoning missing for {self._motion_unknown_s:.2f} s of this '
                       f'interval: motion unknown')
+        elif consistency.inconsistent:
+            reason = (f'the cloud is inconsistent with the measurements (test statistic '
+                      f'{consistency.statistic_nats:.1f} nats, snapshot solution '
+                      f'{consistency.separation_m:.0f} m away)')
         elif settled_s < cfg.integrity_settling_s:
             reason = ('settling after the first fix or a lost heading (heading '
                       f'acquisition, then {cfg.integrity_settling_s:g} s)')
@@ -457,6 +536,8 @@ class ParticleFilter:
             particles = particles[SYSTEMATIC.resample(log_w, self.rng, n_out)]
             log_w = np.full(n_out, -np.log(n_out))
         self.particles, self.log_w = particles, normalize_log_weights(log_w)
+        if consistency.recover:
+            self._recover(epoch.stamp_ns)
         self.posteriors, self.posterior_log_w = priors, post_log_w
         result = EpochResult(
             stamp_ns=epoch.stamp_ns, status=UPDATED, position_enu_m=mean, covariance_m2=cov,
@@ -466,7 +547,9 @@ class ParticleFilter:
             integrity_valid=self._motion_unknown_s == 0.0 and (
                 settled_s >= cfg.integrity_settling_s),
             motion_unknown_s=self._motion_unknown_s,
-            rejected=check.rejected, ess=float(ess), resampled=bool(resampled))
+            rejected=check.rejected, ess=float(ess), resampled=bool(resampled),
+            consistency=consistency, recovered=consistency.recover,
+            recoveries=self.consistency.recoveries)
         self.last_result = result
         return result
 
@@ -498,20 +581,26 @@ class ParticleFilter:
         else:
             prior_log_w = self.log_w
         prior_offsets = self.bias.offsets_m.copy()
-        if cfg.bias_model == BIAS_NONE or update is None:
+        prep, inlier, evidence, clock_w = update
+        if cfg.bias_model == BIAS_NONE:
             offsets = prior_offsets
         else:
-            prep, inlier, evidence, clock_w = update
-            # The residuals at the estimate size the hypotheses; the update weighed each
+            # The residuals at the estimate size the 'cn0' hypotheses; the 'learned' ones
+            # take an inlier's error, the core of its class. The update weighed each
             # satellite with tempering times inlier probability over its variance.
             at_estimate = gnss.clock_corrected_residuals(mean[None], prep, clock_w)[0]
+            learned = cfg.bias_model == BIAS_LEARNED
+            sigma = self.errors.satellite_model(prep.cn0_dbhz)[0] if learned else None
+            # How long an inlier's error persists, as measured (core.error_model).
+            tau = self.errors.correlation_time_s if learned else None
             self.bias.observe_residuals(stamp_ns, at_estimate, inlier, 3 + prep.n_systems)
             weights = evidence * inlier / prep.sigma_m ** 2
             line = prep.sv_enu_m - mean
             line /= np.linalg.norm(line, axis=1, keepdims=True)
             _, prior_cov = weighted_mean_cov(pos[chosen], prior_log_w)
             offsets = self.bias.update(
-                self.bias.biases_at(stamp_ns, prep.sv_key, prep.cn0_dbhz), line, weights,
+                self.bias.biases_at(stamp_ns, prep.sv_key, prep.cn0_dbhz, sigma, tau),
+                line, weights,
                 prep.sys_index, prep.n_systems, prior_cov, cov).copy()
         posteriors = integrity.PosteriorSet(pos, post_log_w, index, offsets,
                                             cfg.horizontal_risk)
@@ -532,10 +621,14 @@ class ParticleFilter:
     def _evidence_weight(self, dt_s: float) -> float:
         """Tempering exponent of this epoch's GNSS log-likelihood.
 
-        Errors correlated over ``error_correlation_time_s`` are one piece of evidence per
-        correlation time, not one per epoch.
+        Errors that follow a first-order Gauss-Markov process with correlation time
+        ``tau = error_correlation_time_s`` make a new epoch ``dt`` after the last worth
+        ``(1 - phi) / (1 + phi) = tanh(dt / (2 tau))`` of an independent one,
+        ``phi = exp(-dt / tau)`` (the information an AR(1) sample adds about a constant):
+        ``dt / (2 tau)`` per epoch at a high rate, one per epoch when they are far apart,
+        so that the evidence per second of driving is the same at any GNSS rate.
         """
         cfg = self.config
         if cfg.error_correlation_time_s <= 0.0:
             return 1.0
-        return min(1.0, max(dt_s, 1e-3) / cfg.error_correlation_time_s)
+        return float(np.tanh(max(dt_s, 1e-3) / (2.0 * cfg.error_correlation_time_s)))

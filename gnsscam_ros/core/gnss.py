@@ -22,6 +22,7 @@ from typing import Protocol
 
 import numpy as np
 
+from .error_model import AdaptiveErrorModel
 from .frames import LocalFrame, sagnac_corrected
 # The checks need no kernel: gnss_node imports them alone (no numba).
 from .gnss_checks import (MAX_PSEUDORANGE_M, MAX_SATELLITE_RADIUS_M,  # noqa: F401
@@ -50,6 +51,10 @@ class PreparedEpoch:
         n_systems: Number of distinct constellations S.
         sv_key: (k,) ``system * 1000 + sv_id``, one key per satellite across epochs.
         cn0_dbhz: (k,) carrier-to-noise density ratios [dB-Hz] (NaN when unknown).
+        wide_share: (k,) weight of the NLOS / multipath component of each satellite's
+            learned error mixture (None: no such component, the stated model).
+        wide_mean_m: (k,) its mean [m] (None as above).
+        wide_sd_m: (k,) its standard deviation [m] (None as above).
     """
 
     sv_enu_m: np.ndarray
@@ -59,10 +64,43 @@ class PreparedEpoch:
     n_systems: int
     sv_key: np.ndarray
     cn0_dbhz: np.ndarray
+    wide_share: np.ndarray | None = None
+    wide_mean_m: np.ndarray | None = None
+    wide_sd_m: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class RobustTerms:
+    """Per-satellite terms of the robust density as the kernels take them (see
+    :func:`robust_terms`): ``log_scale``, ``floor``, ``wide_log_scale``, ``wide_low``,
+    ``wide_high``, ``wide_inv_sigma`` (k,) and ``group`` (satellites per log)."""
+
+    log_scale: np.ndarray
+    floor: np.ndarray
+    wide_log_scale: np.ndarray
+    wide_low: np.ndarray
+    wide_high: np.ndarray
+    wide_inv_sigma: np.ndarray
+    group: int
+
+    @property
+    def arrays(self) -> tuple:
+        """The arrays in the kernels' argument order."""
+        return (self.log_scale, self.floor, self.wide_log_scale, self.wide_low,
+                self.wide_high, self.wide_inv_sigma)
+
+
+#: Share of the flat floor under the learned mixture: what neither the line-of-sight
+#: core nor the NLOS component explains (faults of hundreds of metres) costs at most
+#: ``log(FAULT_SHARE / outlier_range_m)`` per satellite.
+FAULT_SHARE = 0.01
+#: ``log`` of a component that is absent: ``elementary.exp`` gives exactly 0 for it.
+ABSENT_LOG = -1000.0
 
 
 def prepare_epoch(epoch: GnssEpoch, frame: LocalFrame, rx_enu_m: np.ndarray,
-                  measurement_var_m2: float, use_reported_variance: bool) -> PreparedEpoch:
+                  measurement_var_m2: float, use_reported_variance: bool,
+                  error_model: AdaptiveErrorModel | None = None) -> PreparedEpoch:
     """Correct Earth rotation, move satellites to ENU and drop single-satellite systems.
 
     A constellation seen through one satellite only fixes its own clock: its residual is
@@ -75,19 +113,29 @@ def prepare_epoch(epoch: GnssEpoch, frame: LocalFrame, rx_enu_m: np.ndarray,
         rx_enu_m: (3,) approximate receiver position for the signal flight time [m].
         measurement_var_m2: Default pseudorange variance [m^2].
         use_reported_variance: Use the larger of the default and the epoch's own variances.
+        error_model: The learned error model: it gives every satellite its core spread
+            and outlier part from its signal class, and the two arguments above are not
+            used (None: the stated variances and the likelihood's constants).
     """
     sys_index, n_systems = gnss_kernels.constellation_index(
         np.asarray(epoch.system, dtype=np.int64))
     multi = sys_index >= 0
     rx_ecef = frame.enu_to_ecef(rx_enu_m)
     sv_ecef = sagnac_corrected(epoch.sv_pos_ecef_m[multi], rx_ecef)
-    var = np.full(int(multi.sum()), float(measurement_var_m2))
-    if use_reported_variance:
-        var = np.maximum(var, epoch.var_m2[multi])
+    cn0 = np.asarray(epoch.cn0_dbhz[multi], dtype=float)
+    share = mean = spread = None
+    if error_model is not None:
+        sigma, share, mean, spread = error_model.satellite_model(cn0)
+    else:
+        var = np.full(int(multi.sum()), float(measurement_var_m2))
+        if use_reported_variance:
+            var = np.maximum(var, epoch.var_m2[multi])
+        sigma = np.sqrt(var)
     return PreparedEpoch(sv_enu_m=frame.ecef_to_enu(sv_ecef), pr_m=epoch.pr_m[multi].copy(),
-                         sigma_m=np.sqrt(var), sys_index=sys_index[multi],
+                         sigma_m=sigma, sys_index=sys_index[multi],
                          n_systems=int(n_systems), sv_key=satellite_key(epoch, 1000)[multi],
-                         cn0_dbhz=np.asarray(epoch.cn0_dbhz[multi], dtype=float))
+                         cn0_dbhz=cn0, wide_share=share, wide_mean_m=mean,
+                         wide_sd_m=spread)
 
 
 def clock_weights(prep: PreparedEpoch, centre_m: np.ndarray, spread_m: float,
@@ -123,22 +171,48 @@ def clock_corrected_residuals(positions_m: np.ndarray, prep: PreparedEpoch,
                                             clock_weights, prep.n_systems)
 
 
-def robust_scale(sigma_m: np.ndarray, outlier_prob: float, outlier_range_m: float,
-                 log_range: float = 690.0) -> tuple[np.ndarray, float, int]:
-    """The robust model's per-satellite density ``scale_k exp(-z_k^2 / 2) + floor`` as the
-    kernels take it: ``(log scale_k (k,), floor, group)`` with
-    ``scale_k = (1 - eps) / (sigma_k sqrt(2 pi))``, ``floor = eps / range_out`` and
-    ``group`` the number of densities whose product stays within ``exp(+-log_range)``
+def robust_terms(prep: PreparedEpoch, outlier_prob: float, outlier_range_m: float,
+                 log_range: float = 690.0) -> RobustTerms:
+    """The robust model's per-satellite density as the kernels take it.
+
+    ``scale_k exp(-z_k^2 / 2) + wide_k exp(-w_k^2 / 2) + floor_k``. With the learned error
+    mixture (``prep.wide_share`` set): the core ``(1 - pi_k - FAULT_SHARE) N(0, s0_k)``;
+    the NLOS / multipath component of weight ``pi_k``, flat over the delays it produces
+    (``0 .. mu_k + 2 s1_k``: a reflection only ever delays a signal, by any amount, so
+    within that range it pulls the position nowhere) and falling off beyond it like the
+    core (a large *negative* residual is no reflection: the asymmetry that tells a wrong
+    position from NLOS); and ``FAULT_SHARE`` flat over ``outlier_range_m``. With the
+    stated model: ``(1 - eps) N(0, sigma_k)`` and ``eps`` over ``outlier_range_m``.
+    ``group`` is the number of densities whose product stays within ``exp(+-log_range)``
     (the kernel takes one log per group; 690: float64, 87: float32); 0 when a single
-    density may already lie outside it (a zero floor)."""
-    log_scale = np.log1p(-outlier_prob) - np.log(sigma_m) - LOG_SQRT_2PI
-    floor = outlier_prob / outlier_range_m
-    # Every density lies between the floor and the largest scale plus the floor.
+    density may already lie outside it (a zero floor).
+    """
+    k = prep.pr_m.shape[0]
+    if prep.wide_share is None:
+        core = np.full(k, 1.0 - outlier_prob)
+        floor_share = outlier_prob
+        wide_log = np.full(k, ABSENT_LOG)
+        low = high = np.zeros(k)
+        wide_inv = np.ones(k)
+    else:
+        core = 1.0 - prep.wide_share - FAULT_SHARE
+        floor_share = FAULT_SHARE
+        low = np.zeros(k)
+        high = np.asarray(prep.wide_mean_m, dtype=float) + 2.0 * prep.wide_sd_m
+        # Flat part plus the two half-Gaussian ends carry the component's weight.
+        wide_log = np.log(prep.wide_share) - np.log(
+            high - low + np.sqrt(2.0 * np.pi) * prep.sigma_m)
+        wide_inv = 1.0 / prep.sigma_m
+    log_scale = np.log(core) - np.log(prep.sigma_m) - LOG_SQRT_2PI
+    floor = np.full(k, floor_share / outlier_range_m)
+    # Every density lies between its floor and the sum of its scales and its floor.
     with np.errstate(divide='ignore'):                  # no floor: log 0 = -inf
-        log_floor = float(np.log(floor))
-    log_largest = float(np.logaddexp(log_scale.max(initial=-np.inf), log_floor))
-    per_term = max(abs(log_floor), abs(log_largest), 1e-3)
-    return log_scale, floor, int(log_range / per_term) if np.isfinite(per_term) else 0
+        log_floor = np.log(floor)
+    log_largest = np.logaddexp(np.logaddexp(log_scale, wide_log), log_floor)
+    per_term = max(float(np.abs(log_floor).max(initial=0.0)),
+                   float(np.abs(log_largest).max(initial=0.0)), 1e-3)
+    group = int(log_range / per_term) if np.isfinite(per_term) else 0
+    return RobustTerms(log_scale, floor, wide_log, low, high, wide_inv, group)
 
 
 #: Largest distance of a particle from the cloud centre of the float32 likelihood [m]:
@@ -210,11 +284,11 @@ def robust_inlier_shares(positions_m: np.ndarray, log_w: np.ndarray, prep: Prepa
         average over the particles normalised to sum to one (the robust likelihood's
         mixture weights, reported with the epoch).
     """
-    log_scale, floor, _ = robust_scale(prep.sigma_m, outlier_prob, outlier_range_m)
+    terms = robust_terms(prep, outlier_prob, outlier_range_m)
     return gnss_kernels.robust_inlier_shares(
         np.ascontiguousarray(positions_m, dtype=float), np.ascontiguousarray(log_w, float),
         prep.sv_enu_m, prep.pr_m, 1.0 / prep.sigma_m, prep.sys_index, clock_weights,
-        prep.n_systems, log_scale, floor)
+        prep.n_systems, *terms.arrays)
 
 
 @dataclass(frozen=True)
@@ -314,22 +388,20 @@ class RobustLikelihood:
         joint = np.empty(sets.shape[:2])
         prior_log_w = np.ascontiguousarray(prior_log_w, dtype=float)
         inv_sigma = 1.0 / prep.sigma_m
-        log_scale, floor, group = robust_scale(prep.sigma_m, self.outlier_prob,
-                                               self.outlier_range_m, SINGLE_LOG_RANGE)
+        terms = robust_terms(prep, self.outlier_prob, self.outlier_range_m, SINGLE_LOG_RANGE)
         geometry = (relative_geometry(sets, prep, clock_weights)
-                    if self.single_precision and group >= 1 else None)
+                    if self.single_precision and terms.group >= 1 else None)
         if geometry is not None:
             total = gnss_kernels.robust_joint_single(
                 sets, geometry.centre_m, geometry.unit, geometry.base_m,
                 geometry.half_inv_range, geometry.max_offset_m, prep.sv_enu_m, prep.pr_m,
-                inv_sigma, prep.sys_index, clock_weights, prep.n_systems, log_scale,
-                float(floor), group, float(evidence), prior_log_w, joint)
+                inv_sigma, prep.sys_index, clock_weights, prep.n_systems, *terms.arrays,
+                terms.group, float(evidence), prior_log_w, joint)
             return GnssLikelihood(joint=joint, total=total)
-        log_scale, floor, group = robust_scale(prep.sigma_m, self.outlier_prob,
-                                               self.outlier_range_m)
+        terms = robust_terms(prep, self.outlier_prob, self.outlier_range_m)
         total = gnss_kernels.robust_joint(
             sets, prep.sv_enu_m, prep.pr_m, inv_sigma, prep.sys_index,
-            clock_weights, prep.n_systems, log_scale, float(floor), max(group, 1),
+            clock_weights, prep.n_systems, *terms.arrays, max(terms.group, 1),
             float(evidence), prior_log_w, joint)
         return GnssLikelihood(joint=joint, total=total)
 

@@ -40,7 +40,8 @@ class SnapshotFix:
 
 
 def solve_snapshot(epoch: GnssEpoch, initial_ecef_m: np.ndarray | None = None,
-                   robust_scale_m: float = 10.0, measurement_var_m2: float = 10.0) -> SnapshotFix:
+                   robust_scale_m: float = 10.0, measurement_var_m2: float = 10.0,
+                   sigma_m: np.ndarray | None = None) -> SnapshotFix:
     """Robust weighted least-squares fix of one validated epoch.
 
     Args:
@@ -48,6 +49,8 @@ def solve_snapshot(epoch: GnssEpoch, initial_ecef_m: np.ndarray | None = None,
         initial_ecef_m: Starting point [m]; the Earth's centre when None.
         robust_scale_m: Residual scale where the Cauchy loss starts to saturate [m].
         measurement_var_m2: Floor of the pseudorange variance [m^2].
+        sigma_m: (k,) error standard deviations to weigh with [m] (a learned error model's);
+            None: the epoch's stated variances, floored at ``measurement_var_m2``.
 
     Returns:
         The fix; ``converged`` is False when the solver did not succeed.
@@ -61,7 +64,8 @@ def solve_snapshot(epoch: GnssEpoch, initial_ecef_m: np.ndarray | None = None,
     n_unknowns = 3 + systems.shape[0]
     if epoch.n_sv < n_unknowns:
         raise ValueError(f'{epoch.n_sv} satellites for {n_unknowns} unknowns')
-    sigma = np.sqrt(np.maximum(epoch.var_m2, measurement_var_m2))
+    sigma = (np.sqrt(np.maximum(epoch.var_m2, measurement_var_m2)) if sigma_m is None
+             else np.asarray(sigma_m, dtype=float))
     x0 = np.zeros(n_unknowns)
     if initial_ecef_m is not None:
         x0[:3] = initial_ecef_m

@@ -1,8 +1,11 @@
 """Pseudorange fault injection into any drive (real data included), seeded.
 
-A fault episode adds one constant bias to several satellites for tens of seconds: what a
+A fault episode adds one bias to several satellites for tens of seconds: what a
 multipath or NLOS event the receiver did not flag, or a satellite fault, does to the
-pseudoranges. The emulated drive has its own faults (``datasets.emulated``); this module
+pseudoranges. The bias is a step (constant over the episode, the default) or a ramp
+(growing linearly from 0 at the episode's start to its full value at its end: a slowly
+drifting satellite clock or a growing multipath delay, the fault a snapshot test notices
+last). The emulated drive has its own faults (``datasets.emulated``); this module
 puts faults of the same kind into real data (smartLoc), whose own errors are left as they
 are, so that integrity is measured on real data with faults on top.
 """
@@ -15,6 +18,9 @@ import numpy as np
 from ..core.types import Drive
 
 SECOND_NS = 1_000_000_000
+#: Bias profiles of an episode: constant, or linear from 0 to the full bias.
+STEP, RAMP = 'step', 'ramp'
+PROFILES = (STEP, RAMP)
 
 
 @dataclass(frozen=True)
@@ -26,12 +32,15 @@ class FaultEpisodes:
         satellites: (min, max) satellites biased in one episode.
         bias_m: (min, max) magnitude of the bias of one satellite [m] (sign random).
         duration_s: (min, max) duration of one episode [s].
+        profile: ``'step'`` (the bias over the whole episode) or ``'ramp'`` (the bias grows
+            linearly from 0 at the start to its full value at the end of the episode).
     """
 
     episodes: int = 8
     satellites: tuple[int, int] = (2, 5)
     bias_m: tuple[float, float] = (20.0, 200.0)
     duration_s: tuple[float, float] = (10.0, 40.0)
+    profile: str = STEP
 
     def __post_init__(self):
         lo, hi = self.satellites
@@ -41,6 +50,8 @@ class FaultEpisodes:
             raise ValueError('bias_m must be (min, max) with 0 <= min <= max')
         if not 0.0 < self.duration_s[0] <= self.duration_s[1]:
             raise ValueError('duration_s must be (min, max) with 0 < min <= max')
+        if self.profile not in PROFILES:
+            raise ValueError(f'profile must be one of {PROFILES}, got {self.profile!r}')
 
 
 def inject_pseudorange_faults(drive: Drive, seed: int, faults: FaultEpisodes | None = None
@@ -49,7 +60,9 @@ def inject_pseudorange_faults(drive: Drive, seed: int, faults: FaultEpisodes | N
 
     Episodes start uniformly over the drive; each picks its satellites among those in view
     at its start (by system and number, so a satellite keeps its bias while it stays in
-    view) and adds one bias per satellite for the whole episode.
+    view) and adds one bias per satellite for the whole episode (a step, or a ramp up to
+    it: ``faults.profile``). The draws do not depend on the profile: the same seed puts a
+    step and a ramp on the same satellites at the same times.
 
     Args:
         drive: The drive (unchanged).
@@ -80,14 +93,17 @@ def inject_pseudorange_faults(drive: Drive, seed: int, faults: FaultEpisodes | N
         for key, b in zip(chosen, bias):
             biased.setdefault(key, []).append((start, start + duration_ns, float(b)))
         record.append({'start_ns': start, 'duration_s': duration_ns / SECOND_NS,
-                       'satellites': [list(k) for k in chosen], 'bias_m': bias.tolist()})
+                       'satellites': [list(k) for k in chosen], 'bias_m': bias.tolist(),
+                       'profile': faults.profile})
     epochs, n_faulty = [], 0
     for epoch in drive.gnss:
         add = np.zeros(epoch.n_sv)
         for i, key in enumerate(zip(epoch.system.tolist(), epoch.sv_id.tolist())):
             for a, b, value in biased.get(key, ()):
                 if a <= epoch.stamp_ns < b:
-                    add[i] += value
+                    # ramp: the share of the episode elapsed, 0 at its start.
+                    add[i] += value * ((epoch.stamp_ns - a) / (b - a)
+                                       if faults.profile == RAMP else 1.0)
         n_faulty += int(np.count_nonzero(add))
         epochs.append(replace(epoch, pr_m=epoch.pr_m + add))
     return replace(drive, name=f'{drive.name}-faults-s{seed}', gnss=epochs,

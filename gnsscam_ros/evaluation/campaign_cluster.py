@@ -75,6 +75,21 @@ def _camera_on_worker(seed, cache_dir, duration_s):
     return camera_matches_for_seed(seed, cache_dir, duration_s)
 
 
+def _shared_input(value):
+    """A shared input as a task's result (its data stays in the task: see run_tasks)."""
+    return value
+
+
+def _task_on_worker(function, shared, args):
+    """``function(shared, *args)`` on a worker, and where and how long it ran."""
+    from distributed import get_worker      # only on workers (Dask is imported there)
+    tune_malloc()
+    start = time.perf_counter()
+    out = function(shared, *args)
+    return {'result': out, 'worker': get_worker().address,
+            'wall_seconds': time.perf_counter() - start}
+
+
 def _case_on_worker(key, base, camera, duration_s, want_epochs):
     """:func:`.campaign.case_task` and where it ran (the worker's address)."""
     from distributed import get_worker      # only on workers (Dask is imported there)
@@ -156,6 +171,51 @@ class CaseRunner:
             yield from self._run_here(todo, base, duration_s, want_epochs)
         else:
             yield from self._run_dask(todo, base, duration_s, want_epochs)
+
+    def run_tasks(self, function, tasks, shared: dict | None = None
+                  ) -> Iterator[tuple[object, dict | None, str | None]]:
+        """Run ``function(shared[name], *args)`` for every task ``(label, name, args)``,
+        here or on the cluster; yields ``(label, {'result', 'worker', 'wall_seconds'},
+        None)`` as each finishes, or ``(label, None, error message)`` for one that failed.
+
+        A shared input (e.g. the drive a group of tasks reads) goes to the cluster once: it
+        becomes a task of its own whose result the group's tasks take, so its data lives in
+        the task's definition and a worker that dies holding it costs a recomputation, not
+        the run (scattered data would be lost with it). ``function`` and the arguments
+        must be picklable (module-level functions, plain data).
+        """
+        shared = shared or {}
+        if self.sequential:
+            for label, name, args in tasks:
+                start = time.perf_counter()
+                try:
+                    out = function(shared.get(name), *args)
+                except Exception as err:  # reported like a failed task of a cluster
+                    yield label, None, f'{type(err).__name__}: {err}'
+                    continue
+                yield label, {'result': out, 'worker': 'local',
+                              'wall_seconds': time.perf_counter() - start}, None
+            return
+        from distributed import as_completed
+        client = self.client
+        inputs = {name: client.submit(_shared_input, value, pure=False,
+                                      key=f'shared-{name}-{id(self):x}')
+                  for name, value in shared.items()}
+        futures = {client.submit(_task_on_worker, function, inputs.get(name), args,
+                                 pure=False, key=f'task-{label}-{id(self):x}'): label
+                   for label, name, args in tasks}
+        try:
+            for fut in as_completed(futures):
+                label = futures.pop(fut)
+                try:
+                    result, error = fut.result(), None
+                except Exception as err:  # KilledWorker after too many deaths, a bug
+                    result, error = None, f'{type(err).__name__}: {err}'
+                fut.release()
+                yield label, result, error
+        finally:
+            for fut in list(futures) + list(inputs.values()):
+                fut.cancel()
 
     def _run_here(self, todo, base, duration_s, want_epochs):
         camera: dict[int, object] = {}

@@ -198,7 +198,8 @@ def make_plots(keys: list[CaseKey], load, plots_dir: Path, base: FilterConfig,
         any_series = next(iter(series.values()))
         paths.append(figures.trajectory_plot(
             plots_dir / f'trajectory_{tag}.png', f'{name} (seed {first_seed})',
-            any_series['truth'], {k: v['estimate'] for k, v in series.items()}))
+            any_series['truth'], {k: v['estimate'] for k, v in series.items()},
+            base.alert_limit_m))
         for method, s in series.items():
             for a, al in enumerate(base.alert_limits_m):
                 paths.append(figures.risk_plot(

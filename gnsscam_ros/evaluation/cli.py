@@ -38,12 +38,15 @@ from .campaign_summary import campaign_tables
 from .evaluate import evaluate_drive_record
 from .report import (INTEGRITY_HEADERS, integrity_rows, protection_level_headers,
                      protection_level_rows, stanford_line)
+from .robustness_cli import add_robustness_parser, run_robustness_command
 
 EXIT_OK, EXIT_USAGE, EXIT_INPUT, EXIT_OUTPUT = 0, 2, 3, 4
 #: Some campaign cases failed (the others are written; a rerun retries them).
 EXIT_CASES_FAILED = 1
 EXIT_INTERRUPTED = 130
 DEFAULT_ALERT_LIMITS_M = (8.0, 16.0)
+#: Filter seed of gnsscam_eval and of the demo (the same runs give the same figures).
+DEFAULT_SEED = 1
 
 
 def add_filter_arguments(parser: argparse.ArgumentParser) -> None:
@@ -53,7 +56,8 @@ def add_filter_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument('--particles', type=int, default=defaults.n_particles,
                        help='particles per posterior N (default %(default)s)')
     group.add_argument('--posteriors', type=int, default=defaults.n_posteriors,
-                       help='odometry perturbations M (default %(default)s)')
+                       help='posteriors M of the risk bound (motion samples or bias '
+                            'hypotheses, see --bias-model; default %(default)s)')
     group.add_argument('--likelihood', choices=LIKELIHOODS, default=defaults.likelihood,
                        help='GNSS likelihood (default %(default)s)')
     group.add_argument('--correlation-time-s', type=float,
@@ -66,20 +70,36 @@ def add_filter_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument('--bias-model', choices=BIAS_MODELS, default=defaults.bias_model,
                        help="posteriors of the bound: 'cn0' bias hypotheses, 'none' motion "
                             'samples only, as in the paper (default %(default)s)')
-    group.add_argument('--target-risk', type=float, default=defaults.target_risk)
-    group.add_argument('--seed', type=int, default=0, help='random seed (default 0)')
+    group.add_argument('--target-risk', type=float, default=defaults.target_risk,
+                       help='integrity risk allowed at the alert limit: the protection '
+                            'level is the radius whose risk bound is this (default '
+                            '%(default)s)')
+    group.add_argument('--alert-limits', type=float, nargs='+', metavar='M',
+                       default=list(DEFAULT_ALERT_LIMITS_M),
+                       help='horizontal alert limits evaluated [m]; the first one sets '
+                            'the OK/ERROR flag and the figures (default: %(default)s)')
+    group.add_argument('--seed', type=int, default=DEFAULT_SEED,
+                       help='random seed (default %(default)s, as the demo)')
 
 
 def config_from_args(args: argparse.Namespace) -> FilterConfig:
-    """FilterConfig from the shared options; alert limits 8 m and 16 m are evaluated."""
+    """FilterConfig from the shared options (``--alert-limits``: the first is the filter's
+    alert limit, the others are evaluated beside it).
+
+    Raises:
+        ValueError: An alert limit that is not a positive number of metres.
+    """
+    bad = [a for a in args.alert_limits if not 0.0 < a < float('inf')]
+    if bad:
+        raise ValueError(f'--alert-limits: {bad[0]:g} is not a positive number of metres')
     return FilterConfig(n_particles=args.particles, n_posteriors=args.posteriors,
                         likelihood=args.likelihood,
                         error_correlation_time_s=args.correlation_time_s,
                         inverse_bernoulli=args.inverse_bernoulli,
                         bias_model=args.bias_model,
                         target_risk=args.target_risk,
-                        alert_limit_m=DEFAULT_ALERT_LIMITS_M[0],
-                        extra_alert_limits_m=DEFAULT_ALERT_LIMITS_M[1:])
+                        alert_limit_m=args.alert_limits[0],
+                        extra_alert_limits_m=tuple(args.alert_limits[1:]))
 
 
 def print_result(label: str, result: dict, out=None) -> None:
@@ -187,6 +207,7 @@ def build_parser() -> argparse.ArgumentParser:
     bag.add_argument('--namespace', default='/', help='namespace of the recorded topics')
     bag.add_argument('--origin', type=float, nargs=3, metavar=('LAT', 'LON', 'ALT'),
                      help='map frame origin, when no bag has map/origin')
+    add_robustness_parser(sub)
     for p in (smart, emu, bag):
         p.add_argument('--epochs-csv', type=Path, metavar='FILE',
                        help='write one row per GNSS epoch (estimate in WGS84, protection '
@@ -222,10 +243,10 @@ def write_result(args: argparse.Namespace, result: dict, epochs=None, label: str
         print(f'\nwrote {args.epochs_csv} ({len(epochs)} GNSS epochs)')
     if getattr(args, 'plots', None) is not None and epochs is not None:
         # matplotlib takes ~0.7 s to import: only when figures are asked for.
-        from .plots import integrity_plots
+        from .plots import dataset_title, integrity_plots
         name = ''.join(c if c.isalnum() or c in '-_.' else '_' for c in label)
         try:
-            paths = integrity_plots(args.plots, name, label, epochs.stamp_ns,
+            paths = integrity_plots(args.plots, name, dataset_title(label), epochs.stamp_ns,
                                     epochs.horizontal_error_m, epochs.protection_level_m,
                                     epochs.integrity, alert_limit_m)
         except OSError as err:
@@ -353,6 +374,8 @@ def load_drive(args: argparse.Namespace):
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.command == 'robustness':
+        return run_robustness_command(args, sys.argv[1:] if argv is None else argv)
     for path in (args.json, None if args.command == 'campaign' else args.epochs_csv):
         if path is not None and path.exists() and not args.force:
             print(f'gnsscam_eval: {path} exists; pass --force to replace it',

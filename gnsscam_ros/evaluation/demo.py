@@ -24,13 +24,21 @@ real smartLoc run (no camera), in one command and without a ROS install:
 
 Everything lands in a new folder ``<out>/demo-<UTC time>/`` (a suffix is added if it
 exists: nothing is ever overwritten). The time of every stage and the replay speed (x real
-time) are printed.
+time) are printed. The bags (the dataset's and the recorded one: ~1.3 GB for the emulated
+drive with its images) are intermediate: they are removed once their results are written,
+unless ``--keep-bags``; the end says what the folder keeps and its size.
+
+A run that does not finish (Ctrl-C, an error) leaves the file ``INCOMPLETE`` in its folder,
+saying where it stopped; it is removed only when ``summary.json`` is written. Ctrl-C stops
+the demo at once with exit status 130 (the replay does not go on as if its truncated run
+were a result).
 """
 from __future__ import annotations
 
 import argparse
 import math
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -44,6 +52,7 @@ from ..core.frames import LocalFrame
 from ..core.fusion import CameraMeasurement
 from ..core.motion import DeadReckoningConfig
 from ..core.types import Drive
+from ..core.warmup import warm_up_kernels
 from ..datasets.cut import cut_drive
 from ..datasets.emulated.camera import with_camera
 from ..datasets.emulated.drive import make_emulated_drive
@@ -52,13 +61,14 @@ from ..datasets.emulated.scenario import scenario_of
 from ..datasets.emulated.views import route_range_of
 from ..datasets.errors import DatasetError
 from ..datasets.smartloc import discover_files, load_smartloc
-from ..io.atomic import write_json_atomic
+from ..io.atomic import atomic_output, write_json_atomic
 from ..io.tables import format_table
 from ..live.replay import replay_through_nodes, use_dds_profile
 from ..nodes.camera_node import DEFAULTS as CAMERA_DEFAULTS
 from .bag_eval import evaluate_result_bag_epochs
-from .plots import integrity_plots, risk_plot, trajectory_plot
-from .report import stanford_line
+from .cli import DEFAULT_SEED
+from .plots import dataset_title, integrity_plots, risk_plot, trajectory_plot
+from .report import protection_level_headers, protection_level_rows, stanford_line
 from .runner import (RunRecord, accuracy, offline_camera_matches, run_epochs,
                      run_snapshot_baseline, summarize, truth_at)
 
@@ -66,6 +76,21 @@ from .runner import (RunRecord, accuracy, offline_camera_matches, run_epochs,
 #: (fusion_node ``alert_limit_m``; extra limits are not a node parameter).
 ALERT_LIMIT_M = 8.0
 EMULATED_SEED, EMULATED_FAULTS, EMULATED_BIAS_M = 3, 6, 100.0
+#: What the reference risk of the figures is. The failure ratio (bound below the
+#: reference) depends on it: the offline run has its M posteriors (with their bias
+#: hypotheses), the nodes' row of the table only what the result bag holds (the particle
+#: cloud of ``particles``, else the pose covariance), so the two ratios differ for
+#: identical estimates.
+OFFLINE_REFERENCE = "reference risk: offline run's M posteriors around the truth"
+FAILURE_RATIO_NOTE = ('fail ratio: epochs whose risk bound is below the reference risk '
+                      '(posterior mass beyond the AL around the truth). nodes: reference '
+                      'from the result bag (particle cloud, else pose covariance); offline: '
+                      'from the M posteriors, as in the risk figure. Two references, so two '
+                      'ratios for the same estimates.')
+#: Exit status after Ctrl-C (128 + SIGINT, as a shell reports it).
+EXIT_INTERRUPTED = 130
+#: Marker file of a run folder whose run has not finished.
+INCOMPLETE = 'INCOMPLETE'
 
 
 # ============================================================================ helpers
@@ -141,9 +166,11 @@ class Stages:
     def __init__(self):
         self.start = time.monotonic()
         self.times: dict[str, float] = {}
+        self.started: list[str] = []         # in order, the one running last
 
     def run(self, name: str, fn, *args, **kwargs):
         t0 = time.monotonic()
+        self.started.append(name)
         print(f'[demo] {name} ...', file=sys.stderr, flush=True)
         out = fn(*args, **kwargs)
         self.times[name] = time.monotonic() - t0
@@ -157,7 +184,8 @@ class Stages:
 
 # ============================================================================ one dataset
 def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed: int,
-                stages: Stages, layout: str = 'processes', database=None) -> dict:
+                stages: Stages, layout: str = 'processes', database=None,
+                keep_bags: bool = False) -> dict:
     """Convert, replay through the nodes, record, evaluate and plot one drive.
 
     Args:
@@ -169,6 +197,8 @@ def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed
         stages: Stage timer.
         layout: Where the nodes run (``live.replay.LAYOUTS``).
         database: Map database for the camera (None: GNSS only).
+        keep_bags: Keep the dataset bag, the result bag and the map database file (else
+            removed once the results are written).
 
     Returns:
         The dataset's results (metrics of the nodes, the offline run and WLS; replay and
@@ -197,6 +227,9 @@ def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed
         bag, result_bag, rate=0.0, parameters=params, layout=layout, topics=topics,
         log_dir=folder / 'logs')
     print(f'[demo] {key}: {replay.text()}', file=sys.stderr)
+    if replay.interrupted:
+        # A truncated replay is not a result: stop here rather than evaluate it.
+        raise KeyboardInterrupt
     nodes, node_epochs = stages.run(f'{key}: gnsscam_eval bag', evaluate_result_bag_epochs,
                                     result_bag, bag)
     matches = None
@@ -210,6 +243,7 @@ def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed
     stamps_wls, fixes = run_snapshot_baseline(data, frame, config.measurement_var_m2)
     wls = accuracy(fixes, truth_at(data, frame, stamps_wls))
     series = node_series(result_bag, frame)
+    title = dataset_title(drive.name)
     index = {int(s): i for i, s in enumerate(record_off.stamp_ns)}
     common = [(i, index[int(s)]) for i, s in enumerate(series['stamp_ns']) if int(s) in index]
     diff = (np.abs(series['estimate_enu_m'][[i for i, _ in common]]
@@ -223,18 +257,19 @@ def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed
         i = np.array([i for i, _ in common])
         t_s = (record_off.stamp_ns[j] - record_off.stamp_ns[j[0]]) * 1e-9
         paths.append(trajectory_plot(
-            folder / 'trajectory.png', f'{drive.name}: replay through the nodes vs offline',
+            folder / 'trajectory.png', f'{title}: replay through the nodes vs offline',
             record_off.truth_enu_m[j], {'nodes (replayed bag)': series['estimate_enu_m'][i],
-                                        'offline': record_off.estimate_enu_m[j]}))
+                                        'offline': record_off.estimate_enu_m[j]},
+            config.alert_limit_m))
         paths.append(risk_plot(
             folder / f'risk_al{ALERT_LIMIT_M:g}m.png',
-            f'{drive.name}: risk bound of the nodes vs reference risk', t_s,
+            f'{title}: risk bound of the nodes vs the offline reference risk', t_s,
             series['risk_bound'][i], record_off.reference_risk[j, 0], ALERT_LIMIT_M,
-            config.target_risk))
+            config.target_risk, reference_label=OFFLINE_REFERENCE))
     # Stanford diagram and error/PL timeline of both runs (nodes: the PL of the recorded
     # integrity_risk; every GNSS epoch, STALE ones without a PL).
     for label, table in (('nodes', node_epochs), ('offline', record_off.epochs)):
-        paths += integrity_plots(folder, label, f'{drive.name}: {label}', table.stamp_ns,
+        paths += integrity_plots(folder, label, f'{title}: {label}', table.stamp_ns,
                                  table.horizontal_error_m, table.protection_level_m,
                                  table.integrity, config.alert_limit_m)
     result = {'dataset': drive.name, 'nodes': nodes, 'offline': offline, 'wls': wls,
@@ -245,7 +280,13 @@ def run_dataset(key: str, drive: Drive, folder: Path, config: FilterConfig, seed
               'bags': {'dataset': str(bag), 'result': str(result_bag)},
               'plots': [str(p) for p in paths], 'seed': seed,
               'config': config.as_flat()}
+    result['bags']['kept'] = keep_bags
     write_json_atomic(folder / 'results.json', result)
+    if not keep_bags:
+        # The nodes' inputs and outputs; the map database is a copy of the cached one.
+        for path in (bag, result_bag):
+            shutil.rmtree(path, ignore_errors=True)
+        (folder / 'map_database.npz').unlink(missing_ok=True)
     return result
 
 
@@ -270,13 +311,15 @@ def _rows(key: str, result: dict) -> list[list]:
 
 
 # ============================================================================ main
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The demo's command line."""
     parser = argparse.ArgumentParser(prog='gnsscam demo', description=__doc__.split('\n')[0])
     parser.add_argument('--shared', type=Path, default=Path('../shared'),
                         help='folder holding data/smartloc (default %(default)s)')
     parser.add_argument('--out', type=Path, default=Path('out'),
                         help='results root; each run writes a new sub-folder')
-    parser.add_argument('--seed', type=int, default=1, help='filter seed (default 1)')
+    parser.add_argument('--seed', type=int, default=DEFAULT_SEED,
+                        help='filter seed (default %(default)s, as gnsscam_eval)')
     parser.add_argument('--particles', type=int, default=FilterConfig().n_particles,
                         help='particles per posterior N (default %(default)s)')
     parser.add_argument('--duration-s', type=float, default=150.0,
@@ -291,16 +334,71 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument('--layout', default='processes',
                         choices=('processes', 'threads', 'pipeline'),
                         help='where the nodes run (default %(default)s)')
+    parser.add_argument('--keep-bags', action='store_true',
+                        help='keep the dataset and result bags and the map database the '
+                        'nodes read (about 1.4 GB with the camera images; by default removed '
+                        'once evaluated)')
     parser.add_argument('--cache', type=Path,
                         default=Path(os.environ.get('GNSSCAM_CACHE_DIR', '.cache/gnsscam')),
                         help='map database cache (default %(default)s)')
-    args = parser.parse_args(argv)
-    config = FilterConfig(n_particles=args.particles, alert_limit_m=ALERT_LIMIT_M)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The demo; its exit status (0 done, 130 stopped by Ctrl-C)."""
+    args = build_parser().parse_args(argv)
     stages = Stages()
     out_dir = new_run_folder(args.out)
+    marker = out_dir / INCOMPLETE
+    with atomic_output(marker) as handle:
+        handle.write(f'{INCOMPLETE}: this demo run has not finished; its results are not '
+                     'complete (the file goes when summary.json is written).\n')
     print(f'[demo] writing into {out_dir}', file=sys.stderr)
+    try:
+        run_demo(args, out_dir, stages)
+    except KeyboardInterrupt:
+        stage = next(reversed(stages.started), 'the start')
+        with atomic_output(marker, force=True) as handle:
+            handle.write(f'{INCOMPLETE}: interrupted (Ctrl-C) during "{stage}"; the results '
+                         'here are not complete.\n')
+        print(f'\n[demo] interrupted during "{stage}": {out_dir} is incomplete (see its '
+              f'{INCOMPLETE} file)', file=sys.stderr)
+        return EXIT_INTERRUPTED
+    marker.unlink()
+    return 0
+
+
+def _map_database(args: argparse.Namespace, drive: Drive, stages: Stages):
+    """The map database of the emulated route, from the cache or built (with progress)."""
+    scenario = scenario_of(drive)
+    built: dict[str, int] = {}
+
+    def progress(stage: str, done: int, total: int) -> None:
+        # Called only while building (a cache hit is silent); one line per tenth.
+        tenth = 10 * done // max(total, 1)
+        if tenth > built.get(stage, -1):
+            print(f'[demo]   {stage}: {done}/{total}', file=sys.stderr, flush=True)
+            built[stage] = tenth
+
+    database = stages.run('emulated: map database of the route (from the cache, or '
+                          f'rendered and built once into {args.cache})',
+                          build_emulated_map_database, scenario, cache_dir=args.cache,
+                          route_range_m=route_range_of(scenario, drive), progress=progress)
+    print('[demo] emulated: map database ' + ('built and cached for later runs' if built
+                                              else f'loaded from the cache {args.cache}')
+          + f' ({len(database)} images)', file=sys.stderr)
+    return database
+
+
+def run_demo(args: argparse.Namespace, out_dir: Path, stages: Stages) -> None:
+    """Both datasets into ``out_dir``, the summary printed and written."""
+    config = FilterConfig(n_particles=args.particles, alert_limit_m=ALERT_LIMIT_M)
     use_dds_profile(out_dir)            # before the first ROS participant of this process
     results: dict[str, dict] = {}
+    # Compiled once here, in view, rather than inside the nodes' start-up during the
+    # replay (numba caches the machine code on disk for every later process).
+    stages.run('compile the filter kernels (numba; the first run only, cached after)',
+               warm_up_kernels)
 
     # ---- emulated urban drive, camera included
     duration = None if args.full else args.duration_s
@@ -309,13 +407,10 @@ def main(argv: list[str] | None = None) -> int:
     database = None
     if not args.no_camera:
         drive = with_camera(drive)
-        scenario = scenario_of(drive)
-        database = stages.run(
-            'emulated: map database of the route (cached; the first build renders the '
-            'database pass)', build_emulated_map_database, scenario, cache_dir=args.cache,
-            route_range_m=route_range_of(scenario, drive))
+        database = _map_database(args, drive, stages)
     results['emulated'] = run_dataset('emulated', drive, out_dir / 'emulated', config,
-                                      args.seed, stages, args.layout, database)
+                                      args.seed, stages, args.layout, database,
+                                      args.keep_bags)
 
     # ---- smartLoc (real data), no camera
     smartloc_dir = args.shared / 'data' / 'smartloc'
@@ -326,7 +421,8 @@ def main(argv: list[str] | None = None) -> int:
             real = cut_drive(load_smartloc(*discover_files(smartloc_dir)),
                              args.smartloc_duration_s)
             results['smartloc'] = run_dataset('smartloc', real, out_dir / 'smartloc', config,
-                                              args.seed, stages, args.layout)
+                                              args.seed, stages, args.layout,
+                                              keep_bags=args.keep_bags)
         except DatasetError as err:
             print(f'[demo] skipping smartLoc: {err}', file=sys.stderr)
     else:
@@ -342,27 +438,40 @@ def main(argv: list[str] | None = None) -> int:
                         f'avail {ALERT_LIMIT_M:g} m', f'err>{ALERT_LIMIT_M:g}|OK'], rows))
     print('(MI: error > protection level; avail: PL <= alert limit; err>AL|OK: epochs the '
           'flag said OK with the error above the alert limit / epochs OK)')
+    print(f'({FAILURE_RATIO_NOTE})')
+    # Availability at every alert limit the evaluation reports: where the PLs sit decides
+    # which limits a dataset supports (smartLoc's urban PLs exceed 8 m most of the time).
+    first = next(iter(results.values()))['nodes']['protection_level']
+    print('\nProtection level by alert limit (avail: share of epochs with PL <= AL):')
+    print(format_table(protection_level_headers(first), [
+        protection_level_rows(f'{key} {label}', r[label]['protection_level'])[0]
+        for key, r in results.items() for label in ('nodes', 'offline')]))
     for key, r in results.items():
         for label in ('nodes', 'offline'):
             print(f'{key} {label}: {stanford_line(r[label]["protection_level"])}')
     print()
     for key, r in results.items():
         rep = r['replay']
+        done = ('none acknowledged' if rep['gnss_epochs_processed'] is None else
+                f'{rep["gnss_epochs_processed"]} processed, dropped {rep["dropped_gnss_epochs"]}')
         print(f'{key}: replay {rep["bag_span_s"]:.0f} s of data in {rep["wall_s"]:.1f} s = '
               f'{rep["speed_x_real_time"]:.1f}x real time; GNSS epochs {rep["gnss_epochs"]} '
-              f'published, {rep["gnss_epochs_processed"]} processed, dropped '
-              f'{rep["dropped_gnss_epochs"]}; nodes vs offline estimates differ by at most '
+              f'published, {done}; nodes vs offline estimates differ by at most '
               f'{r["max_estimate_difference_m"]:.2g} m over {r["common_epochs"]} epochs')
     summary = {'results': results, 'stages_s': stages.times, 'total_s': stages.total_s,
                'out_dir': str(out_dir)}
     path = write_json_atomic(out_dir / 'summary.json', summary)
-    print(f'\nOutputs in {out_dir} (bags, result bags, results.json, trajectory.png, '
-          f'risk_al{ALERT_LIMIT_M:g}m.png, stanford_nodes/offline.png and '
-          f'error_pl_nodes/offline.png per dataset; {path.name}).')
+    kept = sorted(f for f in out_dir.rglob('*') if f.is_file() and f.name != INCOMPLETE)
+    size_mb = sum(f.stat().st_size for f in kept) / 1e6
+    bags = ('dataset and result bags kept (--keep-bags)' if args.keep_bags
+            else 'bags removed; --keep-bags keeps them')
+    print(f'\nOutputs in {out_dir}: {len(kept)} files, {size_mb:.0f} MB ({bags}): '
+          f'results.json, trajectory.png, risk_al{ALERT_LIMIT_M:g}m.png, '
+          'stanford_nodes/offline.png and error_pl_nodes/offline.png per dataset, logs; '
+          f'{path.name}.')
     print('Stage times: ' + ', '.join(f'{k.split(" (")[0].split(" ->")[0]} {v:.0f} s'
                                       for k, v in stages.times.items()))
     print(f'Total wall time: {stages.total_s:.0f} s')
-    return 0
 
 
 if __name__ == '__main__':

@@ -20,6 +20,8 @@ epochs, missed identifications of the faulty ones, MI epochs of the updated ones
   two-sided ``confidence`` quantiles of Student's t, ``k* = p n*``. The design effect
   ``n / n_eff`` says how many correlated epochs are worth one independent one. It needs
   two seeds or more, and becomes reliable with a handful.
+* **Mean over seeds** (:func:`mean_interval`): a quantity measured once per seed (a
+  run's RMSE) gets Student's t interval of its mean, ``mean +- t_{S-1} sd / sqrt(S)``.
 """
 from __future__ import annotations
 
@@ -137,3 +139,25 @@ def epochs_needed(rate: float, upper_limit: float, confidence: float = CONFIDENC
         mid = (lo + hi) // 2
         lo, hi = (lo, mid) if upper(mid) < upper_limit else (mid, hi)
     return int(math.ceil(hi * design_effect))
+
+
+def mean_interval(values, confidence: float = CONFIDENCE) -> dict | None:
+    """Student's t interval of the mean of one value per seed (module docstring).
+
+    Args:
+        values: One finite value per seed.
+        confidence: Two-sided confidence level.
+
+    Returns:
+        ``{'mean', 'sd', 'seeds', 'ci95'}`` (``ci95`` None with one seed), or None with no
+        values.
+    """
+    v = np.asarray(list(values), dtype=float)
+    if not v.size:
+        return None
+    mean = float(v.mean())
+    if v.size < 2:
+        return {'mean': mean, 'sd': None, 'seeds': 1, 'ci95': None}
+    sd = float(v.std(ddof=1))
+    half = float(stats.t.ppf((1 + confidence) / 2, v.size - 1)) * sd / math.sqrt(v.size)
+    return {'mean': mean, 'sd': sd, 'seeds': int(v.size), 'ci95': [mean - half, mean + half]}

@@ -1,6 +1,7 @@
 """Figures of the paper's kind (matplotlib, headless): trajectories and risk over time."""
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import matplotlib
@@ -12,7 +13,6 @@ from matplotlib.colors import LogNorm  # noqa: E402
 
 from .report import stanford_counts  # noqa: E402  pure counting, importable without plots
 
-ERROR_HIGHLIGHT_M = 10.0
 LOG_FLOOR_M = 0.1          # log axes cannot show 0; errors/PLs below this sit on the edge
 
 
@@ -25,49 +25,93 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
+def dataset_title(name: str) -> str:
+    """A readable title for a dataset name: ``emulated-urban-s3-f6`` -> ``Emulated urban
+    drive (seed 3, 6 faulty satellites)``, ``Berlin_Potsdamer_Platz`` -> ``smartLoc Berlin
+    Potsdamer Platz``; other names unchanged."""
+    match = re.fullmatch(r'emulated-urban-s(\d+)-f(\d+)(-nonlos)?', name)
+    if match:
+        seed, faults, nonlos = match.groups()
+        faulty = 'no faulty satellite' if faults == '0' else (
+            f'{faults} faulty satellite' + ('s' if faults != '1' else ''))
+        return (f'Emulated urban drive (seed {seed}, {faulty}'
+                + (', no NLOS)' if nonlos else ')'))
+    if name.startswith('Berlin_'):
+        return 'smartLoc ' + name.replace('_', ' ')
+    return name
+
+
+def _panel_layout(truth_enu: np.ndarray, panels: int) -> tuple[int, int, tuple]:
+    """``(rows, columns, figure size)`` so that equal-aspect panels fill the figure: a
+    trajectory wider than tall stacks its panels, a tall one puts them side by side
+    (side by side, a wide smartLoc track left most of each panel blank)."""
+    span = np.ptp(truth_enu[:, :2], axis=0) if len(truth_enu) else np.ones(2)
+    ratio = float(np.clip((span[1] + 1.0) / (span[0] + 1.0), 0.3, 3.0))   # height/width
+    legend_in = 1.0                      # below each panel
+    if ratio < 1.0:
+        width = 7.0
+        return panels, 1, (width, (width * ratio + legend_in) * panels + 0.6)
+    height = 7.0
+    # Not narrower than the legend and title need (the x limits widen to fill it).
+    width = max(height / ratio, 3.5)
+    return 1, panels, (width * panels, height + legend_in + 0.6)
+
+
 def trajectory_plot(path: Path, title: str, truth_enu: np.ndarray,
-                    estimates: dict[str, np.ndarray]) -> Path:
-    """Estimated trajectories over ground truth, errors above 10 m highlighted (Figs 4-5).
+                    estimates: dict[str, np.ndarray], alert_limit_m: float) -> Path:
+    """Estimated trajectories over ground truth, errors above the alert limit marked
+    (Figs 4-5).
 
     Args:
         path: Output PNG.
         title: Figure title.
         truth_enu: (T, 3) ground truth [m].
         estimates: Method name -> (T, 3) estimates aligned with ``truth_enu`` [m].
+        alert_limit_m: Horizontal alert limit [m]: epochs whose error exceeds it are
+            marked.
     """
-    fig, axes = plt.subplots(1, len(estimates), figsize=(6 * len(estimates), 6),
-                             squeeze=False)
-    for ax, (name, est) in zip(axes[0], estimates.items()):
+    rows, cols, size = _panel_layout(truth_enu, len(estimates))
+    fig, axes = plt.subplots(rows, cols, figsize=size, squeeze=False, layout='constrained')
+    for ax, (name, est) in zip(axes.ravel(), estimates.items()):
         err = np.hypot(*(est[:, :2] - truth_enu[:, :2]).T)
         ax.plot(truth_enu[:, 0], truth_enu[:, 1], color='0.6', lw=3, label='ground truth')
         ax.plot(est[:, 0], est[:, 1], color='tab:blue', lw=1, label=name)
-        bad = err > ERROR_HIGHLIGHT_M
+        bad = err > alert_limit_m
         ax.scatter(est[bad, 0], est[bad, 1], s=8, color='tab:red',
-                   label=f'error > {ERROR_HIGHLIGHT_M:g} m ({bad.mean():.0%})')
-        ax.set_aspect('equal')
+                   label=f'error > alert limit {alert_limit_m:g} m ({bad.mean():.0%})')
+        ax.set_aspect('equal', adjustable='datalim')
         ax.set_xlabel('east [m]')
         ax.set_ylabel('north [m]')
-        ax.set_title(f'{name}: 2D RMSE {np.sqrt(np.mean(err ** 2)):.1f} m')
-        ax.legend(loc='best', fontsize=8)
+        ax.set_title(f'{name}\n2D RMSE {np.sqrt(np.mean(err ** 2)):.1f} m', fontsize=10)
+        # Below the panel: inside, it covered part of the track.
+        ax.legend(loc='upper center', bbox_to_anchor=(0.5, -0.1), fontsize=8)
     fig.suptitle(title)
     return _save(fig, path)
 
 
 def risk_plot(path: Path, title: str, time_s: np.ndarray, bound: np.ndarray,
-              reference: np.ndarray, alert_limit_m: float, target_risk: float) -> Path:
-    """Integrity risk bound against the reference risk over time (Figs 8-11)."""
-    fig, ax = plt.subplots(figsize=(10, 3.5))
-    ax.plot(time_s, reference, color='tab:orange', lw=1, label='reference risk (truth)')
+              reference: np.ndarray, alert_limit_m: float, target_risk: float,
+              reference_label: str = 'reference risk (truth)') -> Path:
+    """Integrity risk bound against the reference risk over time (Figs 8-11).
+
+    The share of epochs whose bound is below the reference is the failure ratio *against
+    this reference*: ``reference_label`` says which one it is (the offline run's M
+    posteriors, or a recorded particle cloud, give different references for the same
+    estimates).
+    """
+    fig, ax = plt.subplots(figsize=(11, 3.5))
+    ax.plot(time_s, reference, color='tab:orange', lw=1, label=reference_label)
     ax.plot(time_s, bound, color='tab:blue', lw=1, label='risk bound')
     fail = bound < reference
     ax.scatter(time_s[fail], bound[fail], s=6, color='tab:red',
-               label=f'bound < reference ({fail.mean():.0%})')
+               label=f'bound < reference: failure ratio {fail.mean():.0%}')
     ax.axhline(target_risk, color='0.3', ls='--', lw=0.8, label=f'target {target_risk:g}')
     ax.set_ylim(-0.02, 1.02)
     ax.set_xlabel('time [s]')
     ax.set_ylabel(f'risk, alert limit {alert_limit_m:g} m')
     ax.set_title(title)
-    ax.legend(loc='upper right', fontsize=8)
+    # Outside the axes: inside, it covered the curves.
+    ax.legend(loc='upper left', bbox_to_anchor=(1.01, 1.0), fontsize=8)
     return _save(fig, path)
 
 

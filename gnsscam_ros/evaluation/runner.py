@@ -98,6 +98,9 @@ class RunRecord:
     camera_excluded_epochs: int = 0
     camera_epochs: int = 0
     epochs: EpochTable = field(default_factory=empty_epoch_table)
+    #: Epochs at which the filter recovered (``EpochResult.recovered``: part of the cloud
+    #: moved onto the snapshot solution), counted over every GNSS epoch of the run.
+    recoveries: int = 0
 
 
 def truth_at(drive: Drive, frame: LocalFrame, stamps_ns: np.ndarray) -> np.ndarray:
@@ -236,7 +239,7 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int,
     start = time.monotonic()
     truth_enu = None
     camera_alpha: dict[int, float] = {}
-    camera_epochs = camera_excluded = 0
+    camera_epochs = camera_excluded = recoveries = 0
     rows = []       # every epoch: (stamp, status, reason, enu, PL, bound, level, sats)
     for i, report in enumerate(engine_reports(engine, drive.gnss, states, camera_matches)):
         epoch, result = report.epoch, report.result
@@ -245,6 +248,7 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int,
             camera_excluded += int(result.camera_excluded)
             camera_alpha.update(zip(result.camera_frame_ids, result.camera_alpha.tolist()))
         statuses[result.status] = statuses.get(result.status, 0) + 1
+        recoveries += int(result.recovered)
         bar.update(i + 1)
         rows.append(_epoch_row(result))
         if result.status != UPDATED or drive.truth is None:
@@ -276,7 +280,7 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int,
         integrity_valid=np.array(valids, dtype=bool),
         statuses=statuses, seconds=seconds, camera_alpha=camera_alpha,
         camera_excluded_epochs=camera_excluded, camera_epochs=camera_epochs,
-        epochs=_epoch_table(rows, filt.frame, drive))
+        epochs=_epoch_table(rows, filt.frame, drive), recoveries=recoveries)
     return record, engine
 
 
@@ -382,5 +386,6 @@ def summarize(record: RunRecord, config: FilterConfig) -> dict:
         err, record.protection_level_m, config.alert_limit_m,
         integrity_ok=record.integrity_ok if record.integrity_ok.size == err.size else None)
     out['statuses'] = record.statuses
+    out['recoveries'] = record.recoveries
     out['filter_seconds'] = record.seconds
     return out

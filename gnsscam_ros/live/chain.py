@@ -94,6 +94,8 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None,
         ``(replay summary, record summary or None)``.
 
     Raises:
+        KeyboardInterrupt: Ctrl-C (or a ROS shutdown) interrupted the replay; the partial
+            result bag is removed.
         BagError: Unreadable bag or result bag problems.
         RuntimeError: A child process died during the replay.
         ValueError: Unknown layout.
@@ -125,6 +127,10 @@ def replay_through_nodes(bag: str | Path, result_bag: str | Path | None = None,
                                    namespace=ns, strip_namespace=True)
         spinner = NodeSpinner(nodes + ([recorder] if recorder is not None else []), ctx)
         summary = _play(bag, opts, ctx, ns, recorder is not None)
+        if summary.interrupted:
+            # Ctrl-C (or a shutdown) cut the replay short: the recording is partial and
+            # is removed below, the nodes are stopped; the caller stops as on Ctrl-C.
+            raise KeyboardInterrupt
         for proc, name in procs:
             summary.cpu_s[name] = process_cpu_s(proc.pid)
         for proc, name in procs:

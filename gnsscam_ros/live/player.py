@@ -26,6 +26,14 @@ Nodes that report no links get ``settle_s`` instead.
 
 A stream whose consumer is absent (no subscriber on the input, or no publisher of its
 acknowledging topic after ``wait_s``) is played without flow control.
+
+**Nodes that already ran** (a bag played again into running nodes, or another bag): each
+node reports the newest stamp its inputs took (``newest_input_stamp_ns`` on
+``diagnostics``). When the bag does not continue it (it starts at or before that stamp, or
+more than ``msg_adapters.limits.STAMP_WINDOW_S`` after it), the replay calls every node's
+``~/reset`` (``std_srvs/Trigger``) before the first message, so that the nodes take the
+bag as a new time base at once: without it they refused the bag's first messages as out
+of time, every acknowledgement of the replay timed out and the filter updated a few epochs.
 """
 from __future__ import annotations
 
@@ -36,11 +44,13 @@ import traceback
 from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticArray
+from std_srvs.srv import Trigger
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from msg_adapters import MessageError, parse_integrity_risk, status_values
+from msg_adapters.limits import STAMP_WINDOW_NS
 from msg_adapters.wire import DIAGNOSTICS, GNSS, INTEGRITY, TIE_ORDER, header_stamp_ns
 
 from ..bags import schema
@@ -56,6 +66,8 @@ MATCH_SETTLE_S = 0.5
 #: How long to wait for the nodes' first link report (diagnostics, once a second) before
 #: falling back to a fixed settle time [s].
 LINK_REPORT_WAIT_S = 3.0
+#: Longest wait for a node's answer to ``~/reset`` [s].
+RESET_TIMEOUT_S = 10.0
 
 
 class BagReplayer(Node):
@@ -132,13 +144,15 @@ class BagReplayer(Node):
         kwargs.setdefault('start_parameter_services', False)
         super().__init__(node_name, **kwargs)
         self.flow = FlowControl(self.ack_timeout_s, self.gnss_grace_s,
-                                stopped=lambda: self._stop or not self.context.ok(),
+                                stopped=self._stopping,
                                 warn=self.get_logger().warning)
         self._cond = self.flow.cond         # one lock for the flow and the replay's state
         self._epochs_seen: set[int] = set()
         self._diagnostics: dict[str, dict] = {}
         self._stop = False
         self._start_mode = ''
+        #: Nodes reset before playing (they held another time base).
+        self.reset_nodes: list[str] = []
         self._bag_pubs: dict[str, object] = {}
         store = self._store = schema.typestore()
         for topic, (msgtype, latched) in self._topics.items():
@@ -289,7 +303,7 @@ class BagReplayer(Node):
                         out.append(f'a subscriber on {topic}')
             return out
 
-        while missing() and time.monotonic() < deadline and not self._stop:
+        while missing() and time.monotonic() < deadline and not self._stopping():
             time.sleep(0.02)
         for topic, stream in self._streams.items():
             if self._bag_pubs[topic].get_subscription_count() == 0:
@@ -300,6 +314,7 @@ class BagReplayer(Node):
         self._start_mode = self._wait_for_links(deadline)
         if self._start_mode in ('', 'fixed settle'):
             time.sleep(self.settle_s)
+        self._reset_nodes_of_another_time_base()
         left = missing()
         if left:
             self.get_logger().warning(f'playing without {", ".join(left)} '
@@ -345,7 +360,7 @@ class BagReplayer(Node):
             return [f'{key} >= {least}' for key, least in wanted
                     if max(_as_int(r.get(key)) for r in reports) < least]
 
-        while not self._stop:
+        while not self._stopping():
             left = unmet()
             now = time.monotonic()
             if left == []:
@@ -359,8 +374,65 @@ class BagReplayer(Node):
             time.sleep(0.05)
         return ''
 
+    def _nodes_of_another_time_base(self) -> list[str]:
+        """Nodes whose inputs took stamps that the bag does not continue (see the module
+        docstring), by name, from their latest diagnostics."""
+        first_ns = self._bag_start_ns + int(round(self.start_s * 1e9))
+        with self._cond:
+            reports = dict(self._diagnostics)
+        out = []
+        for status_name, values in reports.items():
+            newest = values.get('newest_input_stamp_ns')
+            if newest is None or not status_name.endswith(': status'):
+                continue
+            try:
+                newest_ns = int(newest)
+            except ValueError:
+                continue
+            if not newest_ns < first_ns <= newest_ns + STAMP_WINDOW_NS:
+                out.append(status_name[:-len(': status')])
+        return out
+
+    def _reset_nodes_of_another_time_base(self) -> None:
+        """Call ``~/reset`` of every node that offers it when one of them holds another
+        time base (a downstream node would otherwise keep the old one); each answer is
+        waited for, at most :data:`RESET_TIMEOUT_S`."""
+        if self._stopping() or not self._nodes_of_another_time_base():
+            return
+        prefix = schema.qualified('', self.get_namespace())
+        with self._cond:
+            reporting = sorted(k[:-len(': status')] for k in self._diagnostics
+                               if k.endswith(': status'))
+        offered = {name for name, types in self.get_service_names_and_types()
+                   if 'std_srvs/srv/Trigger' in types}
+        for node in reporting:
+            name = f'{prefix}{node}/reset'
+            if name not in offered:
+                continue
+            client = self.create_client(Trigger, name)
+            try:
+                client.wait_for_service(timeout_sec=RESET_TIMEOUT_S)
+                future = client.call_async(Trigger.Request())
+                deadline = time.monotonic() + RESET_TIMEOUT_S
+                while (not future.done() and time.monotonic() < deadline
+                       and not self._stopping()):
+                    time.sleep(0.01)
+                answer = future.result() if future.done() else None
+            finally:
+                self.destroy_client(client)
+            if answer is not None and answer.success:
+                self.reset_nodes.append(node)
+            else:
+                self.get_logger().warning(f'{name}: no answer within {RESET_TIMEOUT_S:g} s; '
+                                          'the node may refuse the first messages')
+
+    def _stopping(self) -> bool:
+        """A stop was asked for, or the context is down (Ctrl-C: rclpy's signal handler
+        shuts it down): every wait of the replay ends."""
+        return self._stop or not self.context.ok()
+
     def _sleep_until(self, t_wall: float) -> None:
-        while not self._stop:
+        while not self._stopping():
             left = t_wall - time.monotonic()
             if left <= 0:
                 return
@@ -386,13 +458,15 @@ class BagReplayer(Node):
         summary = ReplaySummary(bag=self.bag, rate=self.rate)
         gnss_stamps: list[int] = []
         try:
-            waiting = time.monotonic()
-            self._discover()
-            started = time.monotonic()
-            summary.start, summary.start_wait_s = self._start_mode, started - waiting
+            waiting = started = time.monotonic()
             try:
-                self._publish_all(summary, gnss_stamps)
-                self.flow.drain()
+                self._discover()
+                started = time.monotonic()
+                summary.start, summary.start_wait_s = self._start_mode, started - waiting
+                summary.reset_nodes = list(self.reset_nodes)
+                if not self._stopping():
+                    self._publish_all(summary, gnss_stamps)
+                    self.flow.drain()
             except (KeyboardInterrupt, ExternalShutdownException):
                 # Ctrl-C: stop after the current message and report what was played.
                 summary.interrupted = True
@@ -502,8 +576,10 @@ class BagReplayer(Node):
         with self._cond:
             summary.gnss_epochs = len(gnss_stamps)
             gnss_streams = [s for s in self._streams.values() if s.topic == GNSS]
-            has_filter = bool(self._epochs_seen) or any(
-                s.enabled for s in gnss_streams)
+            # A filter answered, or one was there (its stream's flow control may have gone
+            # off after timeouts: then its count is what came back, not "unknown").
+            has_filter = (bool(self._epochs_seen) or any(s.enabled for s in gnss_streams)
+                          or any(s.timeouts for s in gnss_streams))
             summary.gnss_epochs_processed = (
                 sum(1 for s in gnss_stamps if s in self._epochs_seen) if has_filter else None)
             self.flow.report(summary)

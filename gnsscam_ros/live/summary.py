@@ -34,6 +34,8 @@ class ReplaySummary:
             reported every link), ``'links not matched'`` (they did not within ``wait``),
             ``'fixed settle'`` (no link reports) or ``''`` (no flow-controlled stream).
         start_wait_s: Wall time from the replay's start to its first message [s].
+        reset_nodes: Nodes reset (``~/reset``) before the first message because they held
+            another time base (a bag played again into running nodes).
     """
 
     bag: Path
@@ -52,6 +54,7 @@ class ReplaySummary:
     node_diagnostics: dict[str, dict] = field(default_factory=dict)
     start: str = ''
     start_wait_s: float = 0.0
+    reset_nodes: list[str] = field(default_factory=list)
 
     @property
     def bag_span_s(self) -> float:
@@ -83,18 +86,24 @@ class ReplaySummary:
                 'unacknowledged': self.unacknowledged, 'flow_control': self.flow_control,
                 'ack_wait_s': self.ack_wait_s, 'interrupted': self.interrupted,
                 'cpu_s': self.cpu_s, 'node_diagnostics': self.node_diagnostics,
-                'start': self.start, 'start_wait_s': self.start_wait_s}
+                'start': self.start, 'start_wait_s': self.start_wait_s,
+                'reset_nodes': self.reset_nodes}
 
     def text(self) -> str:
         """Readable one-paragraph summary."""
         lines = [f'replayed {sum(self.published.values())} messages, '
                  f'{self.bag_span_s:.1f} s of bag time in {self.wall_s:.1f} s '
                  f'({self.speed:.1f}x real time, rate {self.rate:g})']
-        if self.gnss_epochs:
-            processed = ('?' if self.gnss_epochs_processed is None
-                         else self.gnss_epochs_processed)
-            lines.append(f'GNSS epochs: {self.gnss_epochs} published, {processed} processed '
-                         f'by the filter, dropped {self.dropped_gnss_epochs}')
+        if self.gnss_epochs and self.gnss_epochs_processed is None:
+            lines.append(f'GNSS epochs: {self.gnss_epochs} published; none acknowledged '
+                         '(nobody publishes integrity_risk: no filter to count them)')
+        elif self.gnss_epochs:
+            lines.append(f'GNSS epochs: {self.gnss_epochs} published, '
+                         f'{self.gnss_epochs_processed} processed by the filter, dropped '
+                         f'{self.dropped_gnss_epochs}')
+        if self.reset_nodes:
+            lines.append('reset first (they held another time base): '
+                         + ', '.join(self.reset_nodes))
         lost = {k: v for k, v in self.unacknowledged.items() if v}
         if lost:
             lines.append(f'unacknowledged: {lost}')

@@ -42,7 +42,7 @@ from sensor_msgs.msg import Image, PointCloud2
 from gnsscam_ros.core.frames import LocalFrame
 from gnsscam_ros.vision.database import MapDatabase
 from gnsscam_ros.vision.errors import MapDatabaseError, VisionError
-from msg_adapters import (ERROR, OK, WARN, CameraMatches, MessageError, check_image,
+from msg_adapters import (OK, WARN, CameraMatches, MessageError, check_image,
                           check_serialized_image, image_to_array, matches_to_pointcloud2,
                           stamp_to_ns)
 
@@ -296,7 +296,9 @@ class CameraNode(GnssCamNode):
         values = {'queue_length': waiting, 'database_images':
                   0 if self.database is None else len(self.database)}
         if self.database is None:
-            return ERROR, 'no map database loaded', values
+            # Running without a camera map is supported (GNSS and odometry alone): a
+            # degraded mode to be seen, not a failure.
+            return WARN, 'no map database: matching off', values
         since = time.monotonic() - (self._last_receipt or self._started)
         if since > self.param('stale_timeout_s'):
             return WARN, f'no camera/image_raw for {since:.1f} s', values

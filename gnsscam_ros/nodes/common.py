@@ -10,7 +10,8 @@ Exit codes of the node executables (:func:`.runtime.run_node`, pipeline_node):
   fatal log line when a node's worker failed: :meth:`GnssCamNode.fail`), also when the
   failure shut the context down as a stop does;
 * 2 (:data:`EXIT_PARAMETER`): a parameter refused at start-up (wrong type, out of range,
-  refused by the node's checks), one line on stderr naming it;
+  refused by the node's checks), or ROS arguments that cannot be used (a ``--params-file``
+  that does not exist or does not parse), one line on stderr naming it;
 * 3 (:data:`EXIT_INPUT`): an input file named by a parameter cannot be used
   (camera_node ``database_path`` missing or not a map database), one line on stderr.
 """
@@ -35,6 +36,8 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.serialization import deserialize_message
 
 from diagnostic_msgs.msg import DiagnosticArray
+from std_srvs.srv import Trigger
+
 from msg_adapters import (NEW_BASE, OK, WARN, MessageError, StampGate, make_diagnostic_array,
                           make_status)
 
@@ -179,14 +182,19 @@ class SequenceGaps:
     def __init__(self, streams: int = 8):
         self._newest: list[int] = []         # per stream, most recently seen last
         self._streams = int(streams)
+        #: The last message observed began a stream beside others already tracked (a
+        #: publisher new to the topic, or one restarted).
+        self.new_stream = False
 
     def observe(self, sequence_number) -> int:
         """Messages lost just before this one (0 when unknown)."""
+        self.new_stream = False
         if not sequence_number or sequence_number < 0:
             return 0                     # not reported by this middleware
         seq = int(sequence_number)
         below = [i for i, newest in enumerate(self._newest) if newest < seq]
         if not below:
+            self.new_stream = bool(self._newest)
             self._newest.append(seq)
             del self._newest[:-self._streams]
             return 0
@@ -273,7 +281,10 @@ class GnssCamNode(Node):
     """Base of the gnsscam_ros nodes.
 
     Declares ``diagnostics_period_s``, publishes ``diagnostics`` periodically with the
-    node's counters (subclasses add their own state through :meth:`diagnostic_summary`),
+    node's counters and ``newest_input_stamp_ns`` (the newest stamp its inputs accepted;
+    subclasses add their own state through :meth:`diagnostic_summary`), offers ``~/reset``
+    (``std_srvs/Trigger``: forget the inputs' time base and the state built on it,
+    :meth:`reset_time_base_now`),
     and validates parameter updates: each declared parameter may carry a validator and a
     read-only flag; :meth:`validate_parameters` sees the whole update and may refuse it with
     a reason (the old values stay); :meth:`apply_parameters` applies accepted ones.
@@ -302,6 +313,7 @@ class GnssCamNode(Node):
                      (0.05, 3600.0), read_only=True)
         self._diag_timer = self.create_timer(self.param('diagnostics_period_s'),
                                              self.publish_diagnostics)
+        self._reset_service = self.create_service(Trigger, '~/reset', self._on_reset)
 
     # ------------------------------------------------------------------ parameters
     def declare(self, name: str, default, description: str, value_range=None,
@@ -461,6 +473,11 @@ class GnssCamNode(Node):
             return          # shutting down: a timer that fires now has nowhere to publish
         level, message, extra = self.diagnostic_summary()
         values = {**self.stats.values(), **self.link_counts(), **extra}
+        newest = [h.gate.newest_ns for h in self.inputs.values() if h.gate.newest_ns is not None]
+        if newest:
+            # A replay compares its bag's start with it: a bag that does not continue
+            # the nodes' time base resets them first (live.player).
+            values['newest_input_stamp_ns'] = max(newest)
         status = make_status(f'{self.get_name()}: status', level, message, values,
                              hardware_id='gnsscam_ros')
         self._diag_pub.publish(make_diagnostic_array(self.now_ns(),
@@ -496,26 +513,79 @@ class GnssCamNode(Node):
             each would otherwise reset the node once more) and :meth:`on_time_base_changed`
             resets what the node keeps of the old time base.
         """
-        gate = self.inputs[topic].gate
+        handler = self.inputs[topic]
+        gate = handler.gate
+        refused = None
         try:
-            verdict = gate.admit(stamp_ns, time.monotonic())
+            # A publisher new to the topic whose stamps go back: a bag played again.
+            verdict = gate.admit(stamp_ns, time.monotonic(),
+                                 new_publisher=handler.gaps.new_stream)
         except MessageError as err:
-            self.warn_rejected(topic, err.reason, str(err))
+            verdict, refused = None, err
+        if verdict != NEW_BASE and self._rewound_together(gate, stamp_ns):
+            verdict, refused = gate.adopt(stamp_ns), None
+        if refused is not None:
+            self.warn_rejected(topic, refused.reason, str(refused))
             return None
         if verdict == NEW_BASE:
             for other in self.inputs.values():
                 if other.gate is not gate:
                     other.gate.reset()
             self.stats.count('time_base_changed')
+            how = ('a new publisher going back in time' if handler.gaps.new_stream else
+                   f'{gate.confirm} consistent messages over {gate.span_s:g} s away from the '
+                   'stream before')
             self.get_logger().warning(
-                f'{topic}: new time base adopted at {stamp_ns} ns ({gate.confirm} consistent '
-                f'messages over {gate.span_s:g} s away from the stream before): state of the '
-                'old one reset')
+                f'{topic}: new time base adopted at {stamp_ns} ns ({how}): state of the old '
+                'one reset')
             self.on_time_base_changed(topic, stamp_ns)
         return verdict
 
+    #: The inputs come from nodes that publish in stamp order (fusion_node's come from
+    #: gnss_node, imu_node and camera_node): two of them going back in time together can
+    #: only be a new time base upstream, taken at once (see :meth:`_rewound_together`).
+    ordered_inputs = False
+
+    def _rewound_together(self, gate: StampGate, stamp_ns: int) -> bool:
+        """With :attr:`ordered_inputs`: ``stamp_ns`` goes back on its input while another
+        input's recent messages went back to the same time (within the stamp window).
+
+        A bag played again reaches such a node through nodes that took it as a new time
+        base at once (its stream comes from a new publisher); their outputs go back from
+        the same publishers, so without this the node would wait for
+        ``NEW_TIME_BASE_MESSAGES`` of one input over ``NEW_TIME_BASE_SPAN_S``.
+        """
+        if not self.ordered_inputs or gate.rewinding_ns != stamp_ns:
+            return False
+        return any(other.gate is not gate and other.gate.rewinding_ns is not None
+                   and abs(other.gate.rewinding_ns - stamp_ns) <= gate.window_ns
+                   for other in self.inputs.values())
+
     def on_time_base_changed(self, topic: str, stamp_ns: int) -> None:
         """Forget what the node keeps of the old time base (override)."""
+
+    def reset_time_base_now(self, reason: str) -> None:
+        """Start afresh on request: every input forgets its stream (the next stamp of each
+        is taken as its start) and :meth:`on_reset` drops the state built on the old time
+        base. Counted ``resets``."""
+        for handler in self.inputs.values():
+            handler.gate.reset()
+        self.stats.count('resets')
+        self.get_logger().warning(f'reset ({reason}): inputs take their next stamps as a new '
+                                  'time base')
+        self.on_reset(reason)
+
+    def on_reset(self, reason: str) -> None:
+        """Drop the state of the old time base after a reset (override; default: as for a
+        new time base an input adopted)."""
+        self.on_time_base_changed('~/reset', 0)
+
+    def _on_reset(self, request, response):
+        # Served by the node's executor, between its input callbacks: no input is halfway.
+        self.reset_time_base_now('requested on ~/reset')
+        response.success = True
+        response.message = f'{self.get_name()}: time base and state reset'
+        return response
 
     # ---------------------------------------------------------------------- failure
     def fail(self, what: str) -> None:

@@ -33,7 +33,10 @@ the first robust fix), so that ``pose`` and ``particles`` can be georeferenced; 
 fields as the bag converter writes them (frame ``map``, status FIX, covariance unknown).
 ``diagnostics`` carries, besides the node status, ``fusion_node: integrity``: the latest
 integrity verdict (level OK / ERROR / STALE as ``integrity_risk``, its message,
-protection level and alert limit) for diagnostic_aggregator and rqt_robot_monitor.
+protection level and alert limit) for diagnostic_aggregator and rqt_robot_monitor. The
+node status shows the consistency test of the cloud against the measurements
+(``consistency_statistic_nats``, ``snapshot_separation_m``, ``recoveries``;
+``core.consistency``) and is WARN while the cloud is inconsistent (integrity ERROR).
 
 Every FilterConfig parameter (``FilterConfig.parameter_specs()``; all but
 ``extra_alert_limits_m``) is a node parameter of the same name;
@@ -289,6 +292,10 @@ class FusionNode(GnssCamNode):
                 'satellite_limit': cfg.satellite_limit, 'map_origin': origin,
                 'seed': self.param('seed'), 'kernels_ready_s': round(self.kernel_warm_up_s, 2)}
 
+    # gnss/measurements, odometry/dead_reckoning and camera/matches come from the other
+    # nodes, each in stamp order: going back together is a new time base upstream.
+    ordered_inputs = True
+
     def reset_time_base(self, reason: str) -> None:
         """The inputs adopt a new time base (their stamps jumped on purpose): drop what is
         buffered and start the filter again from the next fix (``EpochEngine.
@@ -401,6 +408,11 @@ class FusionNode(GnssCamNode):
         keeps of the old one (queued epochs, motion, camera matches, the filter's last
         epoch) can never be combined with the new stamps."""
         self.reset_time_base(f'{topic}: new time base at {stamp_ns} ns')
+
+    def on_reset(self, reason: str) -> None:
+        """``~/reset``: the engine's time-base reset (queued epochs, motion, camera
+        matches, the particle filter); the next usable fix initialises the filter."""
+        self.reset_time_base(reason)
 
     def on_timer(self) -> None:
         """Run epochs whose wait for their inputs is over; report STALE without GNSS."""
@@ -563,6 +575,10 @@ class FusionNode(GnssCamNode):
             values['protection_level_m'] = (math.nan if self.last_result.protection_level_m
                                             is None else self.last_result.protection_level_m)
             values['motion_unknown_s'] = self.last_result.motion_unknown_s
+            consistency = self.last_result.consistency
+            values['consistency_statistic_nats'] = consistency.statistic_nats
+            values['snapshot_separation_m'] = consistency.separation_m
+            values['recoveries'] = self.last_result.recoveries
         if since_gnss > self.param('gnss_timeout_s'):
             return WARN, f'stale input: no GNSS for {since_gnss:.1f} s', values
         if self.engine.reinitialising:
@@ -573,6 +589,9 @@ class FusionNode(GnssCamNode):
         if self.last_result is not None and self.last_result.motion_unknown_s > 0.0:
             return WARN, ('dead reckoning did not cover the last interval (lost or reset): '
                           'integrity ERROR'), values
+        if self.last_result is not None and self.last_result.consistency.inconsistent:
+            return WARN, ('the particle cloud is inconsistent with the measurements '
+                          '(recovering): integrity ERROR'), values
         return OK, 'running', values
 
 

@@ -161,8 +161,10 @@ class ImuNode(GnssCamNode):
     def on_time_base_changed(self, topic: str, stamp_ns: int) -> None:
         # The dead reckoning starts again at its origin on the new time base; fusion_node
         # sees the restart (a reset of the dead reckoning) and treats the step as unknown
-        # motion, as when imu_node itself restarts.
+        # motion, as when imu_node itself restarts. Which sources are active is learnt
+        # anew too: one that fed the old time base may not be part of the new one.
         self.dead_reckoner = DeadReckoner(self.dead_reckoner.config)
+        self._receipt.clear()
 
     def active_sources(self) -> set[str]:
         """Sources whose messages arrived within ``source_timeout_s`` (wall time)."""

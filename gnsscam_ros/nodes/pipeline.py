@@ -23,8 +23,8 @@ from .fusion_node import FusionNode
 from .gnss_node import GnssNode
 from .imu_node import ImuNode
 from .memory import configure_node_memory
-from .runtime import (NodeSpinner, failed, print_node_help, quiet_interrupted_rclpy_objects,
-                      shut_down, start_nodes, wants_help)
+from .runtime import (NodeSpinner, failed, init_ros, print_node_help,
+                      quiet_interrupted_rclpy_objects, shut_down, start_nodes, wants_help)
 
 
 def make_nodes(**kwargs) -> list:
@@ -45,7 +45,9 @@ def main(args=None) -> int:
     nodes, spinner, code = [], None, EXIT_OK
     try:
         try:
-            rclpy.init(args=args)
+            code = init_ros('pipeline_node', args)
+            if code != EXIT_OK:
+                return code
             nodes, code = start_nodes('pipeline_node',
                                       [GnssNode, CameraNode, ImuNode, FusionNode])
             if nodes:

@@ -14,7 +14,7 @@ from typing import Callable
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
-from .common import EXIT_FAILED, EXIT_OK, StartupError
+from .common import EXIT_FAILED, EXIT_OK, EXIT_PARAMETER, StartupError
 from .memory import configure_node_memory
 
 
@@ -37,6 +37,59 @@ def print_node_help(executable: str, doc: str | None, configs: tuple[str, ...]) 
           + ', '.join(f'config/{c}.yaml' for c in configs)
           + ' (installed under share/gnsscam_ros/config).')
     print(f'Example: {executable} --ros-args {files}')
+
+
+def params_file_problem(args=None) -> str | None:
+    """What is wrong with a ``--params-file FILE`` of the ROS arguments (``args`` as
+    ``rclpy.init`` takes them; None: ``sys.argv``): ``'FILE: no such file'``, ``'FILE: not
+    a file'`` or ``'FILE: <reason>'`` when it cannot be read; None when every one can.
+
+    Checked before ``rclpy.init``, whose own report of a missing file is one line that names
+    no file (``[ERROR] [rcl]: Failed to parse global arguments``).
+    """
+    argv = list(sys.argv if args is None else args)
+    inside = False
+    for i, arg in enumerate(argv):
+        if arg == '--ros-args':
+            inside = True
+        elif arg == '--':
+            inside = False
+        elif inside and arg == '--params-file' and i + 1 < len(argv):
+            path = argv[i + 1]
+            if not os.path.exists(path):
+                return f'{path}: no such file'
+            if not os.path.isfile(path):
+                return f'{path}: not a file'
+            try:
+                with open(path, 'rb'):
+                    pass
+            except OSError as err:
+                return f'{path}: {err.strerror or err}'
+    return None
+
+
+def init_ros(executable: str, args=None) -> int:
+    """``rclpy.init(args=args)`` for a node executable; ROS arguments it cannot use (a
+    missing ``--params-file``, a malformed one, a bad remap) become one line on stderr
+    naming the argument and :data:`EXIT_PARAMETER` instead of rcl's anonymous error line
+    and exit 0.
+
+    Returns:
+        :data:`EXIT_OK` when rclpy is initialised, else :data:`EXIT_PARAMETER`.
+    """
+    problem = params_file_problem(args)
+    if problem is not None:
+        print(f'{executable}: --params-file {problem}', file=sys.stderr)
+        return EXIT_PARAMETER
+    try:
+        rclpy.init(args=args)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        raise
+    except Exception as err:            # RCLError: rcl could not parse the ROS arguments
+        text = str(err).splitlines()[0] if str(err) else type(err).__name__
+        print(f'{executable}: bad ROS arguments: {text.split(", at ")[0]}', file=sys.stderr)
+        return EXIT_PARAMETER
+    return EXIT_OK
 
 
 def start_nodes(executable: str, constructors: list[Callable], context=None
@@ -135,7 +188,8 @@ def run_node(node_class, args=None) -> int:
 
     Returns:
         The exit code (module docstring): 0 after Ctrl-C or shutdown, 2 for a refused
-        parameter, 3 for an unusable input file (one line on stderr each).
+        parameter or ROS argument (a ``--params-file`` that does not exist or does not
+        parse), 3 for an unusable input file (one line on stderr each).
     """
     name = node_class.__module__.rsplit('.', 1)[-1]
     if name == '__main__':              # python -m gnsscam_ros.nodes.<name>
@@ -150,7 +204,9 @@ def run_node(node_class, args=None) -> int:
     code = EXIT_OK
     try:
         try:
-            rclpy.init(args=args)
+            code = init_ros(name, args)
+            if code != EXIT_OK:
+                return code
             # Built before the node logs its ready line: a stop right after the line does
             # not interrupt the executor's construction (see _quiet_unraisable).
             executor = SingleThreadedExecutor()

@@ -122,11 +122,16 @@ def residuals_of_points(points, sv, pr, sys_index, clock_w, n_systems):
 
 @contracted_kernel
 def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_scale, floor,
-                 group, evidence, prior_log_w, joint):
+                 wide_log_scale, wide_low, wide_high, wide_inv_sigma, group, evidence, prior_log_w,
+                 joint):
     """Joint log-weights under the robust likelihood, for S sets of N particles.
 
-    ``log L = sum_k log(scale_k exp(-z_k^2 / 2) + floor)`` with
-    ``scale_k = (1 - eps) / (sigma_k sqrt(2 pi))`` and ``floor = eps / range_out``: one
+    ``log L = sum_k log(scale_k exp(-z_k^2 / 2) + wide_k exp(-w_k^2 / 2) + floor_k)``
+    with ``z_k = e_k / sigma_k`` (the line-of-sight core),
+    ``w_k = (min(e_k - lo_k, 0) + max(e_k - hi_k, 0)) / s_k`` (the NLOS / multipath
+    component of the learned error model, flat between ``lo_k`` and ``hi_k``,
+    ``core.gnss.robust_terms``; ``log wide_k`` below ``-708``: none) and a flat floor per
+    satellite: two
     ``exp`` per satellite, one ``log`` per ``group`` satellites (the product of that many
     densities stays within the floating-point range; ``core.gnss.robust_scale``).
 
@@ -139,7 +144,10 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
         clock_w: (k,) clock weights, summing to one per constellation.
         n_systems: Number of constellations.
         log_scale: (k,) log of each satellite's Gaussian scale (above).
-        floor: Outlier floor (above).
+        floor: (k,) outlier floor of each satellite (above).
+        wide_log_scale: (k,) log of each satellite's wide component scale ``wide_k``.
+        wide_low, wide_high: (k,) the ends of its flat part [m].
+        wide_inv_sigma: (k,) its inverse standard deviation ``1 / s_k`` [1/m].
         group: Satellites per log.
         evidence: Tempering exponent of the log-likelihood.
         prior_log_w: (N,) prior log-weights.
@@ -167,10 +175,14 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
                 log_sum[b] = 0.0
             count = 0
             for j in range(k):
-                ls, isg = log_scale[j], inv_sigma[j]
+                ls, isg, fl = log_scale[j], inv_sigma[j], floor[j]
+                wl, lo, hi = wide_log_scale[j], wide_low[j], wide_high[j]
+                wis = wide_inv_sigma[j]
                 for b in range(m):
                     zj = r[j, b] * isg
-                    prod[b] *= elementary.exp(ls - 0.5 * zj * zj) + floor
+                    wj = (min(r[j, b] - lo, 0.0) + max(r[j, b] - hi, 0.0)) * wis
+                    prod[b] *= (elementary.exp(ls - 0.5 * zj * zj)
+                                + elementary.exp(wl - 0.5 * wj * wj) + fl)
                 count += 1
                 if count == group:
                     _fold_logs(prod, log_sum, m)
@@ -185,8 +197,9 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
 
 @contracted_kernel
 def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, sv, pr,
-                        inv_sigma, sys_index, clock_w, n_systems, log_scale, floor, group,
-                        evidence, prior_log_w, joint):
+                        inv_sigma, sys_index, clock_w, n_systems, log_scale, floor,
+                        wide_log_scale, wide_low, wide_high, wide_inv_sigma, group, evidence,
+                        prior_log_w, joint):
     """:func:`robust_joint` with the per-satellite arithmetic in float32 (twice the SIMD
     lanes), on coordinates relative to a ``centre`` near the cloud.
 
@@ -201,9 +214,10 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
     particle farther out takes the exact float64 residuals (:func:`_block_residuals`).
 
     Args:
-        sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_scale, floor, evidence,
-            prior_log_w, joint: As :func:`robust_joint` (``floor`` and the densities
-            within the float32 range, ``group`` for it).
+        sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_scale, floor,
+            wide_log_scale, wide_low, wide_high, wide_inv_sigma, evidence, prior_log_w, joint: As
+            :func:`robust_joint` (``floor`` and the densities within the float32 range,
+            ``group`` for it).
         centre: (3,) the centre c [m].
         unit, base, half_inv_range: (k, 3), (k,), (k,) as above.
         max_offset_m: Largest ``|d|`` of the float32 path [m].
@@ -220,7 +234,11 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
     clock_w32 = clock_w.astype(f32)
     inv_sigma32 = inv_sigma.astype(f32)
     log_scale32 = log_scale.astype(f32)
-    floor32 = f32(floor)
+    floor32 = floor.astype(f32)
+    wide_log32 = np.maximum(wide_log_scale, -1000.0).astype(f32)
+    wide_low32 = wide_low.astype(f32)
+    wide_high32 = wide_high.astype(f32)
+    wide_inv32 = wide_inv_sigma.astype(f32)
     half = f32(0.5)
     one = f32(1.0)
     zero = f32(0.0)
@@ -277,11 +295,16 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
                 log_sum[b] = 0.0
             count = 0
             for j in range(k):
-                ls, isg = log_scale32[j], inv_sigma32[j]
+                ls, isg, fl = log_scale32[j], inv_sigma32[j], floor32[j]
+                wl, lo, hi = wide_log32[j], wide_low32[j], wide_high32[j]
+                wis = wide_inv32[j]
                 r_j, clock_c = r[j], clock[sys_index[j]]
                 for b in range(m):
-                    zj = (r_j[b] - clock_c[b]) * isg
-                    prod[b] *= elementary.exp32(ls - half * zj * zj) + floor32
+                    ej = r_j[b] - clock_c[b]
+                    zj = ej * isg
+                    wj = (min(ej - lo, zero) + max(ej - hi, zero)) * wis
+                    prod[b] *= (elementary.exp32(ls - half * zj * zj)
+                                + elementary.exp32(wl - half * wj * wj) + fl)
                 count += 1
                 if count == group:
                     _fold_logs(prod, log_sum, m)
@@ -371,10 +394,11 @@ def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
 
 @contracted_kernel
 def robust_inlier_shares(points, log_w, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
-                         log_scale, floor):
+                         log_scale, floor, wide_log_scale, wide_low, wide_high, wide_inv_sigma):
     """Per-satellite inlier probabilities of one set under the robust model.
 
-    ``p_k = d_k / (d_k + floor)``, ``d_k = scale_k exp(-z_k^2 / 2)``, per particle.
+    ``p_k = d_k / (d_k + v_k + floor_k)``, ``d_k = scale_k exp(-z_k^2 / 2)`` (the core)
+    and ``v_k`` the wide component (:func:`robust_joint`), per particle.
 
     Returns:
         ``(weighted (k,), share (k,))``: the average of ``p_k`` under ``log_w`` (what the
@@ -399,12 +423,15 @@ def robust_inlier_shares(points, log_w, sv, pr, inv_sigma, sys_index, clock_w, n
         for b in range(m):
             w[b] = elementary.exp(log_w[start + b])
         for j in range(k):
-            ls, isg = log_scale[j], inv_sigma[j]
+            ls, isg, fl = log_scale[j], inv_sigma[j], floor[j]
+            wl, lo, hi = wide_log_scale[j], wide_low[j], wide_high[j]
+            wis = wide_inv_sigma[j]
             r_j, sum_w, sum_p = r[j], lanes_w[j], lanes_p[j]
             for b in range(m):
                 zj = r_j[b] * isg
+                wj = (min(r_j[b] - lo, 0.0) + max(r_j[b] - hi, 0.0)) * wis
                 dens = elementary.exp(ls - 0.5 * zj * zj)
-                p = dens / (dens + floor)
+                p = dens / (dens + elementary.exp(wl - 0.5 * wj * wj) + fl)
                 sum_w[b] += w[b] * p
                 sum_p[b] += p
     weighted = np.zeros(k)

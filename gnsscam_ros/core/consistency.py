@@ -1,0 +1,178 @@
+"""Is the particle cloud still consistent with the measurements? Detection and recovery.
+
+A particle filter in a street canyon can lock onto a wrong mode: a cloud tens of metres
+off that a subset of biased satellites explains, held there by the dynamics while the
+rest are taken as outliers. Nothing inside the cloud notices; the protection level,
+computed around the wrong estimate, bounds nothing. So every epoch the filter asks the
+measurements a second question: would the same cloud explain them better somewhere
+else? The alternative is the cloud moved horizontally onto a robust snapshot solution of
+the epoch (:func:`snapshot_position`; its height stays the cloud's: snapshot heights in a
+canyon are tens of metres off). Both are weighed by the same likelihood with the same
+evidence exponent, so their difference ``d = log L(moved) - log L(cloud)`` is a log
+likelihood ratio between two hypotheses of equal spread, and its sum over epochs is a
+sequential test (Page's CUSUM, ``S <- max(0, S + d - allowance)``,
+:class:`ConsistencyMonitor`):
+
+* ``S >= suspect_nats``: inconsistent. The verdict is ERROR and the protection level
+  covers the separation between the estimate and the snapshot solution.
+* ``S >= recover_nats``: recovery, as augmented Monte Carlo localisation injects
+  particles when the likelihood drops: a share of the cloud is moved by the smoothed
+  separation onto the snapshot solutions (its spread kept), the likelihood decides
+  between the two from then on, the test starts again and integrity settles again
+  before it is certified.
+
+Under a consistent cloud ``d`` stays below the allowance on average, so ``S`` stays near
+zero; its steps are tempered like the update, so the time to detect a given separation
+does not depend on the GNSS rate.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Gauss-Newton steps of the plain least squares and of the robust (Cauchy) refinement.
+PLAIN_STEPS = 4
+ROBUST_STEPS = 5
+#: Cauchy scale of the robust refinement, in standard deviations of the error model.
+CAUCHY_SCALE = 2.0
+#: Degrees of freedom of the move tested (east, north).
+SHIFT_DOF = 2
+#: Smoothing time of the separation a recovery moves the cloud by [s].
+SHIFT_SMOOTHING_S = 10.0
+
+
+def snapshot_position(sv_enu_m: np.ndarray, pr_m: np.ndarray, sigma_m: np.ndarray,
+                      sys_index: np.ndarray, n_systems: int, start_enu_m: np.ndarray
+                      ) -> np.ndarray | None:
+    """Robust snapshot position of one epoch in the map frame, or None (too few
+    satellites or no convergence).
+
+    Plain weighted least squares first (it does not depend on the starting point beyond
+    the linearisation), then iteratively reweighted least squares with a Cauchy loss: the
+    solution one epoch's measurements give, whatever the filter believes.
+
+    Args:
+        sv_enu_m: (k, 3) satellite positions (Earth rotation corrected) [m].
+        pr_m: (k,) pseudoranges [m].
+        sigma_m: (k,) error standard deviations [m].
+        sys_index: (k,) constellation of each satellite (one clock each).
+        n_systems: Number of constellations.
+        start_enu_m: (3,) linearisation point [m].
+    """
+    k = pr_m.shape[0]
+    n_unknowns = 3 + n_systems
+    if k < n_unknowns + 1:
+        return None
+    x = np.asarray(start_enu_m, dtype=float).copy()
+    clock_cols = np.zeros((k, n_systems))
+    clock_cols[np.arange(k), sys_index] = 1.0
+    robust_w = np.ones(k)
+    for step in range(PLAIN_STEPS + ROBUST_STEPS):
+        offset = sv_enu_m - x
+        rng = np.linalg.norm(offset, axis=1)
+        jac = np.hstack([-offset / rng[:, None], clock_cols])
+        resid = pr_m - rng
+        # The clocks are re-estimated at every step: the residual is before them.
+        w = robust_w / sigma_m
+        try:
+            delta, *_ = np.linalg.lstsq(jac * w[:, None], resid * w, rcond=None)
+        except np.linalg.LinAlgError:
+            return None
+        x = x + delta[:3]
+        if step >= PLAIN_STEPS - 1:
+            post = (resid - jac @ delta) / (CAUCHY_SCALE * sigma_m)
+            robust_w = 1.0 / np.sqrt(1.0 + post * post)
+    return x if np.all(np.isfinite(x)) else None
+
+
+@dataclass(frozen=True)
+class ConsistencyState:
+    """The test after an epoch.
+
+    Attributes:
+        statistic_nats: The CUSUM ``S`` [nats].
+        step_nats: This epoch's log likelihood ratio ``d`` [nats] (NaN: not tested).
+        separation_m: Horizontal distance from the cloud to the snapshot solution,
+            smoothed [m] (NaN: none).
+        inconsistent: ``S >= suspect_nats``.
+        recover: ``S >= recover_nats``: the filter recovers this epoch.
+        shift_m: (2,) the smoothed move from the cloud to the snapshot solution, east and
+            north [m] (None: none).
+    """
+
+    statistic_nats: float = 0.0
+    step_nats: float = float('nan')
+    separation_m: float = float('nan')
+    inconsistent: bool = False
+    recover: bool = False
+    shift_m: np.ndarray | None = None
+
+
+class ConsistencyMonitor:
+    """Page's CUSUM of the log likelihood ratio "cloud moved to the snapshot solution"
+    against "cloud where it is".
+
+    The snapshot solution is fitted to the epoch itself, so even a cloud in the right
+    place is beaten by it on average: for a Gaussian model the log likelihood ratio of a
+    fitted position against the true one is ``chi^2 / 2`` with as many degrees of freedom
+    as the move has (two: east and north), one nat per epoch before tempering. That
+    expectation is the test's allowance: ``S <- max(0, S + d - evidence * 1)``.
+
+    The move of a recovery is the separation smoothed over ``SHIFT_SMOOTHING_S`` (one
+    epoch's snapshot solution in a canyon may be tens of metres off; a lock is a
+    separation that persists).
+
+    Args:
+        suspect_nats: Statistic from which the cloud counts as inconsistent.
+        recover_nats: Statistic at which the filter recovers.
+    """
+
+    def __init__(self, suspect_nats: float, recover_nats: float):
+        self.suspect_nats = float(suspect_nats)
+        self.recover_nats = float(recover_nats)
+        self.statistic_nats = 0.0
+        self.recoveries = 0
+        self.shift_m: np.ndarray | None = None       # smoothed snapshot - cloud, E, N
+        self._stamp_ns: int | None = None
+
+    def observe(self, stamp_ns: int, step_nats: float, evidence: float = 0.0,
+                shift_m: np.ndarray | None = None) -> ConsistencyState:
+        """Fold one epoch into the test.
+
+        Args:
+            stamp_ns: Epoch time [ns].
+            step_nats: The epoch's log likelihood ratio (NaN: no test this epoch; the
+                statistic stays).
+            evidence: The epoch's evidence exponent (scales the allowance).
+            shift_m: (2,) snapshot solution minus cloud centre, east and north [m].
+        """
+        if np.isfinite(step_nats) and shift_m is not None:
+            self.statistic_nats = max(
+                0.0, self.statistic_nats + float(step_nats) - SHIFT_DOF / 2.0 * evidence)
+            if self.shift_m is None or self._stamp_ns is None:
+                self.shift_m = np.asarray(shift_m, dtype=float).copy()
+            else:
+                dt_s = max((stamp_ns - self._stamp_ns) * 1e-9, 0.0)
+                keep = float(np.exp(-dt_s / SHIFT_SMOOTHING_S))
+                self.shift_m = keep * self.shift_m + (1.0 - keep) * np.asarray(shift_m)
+            self._stamp_ns = stamp_ns
+        separation = (float('nan') if self.shift_m is None
+                      else float(np.hypot(*self.shift_m)))
+        recover = self.statistic_nats >= self.recover_nats and self.shift_m is not None
+        state = ConsistencyState(
+            statistic_nats=self.statistic_nats, step_nats=float(step_nats),
+            separation_m=separation, inconsistent=self.statistic_nats >= self.suspect_nats,
+            recover=recover,
+            shift_m=None if self.shift_m is None else self.shift_m.copy())
+        if recover:
+            self.recoveries += 1
+            self.statistic_nats = 0.0
+            self.shift_m = None
+        return state
+
+    def reset(self) -> None:
+        """Start the test again (a new initialisation); the recovery count stays."""
+        self.statistic_nats = 0.0
+        self.shift_m = None
+        self._stamp_ns = None

@@ -1,0 +1,350 @@
+"""The pseudorange error model, learned online from the residuals at the estimate.
+
+Receivers and preprocessing chains state variances on scales that differ by factors of
+2-10, or state none; in a street canyon the errors are not Gaussian either: a
+line-of-sight core of a few metres and NLOS / multipath errors of tens of metres, more of
+them the weaker the signal. So the filter does not take the stated variances; it learns
+the error distribution from what the measurements do, in the spirit of the adaptive
+mixtures of Pfeifer and Protzel (libRSF: a Gaussian mixture whose weights and spreads are
+estimated from the residuals over a sliding window):
+
+* every satellite falls into a **signal class** by its C/N0 (bins ``CN0_EDGES_DBHZ``;
+  satellites without C/N0 form a class of their own);
+* per class, the residuals of the last ``window_s`` seconds are a two-component mixture
+  ``(1 - pi) N(r; 0, s0^2) + pi N(r; mu, s1^2)``: a line-of-sight core centred on zero
+  (the per-constellation receiver clock takes the common offset) and a wide component
+  for NLOS and multipath with a mean ``mu >= 0`` (a reflected signal arrives late);
+* weights and spreads are maximum a posteriori estimates by EM, a few iterations per
+  epoch started from the last epoch's fit (incremental EM). The priors keep a class with
+  few samples near the pooled fit of all classes shaped by the SIGMA-epsilon law of code
+  tracking (Hartinger and Brunner 1999: variance proportional to ``10^(-C/N0 / 10)``),
+  and the pooled fit near physical scales (:class:`ErrorPriors`): conventions of the
+  problem class (code noise of metres, NLOS errors of tens of metres), not values fitted
+  to a data set. Before any residual the model is that prior, so the first fix is
+  weighted by C/N0 too, never by the stated variances.
+
+The residuals are those of the epoch's own robust snapshot solution (so that a filter
+locked onto a wrong place cannot teach the model that place), after its clock per
+constellation, inflated by ``sqrt(V / (V - p))`` (``V`` the expected number of
+line-of-sight satellites under the current fit, ``p`` unknowns): the fix absorbs part of
+the errors of the satellites it rests on, their residuals alone would understate them.
+
+How long the line-of-sight errors persist is learned alongside
+(:attr:`AdaptiveErrorModel.correlation_time_s`): the correlation of each satellite's
+residual with its own about ``CORRELATION_LAG_S`` earlier, over the window, read as that
+of a first-order Gauss-Markov process, ``tau = -lag / ln rho``. The lag is in seconds,
+not epochs, so the estimate does not depend on the GNSS rate.
+
+The same fit drives the GNSS likelihood (core spread and outlier share per satellite,
+:meth:`AdaptiveErrorModel.satellite_model`), the size of the bias hypotheses behind the
+protection level (:meth:`AdaptiveErrorModel.bias_sigma_m`) and the consistency test of the
+filter (:mod:`core.consistency`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: C/N0 bin edges of the signal classes [dB-Hz]: 5 dB-Hz bins over the range where code
+#: tracking errors change most (below 25 a signal is mostly reflected, above 45 mostly
+#: direct). A generic discretisation, not a fit.
+CN0_EDGES_DBHZ = np.array([25.0, 30.0, 35.0, 40.0, 45.0])
+#: C/N0 of each class for the prior's shape [dB-Hz]: the bin centres (the unknown class
+#: at the reference).
+CLASS_CN0_DBHZ = np.array([22.5, 27.5, 32.5, 37.5, 42.5, 47.5, 45.0])
+#: Reference C/N0 of the prior's shape [dB-Hz].
+REFERENCE_CN0_DBHZ = 45.0
+#: Class of the satellites whose C/N0 is unknown.
+UNKNOWN_CLASS = CN0_EDGES_DBHZ.shape[0] + 1
+N_CLASSES = UNKNOWN_CLASS + 1
+#: EM iterations per epoch (warm-started: the fit moves by one epoch's data at a time).
+EM_ITERATIONS = 3
+#: Most residuals the window holds (60 s of 60 satellites at 5 Hz fit).
+MAX_SAMPLES = 20_000
+#: Lag at which the time correlation is measured [s]; a pair may be half of it off.
+CORRELATION_LAG_S = 2.0
+#: Residuals beyond this many core standard deviations of their class are clipped there
+#: for the correlation: a large NLOS error persists, but must not decide it alone.
+CORRELATION_CLIP_SD = 3.0
+#: Pairs before the measured correlation time replaces the prior one.
+CORRELATION_MIN_PAIRS = 50
+#: Shortest correlation time reported [s].
+MIN_CORRELATION_TIME_S = 0.1
+
+
+def signal_class(cn0_dbhz: np.ndarray) -> np.ndarray:
+    """Signal class of each satellite (0 .. N_CLASSES - 1) from its C/N0 [dB-Hz]."""
+    cn0 = np.asarray(cn0_dbhz, dtype=float)
+    classes = np.searchsorted(CN0_EDGES_DBHZ, np.nan_to_num(cn0, nan=0.0), side='right')
+    return np.where(np.isfinite(cn0), classes, UNKNOWN_CLASS).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class ErrorPriors:
+    """Weak priors of the mixture (conventions of GNSS code ranging in a city).
+
+    Attributes:
+        core_sd_m: Line-of-sight code error standard deviation before any data [m].
+        wide_sd_m: NLOS / multipath error standard deviation before any data [m].
+        wide_share: Share of NLOS / multipath residuals before any data.
+        pooled_strength: Pseudo-samples of the pooled fit's prior.
+        class_strength: Pseudo-samples by which a class is drawn to the pooled fit.
+        min_core_sd_m: Smallest core spread: code noise never vanishes [m].
+        max_shape: Largest factor of the SIGMA-epsilon shape (at the lowest C/N0).
+    """
+
+    core_sd_m: float = 5.0
+    wide_sd_m: float = 30.0
+    wide_share: float = 0.3
+    pooled_strength: float = 30.0
+    class_strength: float = 30.0
+    min_core_sd_m: float = 1.0
+    max_shape: float = 10.0
+
+    def shape(self) -> np.ndarray:
+        """(N_CLASSES,) spread of each class relative to the reference C/N0: standard
+        deviation proportional to ``10^(-C/N0 / 20)``, at most ``max_shape``."""
+        return np.minimum(10.0 ** (-(CLASS_CN0_DBHZ - REFERENCE_CN0_DBHZ) / 20.0),
+                          self.max_shape)
+
+
+@dataclass(frozen=True)
+class MixtureFit:
+    """Per-class mixture parameters, arrays of shape (N_CLASSES,).
+
+    Attributes:
+        core_sd_m: Line-of-sight core standard deviation s0 [m].
+        wide_share: Weight pi of the NLOS / multipath component.
+        wide_mean_m: Its mean mu [m].
+        wide_sd_m: Its standard deviation s1 [m].
+        samples: Residuals of the class in the window (the pooled fit: all).
+    """
+
+    core_sd_m: np.ndarray
+    wide_share: np.ndarray
+    wide_mean_m: np.ndarray
+    wide_sd_m: np.ndarray
+    samples: np.ndarray
+
+    def total_sd_m(self) -> np.ndarray:
+        """Standard deviation of the whole mixture per class [m]."""
+        pi, mu = self.wide_share, self.wide_mean_m
+        mean = pi * mu
+        second = (1.0 - pi) * self.core_sd_m ** 2 + pi * (self.wide_sd_m ** 2 + mu ** 2)
+        return np.sqrt(np.maximum(second - mean ** 2, 0.0))
+
+
+def _normal_pdf(r: np.ndarray, mean, sd) -> np.ndarray:
+    z = (r - mean) / sd
+    return np.exp(-0.5 * z * z) / (sd * np.sqrt(2.0 * np.pi))
+
+
+def _em_step(r: np.ndarray, w: np.ndarray, cls: np.ndarray, n_classes: int,
+             fit: tuple[np.ndarray, ...], prior: tuple[np.ndarray, ...],
+             strength: float, min_core_sd_m: float) -> tuple[np.ndarray, ...]:
+    """One MAP EM iteration of every class at once (``np.bincount`` over the classes).
+
+    Args:
+        r: (n,) residuals [m]; w: (n,) their weights; cls: (n,) their classes.
+        n_classes: Number of classes.
+        fit: ``(s0, pi, mu, s1)`` per class, the current estimate.
+        prior: ``(s0, pi, mu, s1)`` per class, the prior's centre.
+        strength: Pseudo-samples of the prior.
+        min_core_sd_m: Floor of s0 [m].
+    """
+    s0, pi, mu, s1 = (f[cls] for f in fit)
+    core = (1.0 - pi) * _normal_pdf(r, 0.0, s0)
+    wide = pi * _normal_pdf(r, mu, s1)
+    resp = wide / np.maximum(core + wide, 1e-300)       # E-step: P(NLOS | r)
+    w1 = w * resp
+    w0 = w - w1
+
+    def total(values):
+        return np.bincount(cls, weights=values, minlength=n_classes)
+
+    p_s0, p_pi, p_mu, p_s1 = prior
+    n0, n1 = total(w0), total(w1)
+    # M-step with conjugate pseudo-samples at the prior's centre: strength * (1 - pi0)
+    # core samples of variance s0^2, strength * pi0 wide ones at mu0 with variance s1^2.
+    a0, a1 = strength * (1.0 - p_pi), strength * p_pi
+    new_pi = (n1 + a1) / (n0 + n1 + a0 + a1)
+    new_mu = np.maximum((total(w1 * r) + a1 * p_mu) / (n1 + a1), 0.0)
+    new_s0 = np.sqrt((total(w0 * r * r) + a0 * p_s0 ** 2) / (n0 + a0))
+    dev = r - new_mu[cls]
+    new_s1 = np.sqrt((total(w1 * dev * dev) + a1 * p_s1 ** 2) / (n1 + a1))
+    new_s0 = np.maximum(new_s0, min_core_sd_m)
+    # The wide component stays the wide one: at least twice the core.
+    new_s1 = np.maximum(new_s1, 2.0 * new_s0)
+    return new_s0, new_pi, new_mu, new_s1
+
+
+class AdaptiveErrorModel:
+    """Pseudorange error mixture per signal class over a sliding window.
+
+    Args:
+        window_s: Length of the window of residuals [s].
+        prior_correlation_time_s: Correlation time before enough residual pairs [s].
+        priors: The mixture's priors.
+    """
+
+    def __init__(self, window_s: float = 60.0, prior_correlation_time_s: float = 10.0,
+                 priors: ErrorPriors = ErrorPriors()):
+        self.window_s = float(window_s)
+        self.prior_correlation_time_s = float(prior_correlation_time_s)
+        self.priors = priors
+        # Per satellite key: (stamp_ns, residual) of the last two lags.
+        self._history: dict[int, list[tuple[int, float]]] = {}
+        # Sums of the lagged pairs, forgotten over the window: xy, xx, yy, lag, count.
+        self._pairs = np.zeros(5)
+        self._pairs_stamp_ns: int | None = None
+        self._stamp_ns = np.zeros(MAX_SAMPLES, dtype=np.int64)
+        self._class = np.zeros(MAX_SAMPLES, dtype=np.int64)
+        self._residual_m = np.zeros(MAX_SAMPLES)
+        self._count = 0
+        self.pooled = self._prior_fit(1)
+        self.fit = self._prior_fit(N_CLASSES)
+
+    def _prior_fit(self, n: int) -> MixtureFit:
+        p = self.priors
+        shape = p.shape() if n == N_CLASSES else np.ones(n)
+        return MixtureFit(core_sd_m=p.core_sd_m * shape, wide_share=np.full(n, p.wide_share),
+                          wide_mean_m=np.zeros(n), wide_sd_m=p.wide_sd_m * shape,
+                          samples=np.zeros(n))
+
+    @property
+    def samples(self) -> int:
+        """Residuals in the window."""
+        return self._count
+
+    def observe(self, stamp_ns: int, residual_m: np.ndarray, cn0_dbhz: np.ndarray,
+                n_unknowns: int, keys: np.ndarray | None = None) -> None:
+        """Add one epoch's residuals at the estimate and refit the mixture.
+
+        Args:
+            stamp_ns: Epoch time [ns].
+            residual_m: (k,) clock-corrected residuals of a fix [m].
+            cn0_dbhz: (k,) C/N0 of the satellites [dB-Hz] (NaN: unknown).
+            n_unknowns: Position and clock unknowns the fix took from them.
+            keys: (k,) one key per satellite across epochs, for the time correlation
+                (None: not measured).
+        """
+        r = np.asarray(residual_m, dtype=float)
+        keep = np.isfinite(r)
+        r = r[keep]
+        cls = signal_class(np.asarray(cn0_dbhz, dtype=float)[keep])
+        # The fix rests on the line-of-sight satellites: their count, not all, says how
+        # much of their errors it absorbed.
+        f = self.fit
+        s0, pi, mu, s1 = (v[cls] for v in (f.core_sd_m, f.wide_share, f.wide_mean_m,
+                                           f.wide_sd_m))
+        core = (1.0 - pi) * _normal_pdf(r, 0.0, s0)
+        line_of_sight = float(np.sum(core / np.maximum(core + pi * _normal_pdf(r, mu, s1),
+                                                       1e-300)))
+        if line_of_sight <= n_unknowns + 1.0:
+            return                         # too little redundancy to say anything
+        r = r * np.sqrt(line_of_sight / (line_of_sight - n_unknowns))
+        if keys is not None:
+            clip = CORRELATION_CLIP_SD * s0
+            self._observe_pairs(stamp_ns, np.asarray(keys)[keep], np.clip(r, -clip, clip))
+        self._append(stamp_ns, r, cls)
+        self._refit()
+
+    def _observe_pairs(self, stamp_ns: int, keys: np.ndarray, r: np.ndarray) -> None:
+        """Pair each satellite's residual with its own about ``CORRELATION_LAG_S``
+        earlier and fold the pairs into the sums."""
+        if self._pairs_stamp_ns is not None:
+            dt_s = max((stamp_ns - self._pairs_stamp_ns) * 1e-9, 0.0)
+            self._pairs *= np.exp(-dt_s / self.window_s)
+        self._pairs_stamp_ns = stamp_ns
+        lag_ns = int(CORRELATION_LAG_S * 1e9)
+        pairs = []
+        for key, value in zip(keys.tolist(), r.tolist()):
+            past = self._history.setdefault(key, [])
+            while past and stamp_ns - past[0][0] > 2 * lag_ns:
+                past.pop(0)
+            gaps = [abs(stamp_ns - then - lag_ns) for then, _ in past]
+            if gaps and min(gaps) <= lag_ns // 2:
+                then, old = past[int(np.argmin(gaps))]
+                pairs.append((value, old, (stamp_ns - then) * 1e-9))
+            past.append((stamp_ns, value))
+        for key in [k for k, past in self._history.items()
+                    if not past or stamp_ns - past[-1][0] > 2 * lag_ns]:
+            del self._history[key]
+        if pairs:
+            x, y, lag = np.array(pairs).T
+            self._pairs += (float(x @ y), float(x @ x), float(y @ y), float(lag.sum()),
+                            float(x.shape[0]))
+
+    @property
+    def correlation_time_s(self) -> float:
+        """How long the errors persist [s]: ``-lag / ln rho`` of the residual pairs in the
+        window (the prior before ``CORRELATION_MIN_PAIRS``), between
+        ``MIN_CORRELATION_TIME_S`` and the window."""
+        xy, xx, yy, lag, count = self._pairs
+        if count < CORRELATION_MIN_PAIRS or xx <= 0.0 or yy <= 0.0:
+            return self.prior_correlation_time_s
+        rho = xy / np.sqrt(xx * yy)
+        if rho <= 0.0:
+            return MIN_CORRELATION_TIME_S
+        if rho >= 1.0:
+            return self.window_s
+        return float(np.clip(-(lag / count) / np.log(rho), MIN_CORRELATION_TIME_S,
+                             self.window_s))
+
+    def _append(self, stamp_ns: int, r: np.ndarray, cls: np.ndarray) -> None:
+        horizon = stamp_ns - int(self.window_s * 1e9)
+        n = self._count
+        # Drop what left the window (and, if still full, the oldest), then append.
+        live = self._stamp_ns[:n] >= horizon
+        start = max(0, int(live.sum()) + r.shape[0] - MAX_SAMPLES)
+        idx = np.flatnonzero(live)[start:]
+        m = idx.shape[0]
+        for arr in (self._stamp_ns, self._class, self._residual_m):
+            arr[:m] = arr[idx]
+        k = min(r.shape[0], MAX_SAMPLES)
+        self._stamp_ns[m:m + k] = stamp_ns
+        self._class[m:m + k] = cls[-k:]
+        self._residual_m[m:m + k] = r[-k:]
+        self._count = m + k
+
+    def _refit(self) -> None:
+        n = self._count
+        r, cls = self._residual_m[:n], self._class[:n]
+        w = np.ones(n)
+        p = self.priors
+        pooled = tuple(np.array([v]) for v in (p.core_sd_m, p.wide_share, 0.0, p.wide_sd_m))
+        fit = (self.pooled.core_sd_m, self.pooled.wide_share, self.pooled.wide_mean_m,
+               self.pooled.wide_sd_m)
+        zeros = np.zeros(n, dtype=np.int64)
+        for _ in range(EM_ITERATIONS):
+            fit = _em_step(r, w, zeros, 1, fit, pooled, p.pooled_strength, p.min_core_sd_m)
+        self.pooled = MixtureFit(*fit, samples=np.array([float(n)]))
+        # The classes' prior: the pooled fit, its spreads shaped by C/N0 about their
+        # sample-weighted mean (so that the shape moves spreads between classes only).
+        counts = np.bincount(cls, minlength=N_CLASSES).astype(float)
+        shape = p.shape()
+        shape = shape / (np.sum(counts * shape) / max(counts.sum(), 1.0))
+        s0, pi, mu, s1 = fit
+        centre = (s0 * shape, np.repeat(pi, N_CLASSES), np.repeat(mu, N_CLASSES), s1 * shape)
+        fit = (self.fit.core_sd_m, self.fit.wide_share, self.fit.wide_mean_m,
+               self.fit.wide_sd_m)
+        for _ in range(EM_ITERATIONS):
+            fit = _em_step(r, w, cls, N_CLASSES, fit, centre, p.class_strength,
+                           p.min_core_sd_m)
+        self.fit = MixtureFit(*fit, samples=counts)
+
+    def satellite_model(self, cn0_dbhz: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The mixture of each satellite's class: ``(core sd [m], wide share, wide mean
+        [m], wide sd [m])``, arrays (k,)."""
+        cls = signal_class(cn0_dbhz)
+        f = self.fit
+        return (f.core_sd_m[cls], f.wide_share[cls], f.wide_mean_m[cls], f.wide_sd_m[cls])
+
+    def bias_sigma_m(self, cn0_dbhz: np.ndarray) -> np.ndarray:
+        """Standard deviation of each satellite's whole error (core and wide) [m]."""
+        return self.fit.total_sd_m()[signal_class(cn0_dbhz)]
+
+    def reset(self) -> None:
+        """Forget the window (a new drive or a reset filter)."""
+        self.__init__(self.window_s, self.prior_correlation_time_s, self.priors)

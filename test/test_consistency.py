@@ -1,0 +1,118 @@
+"""The consistency test of the cloud against the measurements (core.consistency): the
+test statistic, a forced wrong lock detected and recovered from, and the same integrity
+at 1 and 5 Hz."""
+import numpy as np
+import pytest
+from synthetic import FRAME, sky
+
+from gnsscam_ros.core.consistency import (SHIFT_DOF, ConsistencyMonitor,
+                                          snapshot_position)
+from gnsscam_ros.core.engine import ERROR, EpochEngine, InputTiming
+from gnsscam_ros.core.filter import UPDATED, FilterConfig
+from gnsscam_ros.core.motion import dead_reckon
+from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
+from gnsscam_ros.evaluation.runner import engine_reports, run_epochs, truth_at
+
+S = 1_000_000_000
+
+
+def test_statistic_accumulates_evidence_beyond_the_allowance_only():
+    monitor = ConsistencyMonitor(suspect_nats=2.0, recover_nats=6.0)
+    shift = np.array([30.0, 0.0])
+    # Steps at the allowance (the fitted snapshot's expected advantage): nothing builds up.
+    for k in range(100):
+        state = monitor.observe(k * S, SHIFT_DOF / 2.0 * 0.1, 0.1, shift)
+    assert state.statistic_nats == 0.0 and not state.inconsistent
+    # A persistent advantage of the moved cloud: inconsistent from 2 nats, recovery at 6.
+    steps = []
+    for k in range(100, 120):
+        state = monitor.observe(k * S, 0.6, 0.1, shift)
+        steps.append(state)
+        if state.recover:
+            break
+    assert [s.inconsistent for s in steps].index(True) == 3       # 4 x 0.5 nats
+    assert steps[-1].recover and len(steps) == 12 and monitor.recoveries == 1
+    np.testing.assert_allclose(steps[-1].shift_m, shift)
+    assert monitor.statistic_nats == 0.0                          # starts again
+    # No test (no snapshot solution): the statistic stays.
+    monitor.observe(200 * S, 1.0, 0.1, shift)
+    held = monitor.observe(201 * S, float('nan'))
+    assert held.statistic_nats == pytest.approx(0.9)
+
+
+def test_snapshot_position_recovers_a_position_from_far_away_despite_an_nlos_delay():
+    truth = np.array([120.0, -40.0, 8.0])
+    sv = FRAME.ecef_to_enu(sky(12, seed=5))
+    sys_index = np.array([0] * 8 + [1] * 4)
+    pr = np.linalg.norm(sv - truth, axis=1) + np.where(sys_index == 0, 300.0, 340.0)
+    got = snapshot_position(sv, pr, np.full(12, 3.0), sys_index, 2, np.zeros(3))
+    np.testing.assert_allclose(got, truth, atol=1e-3)             # noise free: exact
+    pr[2] += 80.0                                                  # one NLOS satellite
+    got = snapshot_position(sv, pr, np.full(12, 3.0), sys_index, 2, np.zeros(3))
+    assert np.linalg.norm(got - truth) < 3.0, got
+
+
+def _lock_run(shift_at_s=60.0, shift_m=(60.0, 0.0), seconds=180):
+    """The emulated drive with the cloud moved ``shift_m`` off at ``shift_at_s``: the
+    reports after the move and their horizontal errors."""
+    drive = make_emulated_drive(5, duration_s=seconds)
+    engine = EpochEngine(FilterConfig(), rng=np.random.default_rng(2),
+                         timing=InputTiming(gnss_queue_size=None))
+    t0 = drive.gnss[0].stamp_ns
+    after, moved = [], False
+    for report in engine_reports(engine, drive.gnss, dead_reckon(drive.imu, drive.odometry),
+                                 None):
+        if moved:
+            after.append(report)
+        elif (report.epoch.stamp_ns - t0) * 1e-9 >= shift_at_s:
+            engine.filter.particles = engine.filter.particles.copy()
+            engine.filter.particles[:, :2] += shift_m
+            moved = True
+    stamps = np.array([r.result.stamp_ns for r in after], dtype=np.int64)
+    truth = truth_at(drive, engine.filter.frame, stamps)
+    est = np.array([r.result.position_enu_m for r in after])
+    err = np.hypot(*(est - truth)[:, :2].T)
+    t = (stamps - stamps[0]) * 1e-9
+    return after, err, t
+
+
+@pytest.mark.slow
+def test_a_forced_wrong_lock_is_detected_reported_and_recovered_from():
+    after, err, t = _lock_run()
+    assert err[0] > 40.0                                           # the lock took hold
+    inconsistent = [i for i, r in enumerate(after) if r.result.consistency.inconsistent]
+    assert inconsistent and t[inconsistent[0]] < 20.0
+    for i in inconsistent:
+        result = after[i].result
+        assert result.status == UPDATED and not result.integrity_ok
+        assert after[i].verdict.level == ERROR                      # never OK while so
+        assert 'inconsistent' in result.integrity_reason
+        # The level covers the place the measurements point to.
+        assert result.protection_level_m >= result.consistency.separation_m
+    recovered = [i for i, r in enumerate(after) if r.result.recovered]
+    assert recovered and t[recovered[0]] < 30.0
+    assert after[-1].result.recoveries >= 1
+    # Back within the drive's usual error within a minute of the lock, and it stays.
+    back = t >= 60.0
+    assert back.any() and np.all(err[back] < 15.0), err[back].max()
+
+
+@pytest.mark.slow
+def test_the_same_drive_at_1_and_5_hz_gives_the_same_integrity():
+    """Evidence per second and the bias hypotheses' memory are in seconds, not epochs: the
+    protection level, the MI rate and the (false) recoveries do not follow the rate."""
+    figures = {}
+    for hz in (1.0, 5.0):
+        drive = make_emulated_drive(3, duration_s=90, gnss_rate_hz=hz)
+        rows = []
+        for seed in (1, 2):
+            record, engine = run_epochs(drive, FilterConfig(), seed)
+            e2 = np.hypot(*(record.estimate_enu_m - record.truth_enu_m)[:, :2].T)
+            pl = record.protection_level_m
+            rows.append((np.mean(e2 > pl), np.median(pl), engine.filter.consistency.recoveries))
+        figures[hz] = np.array(rows)
+    mi_1, mi_5 = figures[1.0][:, 0].mean(), figures[5.0][:, 0].mean()
+    assert mi_1 <= 0.05 and mi_5 <= 0.05 and abs(mi_1 - mi_5) <= 0.03
+    ratio = figures[5.0][:, 1].mean() / figures[1.0][:, 1].mean()
+    assert 0.8 <= ratio <= 1.25, ratio
+    assert abs(figures[5.0][:, 2].sum() - figures[1.0][:, 2].sum()) <= 2

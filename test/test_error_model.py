@@ -1,0 +1,121 @@
+"""The learned pseudorange error model (core.error_model): known answers of the EM fit,
+the window, the signal classes, and what the filter takes from it (not the stated
+variances)."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from synthetic import FRAME, epoch_at
+
+from gnsscam_ros.core.error_model import (CN0_EDGES_DBHZ, N_CLASSES, UNKNOWN_CLASS,
+                                          AdaptiveErrorModel, ErrorPriors, signal_class)
+from gnsscam_ros.core.filter import FilterConfig, ParticleFilter
+from gnsscam_ros.core.particles import MotionIncrement
+
+S = 1_000_000_000
+
+
+def feed(model, residuals, cn0, epochs, per_epoch, period_s=0.5, start_s=0.0):
+    """Feed ``residuals`` (all of one C/N0) to ``model`` in epochs with no unknowns (so no
+    inflation for the fix's own fit)."""
+    for k in range(epochs):
+        r = residuals[k * per_epoch:(k + 1) * per_epoch]
+        model.observe(int((start_s + k * period_s) * S), r, np.full(r.shape, cn0), 0)
+
+
+def test_signal_classes_follow_the_cn0_bins_and_unknown_has_its_own():
+    cn0 = np.array([np.nan, 10.0, 25.0, 27.0, 44.9, 45.0, 60.0])
+    assert signal_class(cn0).tolist() == [UNKNOWN_CLASS, 0, 1, 1, 4, 5, 5]
+    assert N_CLASSES == len(CN0_EDGES_DBHZ) + 2
+
+
+def test_em_recovers_the_parameters_of_a_synthetic_mixture():
+    # 70 % line of sight N(0, 3^2), 30 % NLOS N(40, 15^2): 6,000 residuals over 60 s.
+    rng = np.random.default_rng(4)
+    n = 6000
+    nlos = rng.random(n) < 0.3
+    r = np.where(nlos, rng.normal(40.0, 15.0, n), rng.normal(0.0, 3.0, n))
+    model = AdaptiveErrorModel(window_s=120.0)
+    feed(model, r, 47.0, epochs=120, per_epoch=50)
+    cls = int(signal_class(np.array([47.0]))[0])
+    fit = model.fit
+    assert fit.core_sd_m[cls] == pytest.approx(3.0, rel=0.08)
+    assert fit.wide_share[cls] == pytest.approx(0.3, abs=0.03)
+    assert fit.wide_mean_m[cls] == pytest.approx(40.0, abs=2.0)
+    assert fit.wide_sd_m[cls] == pytest.approx(15.0, rel=0.1)
+    # A class without data keeps the pooled fit, widened by the C/N0 law for weak signals.
+    weak = int(signal_class(np.array([22.0]))[0])
+    assert fit.samples[weak] == 0
+    assert fit.core_sd_m[weak] > 2.0 * fit.core_sd_m[cls]
+
+
+def test_the_fit_follows_the_window_and_forgets_what_left_it():
+    rng = np.random.default_rng(5)
+    model = AdaptiveErrorModel(window_s=30.0)
+    feed(model, rng.normal(0.0, 2.0, 3000), 47.0, epochs=60, per_epoch=50)
+    cls = int(signal_class(np.array([47.0]))[0])
+    quiet = model.fit.core_sd_m[cls]
+    # The sky gets worse: 60 s of errors three times as large; the first 30 s leave.
+    feed(model, rng.normal(0.0, 6.0, 6000), 47.0, epochs=120, per_epoch=50, start_s=30.0)
+    assert model.samples <= 61 * 50
+    assert quiet == pytest.approx(2.0, rel=0.1)
+    assert model.fit.core_sd_m[cls] == pytest.approx(6.0, rel=0.15)
+
+
+def test_fix_residuals_are_inflated_for_what_the_fix_absorbed():
+    # Ten line-of-sight residuals of a fix with five unknowns: each is sqrt(10 / 5) larger.
+    model = AdaptiveErrorModel(priors=ErrorPriors(wide_share=1e-3))
+    r = np.linspace(-3.0, 3.0, 10)
+    model.observe(0, r, np.full(10, 47.0), 5)
+    stored = model._residual_m[:model.samples]
+    np.testing.assert_allclose(np.abs(stored), np.abs(r) * np.sqrt(2.0), rtol=2e-3)
+    # No redundancy: nothing is learned.
+    model.observe(S, r[:5], np.full(5, 47.0), 5)
+    assert model.samples == 10
+
+
+def _drive(filt, var_scale, n=12):
+    results = []
+    for i in range(n):
+        epoch = epoch_at(np.array([8.0 * i, 0.0, 0.0]), clock_m=5000.0, stamp_ns=i * S)
+        rng = np.random.default_rng(i)
+        epoch = replace(epoch, pr_m=epoch.pr_m + rng.normal(0.0, 3.0, epoch.n_sv),
+                        var_m2=epoch.var_m2 * var_scale,
+                        cn0_dbhz=np.linspace(30.0, 50.0, epoch.n_sv))
+        motion = None if i == 0 else MotionIncrement(1.0, 8.0, 0.0, 0.01, 1e-6)
+        results.append(filt.step(epoch, motion))
+    return results
+
+
+@pytest.mark.parametrize('scale', [0.25, 4.0])
+def test_the_adaptive_filter_does_not_depend_on_the_stated_variances(scale):
+    def run(error_model, var_scale):
+        config = FilterConfig(n_particles=300, acquisition_particles=600, n_posteriors=20,
+                              heading_acquisition_m=20.0, error_model=error_model)
+        return _drive(ParticleFilter(config, frame=FRAME, rng=np.random.default_rng(1)),
+                      var_scale)
+
+    same = run('adaptive', 1.0), run('adaptive', scale)
+    for a, b in zip(*same):
+        np.testing.assert_array_equal(a.position_enu_m, b.position_enu_m)
+        assert a.protection_level_m == b.protection_level_m
+    # The stated model takes them (the check above could fail): x4 lifts them above its
+    # floor (measurement_var_m2).
+    stated = run('stated', 1.0), run('stated', 4.0)
+    assert any(not np.array_equal(a.position_enu_m, b.position_enu_m)
+               for a, b in zip(*stated))
+
+
+@pytest.mark.parametrize('rate_hz', [1.0, 5.0])
+def test_the_correlation_time_of_gauss_markov_errors_is_recovered_at_any_rate(rate_hz):
+    # Twelve satellites, each a Gauss-Markov error of 3 m with tau = 5 s, for 120 s.
+    rng = np.random.default_rng(8)
+    tau, dt, k = 5.0, 1.0 / rate_hz, 12
+    phi = np.exp(-dt / tau)
+    model = AdaptiveErrorModel(window_s=120.0, prior_correlation_time_s=30.0)
+    assert model.correlation_time_s == 30.0                     # the prior before data
+    e = rng.normal(0.0, 3.0, k)
+    for i in range(int(120 * rate_hz)):
+        e = phi * e + np.sqrt(1.0 - phi * phi) * rng.normal(0.0, 3.0, k)
+        model.observe(int(i * dt * S), e, np.full(k, 47.0), 0, np.arange(k))
+    assert model.correlation_time_s == pytest.approx(tau, rel=0.25)
