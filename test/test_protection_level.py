@@ -204,7 +204,8 @@ def test_all_satellites_at_once_are_the_one_by_one_advance_bit_for_bit():
         got = fast.biases_at(stamp, keys, cn0)
         sigma = model.sigma_m(cn0, 0.0)
         want = slow._advance_one_by_one(stamp, keys.tolist(), sigma,
-                                        slow.rng.standard_normal((keys.size, 7)))
+                                        slow.rng.standard_normal((keys.size, 7)),
+                                        model.correlation_time_s)
         np.testing.assert_array_equal(got, want)
 
 

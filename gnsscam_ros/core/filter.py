@@ -36,10 +36,9 @@ from .types import GnssEpoch
 # Importable from here as before: the parameter names and values of the configuration
 # (``core.config``), the likelihoods (``core.gnss``) and the bias models (``core.bias``).
 __all__ = ['BIAS_CN0', 'BIAS_LEARNED', 'BIAS_MODELS', 'BIAS_NONE', 'HEADING_LOST_RAD',
-           'INVALID',
-           'LIKELIHOODS', 'MAX_ORIGIN_DISTANCE_M', 'MAX_STATE_COORDINATE', 'PARTICLE_RAIM',
-           'PROPAGATED', 'REINITIALISING', 'REJECTED', 'ROBUST', 'UPDATED', 'WAITING',
-           'EpochResult', 'FilterConfig', 'ParticleFilter']
+           'INVALID', 'LIKELIHOODS', 'MAX_ORIGIN_DISTANCE_M', 'MAX_STATE_COORDINATE',
+           'PARTICLE_RAIM', 'PROPAGATED', 'REINITIALISING', 'REJECTED', 'ROBUST', 'UPDATED',
+           'WAITING', 'EpochResult', 'FilterConfig', 'ParticleFilter']
 
 # Epoch outcomes.
 UPDATED = 'updated'            # GNSS update applied; integrity computed
@@ -585,15 +584,18 @@ class ParticleFilter:
         if cfg.bias_model == BIAS_NONE:
             offsets = prior_offsets
         else:
-            # The residuals at the estimate size the 'cn0' hypotheses; the 'learned' ones
-            # take an inlier's error, the core of its class. The update weighed each
-            # satellite with tempering times inlier probability over its variance.
-            at_estimate = gnss.clock_corrected_residuals(mean[None], prep, clock_w)[0]
-            learned = cfg.bias_model == BIAS_LEARNED
-            sigma = self.errors.satellite_model(prep.cn0_dbhz)[0] if learned else None
-            # How long an inlier's error persists, as measured (core.error_model).
-            tau = self.errors.correlation_time_s if learned else None
-            self.bias.observe_residuals(stamp_ns, at_estimate, inlier, 3 + prep.n_systems)
+            # The 'learned' hypotheses take an inlier's error (the core of its class) and
+            # how long it persists from the error model; the residuals at the estimate size
+            # the 'cn0' ones. The update weighed each satellite with tempering times inlier
+            # probability over its variance.
+            sigma = tau = None
+            if cfg.bias_model == BIAS_LEARNED:
+                sigma = self.errors.satellite_model(prep.cn0_dbhz)[0]
+                tau = self.errors.correlation_time_s
+            else:
+                at_estimate = gnss.clock_corrected_residuals(mean[None], prep, clock_w)[0]
+                self.bias.observe_residuals(stamp_ns, at_estimate, inlier,
+                                            3 + prep.n_systems)
             weights = evidence * inlier / prep.sigma_m ** 2
             line = prep.sv_enu_m - mean
             line /= np.linalg.norm(line, axis=1, keepdims=True)

@@ -21,6 +21,7 @@ from pathlib import Path
 from ..bags.errors import BagError
 from ..core import integrity
 from ..core.filter import BIAS_MODELS, LIKELIHOODS, FilterConfig
+from ..core.config import ERROR_MODELS
 from ..datasets.emulated.drive import make_emulated_drive
 from ..datasets.errors import DatasetError
 from ..datasets.faults import FaultEpisodes, inject_pseudorange_faults
@@ -62,14 +63,21 @@ def add_filter_arguments(parser: argparse.ArgumentParser) -> None:
                        help='GNSS likelihood (default %(default)s)')
     group.add_argument('--correlation-time-s', type=float,
                        default=defaults.error_correlation_time_s,
-                       help='GNSS error correlation time for tempering, 0 = off '
-                            '(default %(default)s)')
+                       help='GNSS error correlation time: an epoch dt after the last '
+                            'counts tanh(dt / 2 tau) of an independent one, 0 = every '
+                            'epoch independent (default %(default)s)')
+    group.add_argument('--error-model', choices=ERROR_MODELS, default=defaults.error_model,
+                       help="'adaptive': the error mixture learned online from the "
+                            "residuals; 'stated': the receiver's variances (default "
+                            '%(default)s)')
     group.add_argument('--inverse-bernoulli', choices=integrity.INVERSE_METHODS,
                        default=defaults.inverse_bernoulli,
                        help='inverse Bernoulli divergence (default %(default)s)')
     group.add_argument('--bias-model', choices=BIAS_MODELS, default=defaults.bias_model,
-                       help="posteriors of the bound: 'cn0' bias hypotheses, 'none' motion "
-                            'samples only, as in the paper (default %(default)s)')
+                       help="posteriors of the bound: 'learned' bias hypotheses sized by "
+                            "the learned error model, 'cn0' by constants calibrated on "
+                            "smartLoc, 'none' motion samples only, as in the paper "
+                            '(default %(default)s)')
     group.add_argument('--target-risk', type=float, default=defaults.target_risk,
                        help='integrity risk allowed at the alert limit: the protection '
                             'level is the radius whose risk bound is this (default '
@@ -95,6 +103,7 @@ def config_from_args(args: argparse.Namespace) -> FilterConfig:
     return FilterConfig(n_particles=args.particles, n_posteriors=args.posteriors,
                         likelihood=args.likelihood,
                         error_correlation_time_s=args.correlation_time_s,
+                        error_model=args.error_model,
                         inverse_bernoulli=args.inverse_bernoulli,
                         bias_model=args.bias_model,
                         target_risk=args.target_risk,
