@@ -11,17 +11,19 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped, Quaternion
-from rclpy.serialization import deserialize_message
-from std_msgs.msg import Header
 
 from .errors import MessageError
 from .kit import RCLPY, MessageKit
 from .stamps import make_header, ns_to_stamp, stamp_to_ns
 from .wire import (ANTENNA_FRAME, COVARIANCE_TYPE_KNOWN, COVARIANCE_TYPE_UNKNOWN, FIX,
                    MAP_FRAME, POSE, SERVICE_GPS, STATUS_FIX, split_ns)
+
+if TYPE_CHECKING:                  # ROS messages: looked up in RCLPY where built, so that
+    # the bag tools and the evaluation import this package without ROS 2 installed.
+    from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped, Quaternion
 
 UNESTIMATED_VAR = 1e6     # variance of the pose axes the filter does not estimate [rad^2]
 
@@ -82,8 +84,9 @@ def pose_to_msg(estimate: PoseEstimate) -> PoseWithCovarianceStamped:
         raise MessageError('pose must be finite', 'non_finite')
     if cov.shape != (6, 6):
         raise MessageError(f'covariance shape {cov.shape}, expected (6, 6)', 'value')
-    msg = PoseWithCovarianceStamped()
-    msg.header = Header(stamp=ns_to_stamp(estimate.stamp_ns), frame_id=estimate.frame_id)
+    msg = RCLPY['geometry_msgs/msg/PoseWithCovarianceStamped']()
+    msg.header = RCLPY['std_msgs/msg/Header'](stamp=ns_to_stamp(estimate.stamp_ns),
+                                              frame_id=estimate.frame_id)
     msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z = (
         float(v) for v in pos)
     msg.pose.pose.orientation = yaw_to_quaternion(estimate.yaw_rad)
@@ -153,8 +156,9 @@ def particles_to_posearray(particles: np.ndarray, stamp_ns: int,
                            frame_id: str = MAP_FRAME) -> PoseArray:
     """(N, 4) particles (east, north, up, yaw) -> PoseArray (the message object, from
     :func:`particles_to_posearray_cdr`'s bytes)."""
+    from rclpy.serialization import deserialize_message    # ROS 2 only where called
     return deserialize_message(particles_to_posearray_cdr(particles, stamp_ns, frame_id),
-                               PoseArray)
+                               RCLPY['geometry_msgs/msg/PoseArray'])
 
 
 def posearray_to_particles(msg: PoseArray) -> np.ndarray:

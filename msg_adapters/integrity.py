@@ -24,13 +24,16 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import dataclass, field
-
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from std_msgs.msg import Header
+from typing import TYPE_CHECKING
 
 from .errors import MessageError
+from .kit import RCLPY
 from .stamps import ns_to_stamp, stamp_to_ns
 from .wire import INTEGRITY
+
+if TYPE_CHECKING:                  # ROS messages: looked up in RCLPY where built, so that
+    # the bag tools and the evaluation import this package without ROS 2 installed.
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 LEVEL_NAMES = {OK: 'OK', WARN: 'WARN', ERROR: 'ERROR', STALE: 'STALE'}
@@ -86,15 +89,16 @@ def make_status(name: str, level: int, message: str, values: dict,
                 hardware_id: str = '') -> DiagnosticStatus:
     """One DiagnosticStatus from a ``{key: value}`` dict (values formatted by
     :func:`format_value`)."""
-    return DiagnosticStatus(level=bytes([int(level)]), name=name, message=message,
-                            hardware_id=hardware_id,
-                            values=[KeyValue(key=str(k), value=format_value(v))
-                                    for k, v in values.items()])
+    key_value = RCLPY['diagnostic_msgs/msg/KeyValue']
+    return RCLPY['diagnostic_msgs/msg/DiagnosticStatus'](
+        level=bytes([int(level)]), name=name, message=message, hardware_id=hardware_id,
+        values=[key_value(key=str(k), value=format_value(v)) for k, v in values.items()])
 
 
 def make_diagnostic_array(stamp_ns: int, statuses: list[DiagnosticStatus]) -> DiagnosticArray:
     """A DiagnosticArray of ``statuses`` stamped ``stamp_ns``."""
-    return DiagnosticArray(header=Header(stamp=ns_to_stamp(stamp_ns)), status=statuses)
+    return RCLPY['diagnostic_msgs/msg/DiagnosticArray'](
+        header=RCLPY['std_msgs/msg/Header'](stamp=ns_to_stamp(stamp_ns)), status=statuses)
 
 
 def status_values(status: DiagnosticStatus) -> dict[str, str]:

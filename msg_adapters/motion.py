@@ -22,12 +22,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from geometry_msgs.msg import TwistWithCovarianceStamped
-from nav_msgs.msg import Odometry
-from sensor_msgs.msg import Imu
-from std_msgs.msg import Header
 
 from gnsscam_ros.core.motion import DeadReckoningState
 
@@ -41,6 +38,12 @@ from .limits import (MAX_ACCEL_MPS2, MAX_GYRO_RPS, MAX_POSITION_M, MAX_SPEED_MPS
 from .stamps import make_header, ns_to_stamp, stamp_to_ns
 from .wire import (BASE_FRAME, DEAD_RECKONING, IMU, IMU_FRAME, MAP_FRAME, ODOM_FRAME,
                    ODOMETRY_GLOBAL, TWIST)
+
+if TYPE_CHECKING:                  # ROS messages: looked up in RCLPY where built, so that
+    # the bag tools and the evaluation import this package without ROS 2 installed.
+    from geometry_msgs.msg import TwistWithCovarianceStamped
+    from nav_msgs.msg import Odometry
+    from sensor_msgs.msg import Imu
 
 
 @dataclass(frozen=True)
@@ -190,8 +193,10 @@ def dead_reckoning_to_odometry(state: DeadReckoningState, frame_id: str = ODOM_F
     """
     if not np.all(np.isfinite([state.x_m, state.y_m, state.yaw_rad])):
         raise MessageError('dead-reckoning pose must be finite', 'non_finite')
-    msg = Odometry(header=Header(stamp=ns_to_stamp(state.stamp_ns), frame_id=frame_id),
-                   child_frame_id=child_frame_id)
+    msg = RCLPY['nav_msgs/msg/Odometry'](
+        header=RCLPY['std_msgs/msg/Header'](stamp=ns_to_stamp(state.stamp_ns),
+                                            frame_id=frame_id),
+        child_frame_id=child_frame_id)
     msg.pose.pose.position.x = float(state.x_m)
     msg.pose.pose.position.y = float(state.y_m)
     msg.pose.pose.orientation = yaw_to_quaternion(state.yaw_rad)
@@ -292,8 +297,10 @@ def global_odometry_to_msg(odom: GlobalOdometry) -> Odometry:
         raise MessageError('odometry/global: pose and twist must be finite', 'non_finite')
     if cov.shape != (6, 6):
         raise MessageError(f'pose covariance shape {cov.shape}, expected (6, 6)', 'value')
-    msg = Odometry(header=Header(stamp=ns_to_stamp(odom.stamp_ns), frame_id=odom.frame_id),
-                   child_frame_id=odom.child_frame_id)
+    msg = RCLPY['nav_msgs/msg/Odometry'](
+        header=RCLPY['std_msgs/msg/Header'](stamp=ns_to_stamp(odom.stamp_ns),
+                                            frame_id=odom.frame_id),
+        child_frame_id=odom.child_frame_id)
     p = msg.pose.pose.position
     p.x, p.y, p.z = (float(v) for v in pos)
     msg.pose.pose.orientation = yaw_to_quaternion(odom.yaw_rad)

@@ -1,5 +1,12 @@
-"""Shared fixtures and the ROS test harness. Tests never read ../shared: fixtures live in
-test/data."""
+"""Shared fixtures, and the parts of the ROS test harness that need no rclpy (the rest is
+test/ros_harness.py, imported by ROS tests only). Tests never read ../shared: fixtures
+live in test/data.
+
+Without rclpy (a platform tier without ROS 2, README "Platforms") the core, vision,
+dataset and evaluation tests run; tests marked ``ros`` or using the ``graph`` fixture are
+skipped, and so are the modules that import ros_harness.
+"""
+import importlib.util
 import itertools
 import os
 import signal
@@ -9,16 +16,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import rclpy
-from gnsscam_ros.nodes.runtime import stop_process
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 os.environ.setdefault('OPENBLAS_NUM_THREADS', '1')
 
 DATA = Path(__file__).parent / 'data'
 SMARTLOC_EXCERPT = DATA / 'smartloc_excerpt'
+#: Whether ROS 2's rclpy is importable here (a sourced ROS 2, or the PyPI Jazzy wheels).
+HAVE_RCLPY = importlib.util.find_spec('rclpy') is not None
+#: Why a ROS test is skipped where rclpy is not.
+NO_RCLPY = ('needs rclpy (ROS 2 Jazzy), not installed in this environment (e.g. the '
+            'ubuntu-noble tier on CPython 3.12: PyPI has Jazzy wheels for 3.11 only)')
 
 
 def pytest_configure(config):
@@ -26,7 +33,18 @@ def pytest_configure(config):
     # node tests; seconds); the default run is everything (the README's test command).
     config.addinivalue_line('markers', 'slow: takes a second or more (long drives, bags, '
                                        'node processes); left out by -m "not slow"')
-    config.addinivalue_line('markers', 'ros: runs ROS nodes in a graph of its own')
+    config.addinivalue_line('markers', 'ros: needs rclpy (runs ROS nodes or serialises ROS '
+                                       'messages); skipped where rclpy is not installed')
+
+
+def pytest_collection_modifyitems(config, items):
+    """Skip the ROS tests, with the reason, where rclpy is not installed."""
+    if HAVE_RCLPY:
+        return
+    skip = pytest.mark.skip(reason=NO_RCLPY)
+    for item in items:
+        if 'ros' in item.keywords or 'graph' in getattr(item, 'fixturenames', ()):
+            item.add_marker(skip)
 
 
 @pytest.fixture
@@ -49,14 +67,22 @@ def smartloc_excerpt():
 
 # ====================================================================== ROS harness
 # One place for what every ROS test needs: a domain of its own, a graph to spin until a
-# condition holds (never a fixed sleep), and a child process stopped as Ctrl-C does.
+# condition holds (never a fixed sleep; ros_harness.RosGraph), and a child process stopped
+# as Ctrl-C does (ros_harness.stop).
 _domains = itertools.count()
+# Under pytest-xdist (`-n 2`) each worker takes every n-th id of the run's sequence, so
+# two workers never share a domain; the run's base is the controller's process id.
+_WORKER = os.environ.get('PYTEST_XDIST_WORKER', '')
+_WORKERS = int(os.environ.get('PYTEST_XDIST_WORKER_COUNT', '1')) if _WORKER else 1
+_WORKER_INDEX = int(_WORKER[2:]) if _WORKER.startswith('gw') else 0
+_RUN_BASE = 7 * (os.getppid() if _WORKER else os.getpid())
+_DOMAIN_SPAN = 209 - 209 % _WORKERS
 
 
 def ros_domain_id() -> int:
     """A ROS domain id no other test of this run uses (1-209; the replay's own default
     range, 220-232, stays free)."""
-    return 1 + (os.getpid() * 7 + next(_domains)) % 209
+    return 1 + (_RUN_BASE + _WORKERS * next(_domains) + _WORKER_INDEX) % _DOMAIN_SPAN
 
 
 def ros_env(tmp_path, domain: int, base: dict | None = None) -> dict:
@@ -68,67 +94,11 @@ def ros_env(tmp_path, domain: int, base: dict | None = None) -> dict:
     return env
 
 
-class RosGraph:
-    """Nodes, a probe node and a single-threaded executor in a fresh context.
-
-    Args:
-        domain: ROS domain id (default: a fresh one).
-        args: ROS arguments of the context (``--ros-args ...``).
-    """
-
-    def __init__(self, domain: int | None = None, args=None):
-        self.domain = ros_domain_id() if domain is None else domain
-        self.ctx = Context()
-        rclpy.init(context=self.ctx, domain_id=self.domain, args=args)
-        self.executor = SingleThreadedExecutor(context=self.ctx)
-        self.nodes = []
-        self.probe = rclpy.create_node('probe', context=self.ctx)
-        self.executor.add_node(self.probe)
-        self.qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
-                              reliability=ReliabilityPolicy.RELIABLE)
-
-    def add(self, node):
-        self.nodes.append(node)
-        self.executor.add_node(node)
-        return node
-
-    def publisher(self, msg_type, topic):
-        return self.probe.create_publisher(msg_type, topic, self.qos)
-
-    def collect(self, msg_type, topic) -> list:
-        box = []
-        self.probe.create_subscription(msg_type, topic, box.append, self.qos)
-        return box
-
-    def spin_until(self, condition, timeout_s=20.0, what='condition'):
-        deadline = time.monotonic() + timeout_s
-        while not condition():
-            assert time.monotonic() < deadline, f'timed out after {timeout_s} s: {what}'
-            self.executor.spin_once(timeout_sec=0.01)
-
-    def spin_for(self, seconds):
-        deadline = time.monotonic() + seconds
-        while time.monotonic() < deadline:
-            self.executor.spin_once(timeout_sec=0.01)
-
-    def connect(self, *publishers):
-        for pub in publishers:
-            self.spin_until(lambda: pub.get_subscription_count() > 0, 10.0,
-                            f'a subscriber on {pub.topic_name}')
-
-    def node_names(self) -> set:
-        return set(self.probe.get_node_names())
-
-    def close(self):
-        self.executor.shutdown()
-        for node in self.nodes:
-            node.destroy_node()
-        self.probe.destroy_node()
-        rclpy.try_shutdown(context=self.ctx)
-
-
 @pytest.fixture
 def graph():
+    """A fresh :class:`ros_harness.RosGraph`, closed after the test (a test asking for it
+    is a ROS test: skipped without rclpy before this runs)."""
+    from ros_harness import RosGraph       # imports rclpy: only where a test asks for it
     g = RosGraph()
     yield g
     g.close()
@@ -143,9 +113,13 @@ def wait_until(condition, timeout_s: float, what: str) -> None:
         time.sleep(0.05)
 
 
-def stop(proc: subprocess.Popen, timeout_s: float = 20.0) -> int:
-    """SIGINT (Ctrl-C, as ros2 run forwards it) and the exit status; a process that does
-    not stop within ``timeout_s`` is killed and the test fails."""
-    rc = stop_process(proc, timeout_s)
-    assert rc != -signal.SIGKILL, f'the process ignored SIGINT for {timeout_s} s'
-    return rc
+def stop_child(proc: subprocess.Popen, timeout_s: float = 20.0) -> int:
+    """SIGINT, then SIGKILL after ``timeout_s``; the exit status (a process that is no ROS
+    node; ros_harness.stop stops nodes with the nodes' own helper and fails on SIGKILL)."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        return proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        return proc.wait()

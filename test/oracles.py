@@ -245,8 +245,10 @@ def propagate(particles: np.ndarray, distance_m: np.ndarray, dyaw_rad: np.ndarra
     out[..., 1] = particles[None, :, 1] + step_c * sin_n + step_s * cos_n
     out[..., 2] = particles[None, :, 2] + dup_m
     out[..., :3] += np.sqrt(pos_var_m2) * noise[..., :3]
+    # float64 noise, as the kernel computes: numpy < 2 would multiply the float32 draws by
+    # the np.float64 scalar in float32 (value-based casting), numpy 2 in float64.
     out[..., YAW] = particles[None, :, YAW] + dyaw_rad[:, None] + np.sqrt(
-        yaw_var_rad2) * noise[..., YAW]
+        yaw_var_rad2) * noise[..., YAW].astype(np.float64)
     return out
 
 

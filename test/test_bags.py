@@ -178,6 +178,7 @@ def test_round_trip_every_message(tmp_path, storage):
     assert src.camera.max_alive <= 3
 
 
+@pytest.mark.ros
 def test_bag_messages_are_the_bytes_the_nodes_publish():
     """The converter builds with the nodes' writers: each rosbags message serialises to what
     the same writer's rclpy message serialises to."""
@@ -657,6 +658,7 @@ def _epochs(frame_truth_enu):
     return out
 
 
+@pytest.mark.ros
 def test_read_results_written_by_rclpy(tmp_path):
     frame = LocalFrame(*ORIGIN)
     truth_enu = np.column_stack([np.arange(9.0) * 10, np.zeros(9), np.full(9, 1.8)])
@@ -678,6 +680,7 @@ def test_read_results_written_by_rclpy(tmp_path):
     assert res.truth is None and res.origin_llh is None
 
 
+@pytest.mark.ros
 def test_evaluate_result_bag_matches_the_metric_functions(tmp_path):
     from gnsscam_ros.core.integrity import hazard_mass
     from gnsscam_ros.evaluation.bag_eval import evaluate_result_bag
@@ -732,6 +735,7 @@ def test_evaluate_result_bag_matches_the_metric_functions(tmp_path):
         evaluate_result_bag(tmp_path / 'res3')
 
 
+@pytest.mark.ros
 @pytest.mark.slow
 def test_evaluate_result_bag_agrees_with_offline_run(tmp_path):
     """A run written as the fusion node would publish it scores like the offline runner."""

@@ -82,11 +82,25 @@ def test_imports_from_elsewhere_are_reported(tmp_path):
     assert problems[1].startswith('import no_such_module_xyz failed: ModuleNotFoundError')
 
 
-@pytest.mark.skipif(Path(sys.prefix).resolve() != (ROOT / '.venv').resolve(),
-                    reason='runs inside the project .venv only')
+def _tier_of_this_environment() -> str | None:
+    """'' in the project .venv, the tier's name in .venv-<tier>, None elsewhere."""
+    for tier in ('', 'debian-bookworm', 'ubuntu-noble'):
+        venv = ROOT / ('.venv' + (f'-{tier}' if tier else ''))
+        if Path(sys.prefix).resolve() == venv.resolve():
+            return tier
+    return None
+
+
+@pytest.mark.skipif(_tier_of_this_environment() is None,
+                    reason='runs inside the project .venv or a tier .venv-<tier> only')
 def test_this_environment_passes_the_check():
-    assert cb.check(ROOT, sys.prefix) == []
-    assert cb.main([str(ROOT), sys.prefix]) == 0
+    tier = _tier_of_this_environment()
+    args = [] if not tier else ['--constraints', str(ROOT / 'constraints' / f'{tier}.txt')]
+    if tier == 'ubuntu-noble':
+        args.append('--no-rclpy')
+    assert cb.check(ROOT, sys.prefix, constraints=(args[1] if args else None),
+                    ros=tier != 'ubuntu-noble') == []
+    assert cb.main([str(ROOT), sys.prefix] + args) == 0
     assert cb.main([]) == 2
 
 
@@ -103,7 +117,8 @@ def test_run_verifies_before_it_writes_the_stamp():
         '`setup.py develop`', '')
     assert "'setuptools>=70.1,<80'" in body and "'pip>=23.1" in body
     # The stamp covers the bootstrap itself, so a fixed bootstrap repairs old venvs.
-    assert 'declare -f pick_python bootstrap' in body and 'check_bootstrap.py' in body
+    assert 'declare -f pick_python find_python312 tier_python bootstrap' in body
+    assert 'check_bootstrap.py' in body and 'constraints/*.txt' in body
 
 
 def test_setup_cfg_keeps_the_ament_layout():

@@ -17,13 +17,13 @@ from pathlib import Path
 import dask
 import numpy as np
 import pytest
+from conftest import stop_child
 
 from gnsscam_ros.evaluation.campaign import campaign_config
 from gnsscam_ros.evaluation.campaign_grid import CaseKey
 from gnsscam_ros.evaluation.campaign_run import run_campaign
 from gnsscam_ros.evaluation.campaign_store import CampaignStoreError
 from gnsscam_ros.evaluation.cli import main as eval_main
-from gnsscam_ros.nodes.runtime import stop_process
 
 pytestmark = pytest.mark.slow
 
@@ -205,7 +205,7 @@ def test_campaign_on_a_separately_started_scheduler_and_two_workers(tmp_path):
                            out_dir=tmp_path / 'out', scheduler=address, progress=False)
     finally:
         for proc in reversed(procs):
-            stop_process(proc, timeout_s=20)
+            stop_child(proc, timeout_s=20)
     assert not out['failed'] and len(out['cases']) == 2
     summary = json.loads((tmp_path / 'out' / 'campaign.json').read_text())
     assert summary['cluster']['kind'] == 'scheduler'

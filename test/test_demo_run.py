@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import ros_domain_id, ros_env
+from ros_harness import ros_domain_id, ros_env  # the demo runs nodes: skips without rclpy
 
 from gnsscam_ros.evaluation import demo
 

@@ -76,6 +76,7 @@ def test_eval_help_explains_every_filter_option(capsys):
         assert 'default' in described, (option, described)
 
 
+@pytest.mark.ros                 # the demo module runs nodes: imports rclpy
 def test_eval_and_demo_share_the_default_seed():
     from gnsscam_ros.evaluation import demo
     parser = cli.build_parser()

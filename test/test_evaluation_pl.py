@@ -221,6 +221,7 @@ def _write_result_bag(path, record, frame, stale_stamps):
                 covariance_enu_m2=np.diag([4.0, 4.0, 9.0])))))
 
 
+@pytest.mark.ros
 @pytest.mark.slow
 def test_bag_eval_takes_the_pl_from_integrity_risk(tmp_path):
     from gnsscam_ros.bags.convert import convert_drive

@@ -23,15 +23,13 @@ import math
 
 import numpy as np
 import pytest
-from rclpy.serialization import serialize_message
+from ros_harness import ros_domain_id, serialize_message  # skips without rclpy
 
 import msg_adapters as ma
 from gnsscam_ros.bench.fuzz import accounting, cases, mutate, plausible, schedule
 from gnsscam_ros.bench.fuzz.report import Target, verdict_line
 from gnsscam_ros.bench.fuzz.stream import INPUT_TOPICS, StreamConfig, ValidStream
 from gnsscam_ros.bench.fuzz.tools import fingerprint, run_in_process
-
-from conftest import ros_domain_id
 
 
 @pytest.fixture(scope='module')

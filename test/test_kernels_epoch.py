@@ -104,7 +104,9 @@ def test_an_epoch_through_the_kernels_is_the_epoch_through_the_oracles(
     result = filt.step(epoch, motion, camera)
     priors, post_log_w, total = oracle_choice(reference, epoch, motion, camera)
 
-    np.testing.assert_array_equal(filt.posteriors, priors)
+    # To rounding: numpy 1.24's float64 sin/cos (the oracle's) are not libm's (the kernel's)
+    # to the last bit (test_kernels_gnss.test_propagation_is_the_oracle_to_rounding).
+    np.testing.assert_allclose(filt.posteriors, priors, rtol=0, atol=1e-12)
     np.testing.assert_allclose(result.total_log_lik, total, atol=1e-4)
     assert result.chosen == int(np.argmax(total))
     np.testing.assert_allclose(filt.posterior_log_w, post_log_w, atol=1e-4)

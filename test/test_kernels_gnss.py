@@ -162,13 +162,17 @@ def test_robust_joint_keeps_a_tiny_outlier_floor_finite(single):
                                atol=1e-4 if single else 0.0)
 
 
-def test_propagation_is_the_oracle_bit_for_bit(rng):
+def test_propagation_is_the_oracle_to_rounding(rng):
     particles = np.c_[rng.normal(scale=20.0, size=(300, 3)), rng.uniform(-3, 3, 300)]
     args = (np.array([8.0, 8.4, 7.5]), np.array([0.1, 0.13, 0.06]), 0.4,
             np.array([0.3, 0.3, 0.2]), 3e-4)
     noise = np.random.default_rng(9).standard_normal((3, 300, 4), dtype=np.float32)
     moved = propagate(particles, *args, noise)
-    np.testing.assert_array_equal(moved, oracles.propagate(particles, *args, noise))
+    # The same arithmetic, but the kernel's sin/cos are libm's and the oracle's numpy's:
+    # numpy 1.24 (Debian 12) computes float64 sin/cos with its own SIMD code, a few ulp
+    # (1e-14 m here) from libm; numpy 1.26 and 2.x give libm's bits.
+    np.testing.assert_allclose(moved, oracles.propagate(particles, *args, noise), rtol=0,
+                               atol=1e-12)
     log_w = rng.normal(size=300)
     log_w -= np.log(np.exp(log_w).sum())
     mean, cov = weighted_mean_cov(moved[0], log_w)

@@ -11,7 +11,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import pytest
-from conftest import RosGraph, ros_domain_id, ros_env, stop
+from ros_harness import RosGraph, ros_domain_id, ros_env, stop
 from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import Image
 

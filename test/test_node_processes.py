@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import RosGraph, ros_domain_id, ros_env, stop
+from ros_harness import RosGraph, ros_domain_id, ros_env, stop
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import TwistWithCovarianceStamped
 from sensor_msgs.msg import Imu, PointCloud2
@@ -122,7 +122,7 @@ def colcon_install(tmp_path_factory):
         pytest.skip('colcon not installed (requirements-dev.txt installs it)')
     ws = tmp_path_factory.mktemp('ws')
     shutil.copytree(ROOT, ws / 'src' / 'gnsscam_ros', ignore=shutil.ignore_patterns(
-        '.venv', '.git', 'build', 'install', 'log', 'out', '__pycache__', '.pytest_cache',
+        '.venv*', '.git', 'build', 'install', 'log', 'out', '__pycache__', '.pytest_cache',
         '.hypothesis', '*.egg-info', 'test'))
     result = subprocess.run(
         [colcon, '--log-base', str(ws / 'log'), 'build', '--base-paths', str(ws / 'src'),

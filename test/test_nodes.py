@@ -10,9 +10,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ros_harness import RosGraph, ros_domain_id  # skips without rclpy
 import rclpy
 import yaml
-from conftest import RosGraph, ros_domain_id
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, TwistWithCovarianceStamped
 from nav_msgs.msg import Odometry

@@ -23,10 +23,10 @@ import math
 
 import numpy as np
 import pytest
+from ros_harness import RosGraph  # skips this module without rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, TwistWithCovarianceStamped
 from sensor_msgs.msg import Imu, PointCloud2
-from conftest import RosGraph
 from test_nodes import overrides
 
 import msg_adapters as ma

@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+import ros_harness  # noqa: F401  (first: without rclpy it skips this module, saying why)
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped, TwistWithCovarianceStamped
 from sensor_msgs.msg import Image, Imu, NavSatFix, PointCloud2

@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import RosGraph, ros_env, stop
+from ros_harness import RosGraph, ros_env, stop
 from diagnostic_msgs.msg import DiagnosticArray
 
 from msg_adapters import OK, STALE, IntegrityRisk, integrity_risk_to_msg
@@ -45,7 +45,8 @@ def console_scripts() -> set[str]:
 def run_jobs() -> set[str]:
     """The named jobs of the ``run`` script's case statement."""
     text = (ROOT / 'run').read_text(encoding='utf-8')
-    case = text[text.index('case "$job" in'):text.index('esac')]
+    start = text.index('case "$job" in')
+    case = text[start:text.index('esac', start)]
     return {job for pattern in re.findall(r'^\s+([\w|-]+)\)\s*$', case, re.M)
             for job in pattern.split('|')}
 

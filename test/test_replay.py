@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ros_harness import RosGraph, ros_env, wait_until  # skips without rclpy
 import rclpy
-from conftest import RosGraph, ros_env, wait_until
 from sensor_msgs.msg import Imu
 
 from gnsscam_ros.bags.convert import convert_drive
@@ -119,9 +119,14 @@ def test_replay_through_nodes_equals_offline_evaluation(emulated_bag, tmp_path):
     for key in ('p_fa', 'p_mi', 'false_alarms', 'missed_identifications', 'faults'):
         assert mine[key] == theirs[key], key
     assert mine['mean_risk_bound'] == pytest.approx(theirs['mean_risk_bound'], rel=1e-9)
-    # The protection level the nodes published is the offline one, epoch by epoch.
-    for key in ('mi_rate', 'mi_epochs', 'median_m', 'p95_m', 'availability'):
+    # The protection level the nodes published is the offline one, epoch by epoch: the
+    # counts exactly; its percentiles, like the estimates above, to rounding (the last
+    # digit of the median differed with numpy 1.24).
+    for key in ('mi_rate', 'mi_epochs', 'availability'):
         assert nodes['protection_level'][key] == offline['protection_level'][key], key
+    for key in ('median_m', 'p95_m'):
+        assert nodes['protection_level'][key] == pytest.approx(
+            offline['protection_level'][key], rel=1e-9), key
     # The reference risk differs in kind: a bag holds the published particle cloud, not
     # the M posteriors with their bias hypotheses, so the failure ratio is not compared.
     # evaluate_drive integrates the odometry itself (integrate_odometry, equal to the dead

@@ -7,8 +7,8 @@ time base at once; the replay does not stall on it; ``~/reset`` (std_srvs/Trigge
 a node's state afresh on request.
 """
 import pytest
+from ros_harness import RosGraph, wait_until  # skips without rclpy
 import rclpy
-from conftest import RosGraph, wait_until
 from std_srvs.srv import Trigger
 
 from gnsscam_ros.bags.convert import convert_drive

@@ -34,11 +34,13 @@ def imported_after(code: str, modules) -> list[str]:
     return result.stdout.split()
 
 
+@pytest.mark.ros
 @pytest.mark.parametrize('node', sorted(NOT_IMPORTED))
 def test_a_light_node_imports_no_heavy_package(node):
     assert imported_after(f'import gnsscam_ros.nodes.{node}', NOT_IMPORTED[node]) == []
 
 
+@pytest.mark.ros
 def test_gnss_node_checks_and_forwards_an_epoch_without_numba():
     code = '\n'.join([
         'import numpy as np',

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import RosGraph, ros_domain_id, ros_env, wait_until
+from ros_harness import RosGraph, ros_domain_id, ros_env, wait_until
 from rosbags.rosbag2 import StoragePlugin, Writer
 from sensor_msgs.msg import Imu
 from tools_corrupt import assert_refused, dead_pid, hidden_leftovers, unwritable_folder

@@ -29,6 +29,7 @@ from .kernels import weights as weight_kernels
 from .noise import ProcessNoise
 from .particles import (POS, STATE_DIM, SYSTEMATIC, YAW, MotionIncrement,
                         motion_samples, normalize_log_weights, propagate, weighted_mean_cov)
+from .rng import spawn
 from .snapshot import solve_snapshot
 from .types import GnssEpoch
 
@@ -56,7 +57,7 @@ REINITIALISING = 're-initialising from the next fix'
 MAX_STATE_COORDINATE = 1e7
 #: What a step may raise on input that slipped through the checks (overflow into NaN,
 #: a singular matrix, an allocation that failed): the state is then discarded.
-_NUMERICAL_FAILURES = (ArithmeticError, ValueError, MemoryError)
+_NUMERICAL_FAILURES = (ArithmeticError, ValueError, MemoryError, np.linalg.LinAlgError)
 #: Farthest a given map frame origin may be from the first fix [m]. The filter moves
 #: particles in the frame's east-north plane and treats its up axis as vertical; 100 km
 #: away they are ~1 degree off the local ones, 6,000 km away (an origin left at 0, 0)
@@ -155,7 +156,7 @@ class ParticleFilter:
         self.frame = frame
         self.rng = rng if rng is not None else np.random.default_rng()
         # The process noise has a stream of its own, drawn an epoch ahead (core.noise).
-        self.noise = ProcessNoise(self.rng.spawn(1)[0])
+        self.noise = ProcessNoise(spawn(self.rng, 1)[0])
         self.particles: np.ndarray | None = None        # (N, 4) chosen set
         self.log_w: np.ndarray | None = None            # (N,)
         self.posteriors: np.ndarray | None = None       # (S, N, 4) motion samples, last epoch

@@ -453,13 +453,27 @@ def _print_bench(f: dict) -> None:
 
 
 # =============================================================================== main
+def opencv_log_level_api() -> tuple:
+    """``(get_level, set_level, silent)``: OpenCV's log level, on every OpenCV supported.
+
+    ``cv2.utils.logging`` exists from OpenCV 4.13 (and is the only form in 5.x); older
+    ones (Debian 12's and Ubuntu 24.04's 4.6.0) have ``cv2.getLogLevel``/``setLogLevel``
+    with the same integer levels, of which ``LOG_LEVEL_SILENT`` is 0.
+    """
+    api = getattr(getattr(cv2, 'utils', None), 'logging', None)
+    if api is not None and hasattr(api, 'setLogLevel'):
+        return api.getLogLevel, api.setLogLevel, api.LOG_LEVEL_SILENT
+    return cv2.getLogLevel, cv2.setLogLevel, 0
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``gnsscam_mapdb``; returns the exit code."""
     args = _parser().parse_args(argv)
     # OpenCV logs its codecs' complaints ("PNG input buffer is incomplete") on stderr; the
     # tool says what matters on one line naming the file, so they stay silent meanwhile.
-    level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    get_level, set_level, silent = opencv_log_level_api()
+    level = get_level()
+    set_level(silent)
     try:
         return {'build': _cmd_build, 'query': _cmd_query, 'bench': _cmd_bench}[
             args.command](args)
@@ -473,7 +487,7 @@ def main(argv: list[str] | None = None) -> int:
         _err('interrupted')
         return EXIT_INTERRUPTED
     finally:
-        cv2.utils.logging.setLogLevel(level)
+        set_level(level)
 
 
 if __name__ == '__main__':

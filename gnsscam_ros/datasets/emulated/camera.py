@@ -27,6 +27,7 @@ from typing import Iterator
 import cv2
 import numpy as np
 
+from ...core.rng import spawn
 from ...core.types import Drive
 from .config import stream_rng
 from .optics import CameraIntrinsics, Lighting
@@ -204,8 +205,7 @@ def make_camera_stream(scenario: Scenario, seed: int | None = None, rate_hz: flo
     _check_stream_args(rate_hz, fault_fraction, fault_kinds, blur_ksize, occlusion_frac)
     seed = seed_of(scenario, seed)
     intrinsics = intrinsics or CameraIntrinsics()
-    children = stream_rng(seed, 'camera').bit_generator.seed_seq.spawn(3)
-    rng_light, rng_fault, rng_exp = (np.random.default_rng(c) for c in children)
+    rng_light, rng_fault, rng_exp = spawn(stream_rng(seed, 'camera'), 3)
     if lighting is None:
         lighting = Lighting.sunny(rng_light)
     t_end = scenario.duration_s if duration_s is None else min(float(duration_s),

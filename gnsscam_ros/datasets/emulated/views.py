@@ -16,6 +16,7 @@ from typing import Iterator
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ...core.rng import spawn
 from ...core.types import Drive
 from .optics import CameraIntrinsics, Lighting
 from .render import StreetRenderer
@@ -94,8 +95,7 @@ def database_poses(scenario: Scenario, spacing_m: float = 3.0, margin_m: float =
     if region not in ('route', 'city'):
         raise ValueError(f"region must be 'route' or 'city', got {region!r}")
     seed = seed_of(scenario, seed)
-    rng = np.random.default_rng(np.random.SeedSequence([seed, 0xDA7AB])).spawn(2)
-    rng_light, rng = rng
+    rng_light, rng = spawn(np.random.default_rng(np.random.SeedSequence([seed, 0xDA7AB])), 2)
     if lighting is None:
         lighting = Lighting.overcast(rng_light)
     # Views are drawn for the whole city, then filtered, so that the random offsets of a
