@@ -358,6 +358,11 @@ def main(argv: list[str] | None = None) -> int:
         run_demo(args, out_dir, stages)
     except KeyboardInterrupt:
         stage = next(reversed(stages.started), 'the start')
+        if not args.keep_bags:
+            # An interrupted run keeps no bag, finished or partial (as a finished run
+            # without --keep-bags): nothing of it is a result.
+            for path in list(out_dir.rglob('dataset_bag')) + list(out_dir.rglob('result_bag')):
+                shutil.rmtree(path, ignore_errors=True)
         with atomic_output(marker, force=True) as handle:
             handle.write(f'{INCOMPLETE}: interrupted (Ctrl-C) during "{stage}"; the results '
                          'here are not complete.\n')
