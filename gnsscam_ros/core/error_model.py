@@ -35,10 +35,11 @@ residual with its own about ``CORRELATION_LAG_S`` earlier, over the window, read
 of a first-order Gauss-Markov process, ``tau = -lag / ln rho``. The lag is in seconds,
 not epochs, so the estimate does not depend on the GNSS rate.
 
-The same fit drives the GNSS likelihood (core spread and outlier share per satellite,
-:meth:`AdaptiveErrorModel.satellite_model`), the size of the bias hypotheses behind the
-protection level (:meth:`AdaptiveErrorModel.bias_sigma_m`) and the consistency test of the
-filter (:mod:`core.consistency`).
+The same fit drives the GNSS likelihood (the mixture of each satellite's class,
+:meth:`AdaptiveErrorModel.satellite_model`), the bias hypotheses behind the protection
+level (the core spread, and how long errors persist), and the weights of the snapshot
+solutions the consistency test compares with (:meth:`AdaptiveErrorModel.total_sigma_m`,
+:mod:`core.consistency`).
 """
 from __future__ import annotations
 
@@ -341,8 +342,9 @@ class AdaptiveErrorModel:
         f = self.fit
         return (f.core_sd_m[cls], f.wide_share[cls], f.wide_mean_m[cls], f.wide_sd_m[cls])
 
-    def bias_sigma_m(self, cn0_dbhz: np.ndarray) -> np.ndarray:
-        """Standard deviation of each satellite's whole error (core and wide) [m]."""
+    def total_sigma_m(self, cn0_dbhz: np.ndarray) -> np.ndarray:
+        """Standard deviation of each satellite's whole error (core and wide) [m]: the
+        weights of a snapshot solution."""
         return self.fit.total_sd_m()[signal_class(cn0_dbhz)]
 
     def reset(self) -> None:

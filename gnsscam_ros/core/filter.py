@@ -351,7 +351,7 @@ class ParticleFilter:
                                rejected=check.rejected)
         usable = epoch.subset(check.keep)
         # The learned model weighs the first fix (by C/N0), not the stated variances.
-        sigma = (self.errors.bias_sigma_m(usable.cn0_dbhz)
+        sigma = (self.errors.total_sigma_m(usable.cn0_dbhz)
                  if cfg.error_model == ERROR_ADAPTIVE else None)
         try:
             fix = solve_snapshot(usable, measurement_var_m2=cfg.measurement_var_m2,
@@ -465,7 +465,7 @@ class ParticleFilter:
         (``core.consistency``)."""
         cfg = self.config
         adaptive = cfg.error_model == ERROR_ADAPTIVE
-        sigma = self.errors.bias_sigma_m(prep.cn0_dbhz) if adaptive else prep.sigma_m
+        sigma = self.errors.total_sigma_m(prep.cn0_dbhz) if adaptive else prep.sigma_m
         snap = snapshot_position(prep.sv_enu_m, prep.pr_m, sigma, prep.sys_index,
                                  prep.n_systems, centre)
         if snap is None:
