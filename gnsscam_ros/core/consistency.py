@@ -64,6 +64,12 @@ def snapshot_position(sv_enu_m: np.ndarray, pr_m: np.ndarray, sigma_m: np.ndarra
     n_unknowns = 3 + n_systems
     if k < n_unknowns + 1:
         return None
+    # A poisoned state (a non-finite or absurd starting point) has no snapshot solution;
+    # numpy 1.24's lstsq turns one into a SystemError instead of a LinAlgError.
+    if not (np.all(np.isfinite(start_enu_m)) and np.all(np.abs(start_enu_m) < 1e8)
+            and np.all(np.isfinite(sv_enu_m)) and np.all(np.isfinite(pr_m))
+            and np.all(np.isfinite(sigma_m)) and np.all(sigma_m > 0.0)):
+        return None
     x = np.asarray(start_enu_m, dtype=float).copy()
     clock_cols = np.zeros((k, n_systems))
     clock_cols[np.arange(k), sys_index] = 1.0
@@ -75,8 +81,11 @@ def snapshot_position(sv_enu_m: np.ndarray, pr_m: np.ndarray, sigma_m: np.ndarra
         resid = pr_m - rng
         # The clocks are re-estimated at every step: the residual is before them.
         w = robust_w / sigma_m
+        a, b = jac * w[:, None], resid * w
+        if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+            return None
         try:
-            delta, *_ = np.linalg.lstsq(jac * w[:, None], resid * w, rcond=None)
+            delta, *_ = np.linalg.lstsq(a, b, rcond=None)
         except np.linalg.LinAlgError:
             return None
         x = x + delta[:3]
