@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import ros_harness  # noqa: F401  (the replay runs nodes: the module skips without rclpy)
 
 from gnsscam_ros.bags.convert import convert_drive
 from gnsscam_ros.bags.read import read_drive
