@@ -160,8 +160,9 @@ def test_a_static_receiver_settles_without_a_heading_and_must_acquire_one_to_mov
     still = MotionIncrement(1.0, 0.0, 0.0, 1e-6, 1e-8)
     results = [filt.step(epoch_at([0.0, 0.0, 0.0], clock_m=5000.0, stamp_ns=i * SECOND),
                          None if i == 0 else still) for i in range(8)]
-    # Never moved: the heading does not matter; integrity settles after 5 s.
-    assert [r.integrity_valid for r in results] == [False] * 5 + [True] * 3
+    # Seen not to move (from the second epoch): the heading does not matter; integrity
+    # settles 5 s later.
+    assert [r.integrity_valid for r in results] == [False] * 6 + [True] * 2
     # It moves: the heading it never needed is unknown, so acquisition and settling again.
     moving = [filt.step(epoch_at([8.0 * k, 0.0, 0.0], clock_m=5000.0,
                                  stamp_ns=(8 + k) * SECOND),

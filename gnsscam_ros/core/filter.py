@@ -172,6 +172,7 @@ class ParticleFilter:
         self.distance_since_init_m = 0.0
         self.acquired_stamp_ns: int | None = None      # end of heading acquisition
         self._settled_stationary = False                # settling while not yet moved
+        self._motion_seen = False                       # known motion since the start
         self._motion_unknown_s = 0.0                    # of the epoch being processed
         self.last_result: EpochResult | None = None
 
@@ -329,8 +330,10 @@ class ParticleFilter:
             # reckoner) costs only its own epoch (ERROR) and the spread it adds.
             self.acquired_stamp_ns = None
             self.distance_since_init_m = 0.0
+            self._motion_seen = False
         self.last_stamp_ns = epoch.stamp_ns
         self.distance_since_init_m += abs(motion.distance_m)
+        self._motion_seen |= motion.unknown_s == 0.0
         prep = None
         if check.usable:
             centre, cov = weighted_mean_cov(priors[0, :, POS], self.log_w)
@@ -383,6 +386,7 @@ class ParticleFilter:
         self.particles[:, YAW] = self.rng.uniform(-np.pi, np.pi, n)
         self.log_w = np.full(n, -np.log(n))
         self.last_stamp_ns = epoch.stamp_ns
+        self._motion_seen = False
         # Evaluate the first epoch's measurements on the fresh set.
         priors = np.repeat(self.particles[None], cfg.motion_sample_count, axis=0)
         self._motion_unknown_s = 0.0
@@ -512,7 +516,8 @@ class ParticleFilter:
         # or at once while the vehicle has not moved (and again from acquisition if it
         # starts to move before that).
         acquiring = self.distance_since_init_m < cfg.heading_acquisition_m
-        stationary = self.distance_since_init_m <= STATIONARY_M
+        # Stationary: seen not to move (a fresh start has seen no motion at all yet).
+        stationary = self._motion_seen and self.distance_since_init_m <= STATIONARY_M
         if self._settled_stationary and not stationary and acquiring:
             self.acquired_stamp_ns = None
         if (self.acquired_stamp_ns is None and self._motion_unknown_s == 0.0
