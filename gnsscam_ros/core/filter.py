@@ -69,6 +69,10 @@ HEADING_LOST_RAD = 0.5
 #: Travel since the first fix up to which the vehicle counts as not having moved [m]: its
 #: heading, unknown, does not matter yet (a static receiver never needs it).
 STATIONARY_M = 0.5
+#: Particles the consistency test weighs (an even thinning of a larger cloud, both of its
+#: hypotheses on the same particles): its log-likelihood ratio needs the cloud's shape,
+#: not every particle, and a second full evaluation would double the likelihood's cost.
+CONSISTENCY_PARTICLES = 1000
 
 
 @dataclass
@@ -481,10 +485,17 @@ class ParticleFilter:
                                 prep.sv_key)
         shift = np.zeros(cloud.shape[1])
         shift[:2] = snap[:2] - centre[:2]
+        log_w = self.log_w
+        if cloud.shape[0] > CONSISTENCY_PARTICLES:
+            thin = SYSTEMATIC.thin(cloud.shape[0], CONSISTENCY_PARTICLES)
+            cloud, log_w = cloud[thin], normalize_log_weights(log_w[thin])
+            cloud_total = float(self.likelihood.joint(
+                cloud[None], prep, gnss.clock_weights(prep, centre, spread_m), evidence,
+                log_w).total[0])
         moved = (cloud + shift)[None]
         clock_w = gnss.clock_weights(prep, centre + shift[:3], spread_m)
         moved_total = float(self.likelihood.joint(moved, prep, clock_w, evidence,
-                                                  self.log_w).total[0])
+                                                  log_w).total[0])
         return self.consistency.observe(stamp_ns, moved_total - cloud_total, evidence,
                                         shift[:2])
 
