@@ -90,12 +90,9 @@ class EpochResult:
         protection_level_m: Horizontal (or 3D, see ``horizontal_risk``) protection level:
             the smallest radius around the estimate whose risk bound is at most the target
             [m]; inf when none is, None when not updated.
-        integrity_ok: The solution is an update, the filter has settled
-            (``integrity_settling_s``), the motion over the interval is known and the
-            protection level is within the alert limit (False when unknown).
-        integrity_reason: Why integrity is not OK ('' when it is).
-        integrity_valid: Everything but the protection level allows OK (settled, motion
-            known): the flag at any alert limit L is ``integrity_valid and PL <= L``.
+        settling_s: Time since the heading was acquired (or since the start of a
+            vehicle seen not to move) [s]; -1 while it is not: integrity settles for
+            ``integrity_settling_s`` from then (``core.verdict``).
         motion_unknown_s: Part of the interval without dead reckoning [s].
         n_satellites: Satellites used in the update.
         rejected: ``{reason: count}`` of satellites dropped by the checks.
@@ -123,9 +120,7 @@ class EpochResult:
     total_log_lik: np.ndarray | None = None
     risk: integrity.RiskBound | None = None
     protection_level_m: float | None = None
-    integrity_ok: bool = False
-    integrity_reason: str = ''
-    integrity_valid: bool = False
+    settling_s: float = -1.0
     motion_unknown_s: float = 0.0
     n_satellites: int = 0
     rejected: dict = field(default_factory=dict)
@@ -410,8 +405,7 @@ class ParticleFilter:
         mean, cov, yaw, _ = weight_kernels.set_summary(self.particles, self.log_w)
         result = EpochResult(stamp_ns=epoch.stamp_ns, status=PROPAGATED, reason=check.reason,
                              position_enu_m=mean, covariance_m2=cov, yaw_rad=float(yaw),
-                             chosen=0, rejected=check.rejected, integrity_ok=False,
-                             integrity_reason=f'no GNSS update: {check.reason}',
+                             chosen=0, rejected=check.rejected,
                              motion_unknown_s=self._motion_unknown_s)
         self.last_result = result
         return result
@@ -511,7 +505,6 @@ class ParticleFilter:
         mean, cov, yaw, ess = weight_kernels.set_summary(priors[chosen], post_log_w[chosen])
         risk, level = self._integrity(pos, post_log_w, chosen, mean, cov, epoch.stamp_ns,
                                       update)
-        limit = float(cfg.alert_limits_m[0])
         # The heading matters once the vehicle moves: settling starts when it is acquired,
         # or at once while the vehicle has not moved (and again from acquisition if it
         # starts to move before that).
@@ -530,20 +523,6 @@ class ParticleFilter:
         if consistency.inconsistent and np.isfinite(consistency.separation_m):
             # The estimate may be the wrong one of two places: the level covers the other.
             level = max(level, consistency.separation_m)
-        if self._motion_unknown_s > 0.0:
-            reason = (f'dead reckoning missing for {self._motion_unknown_s:.2f} s of this '
-                      f'interval: motion unknown')
-        elif consistency.inconsistent:
-            reason = (f'the cloud is inconsistent with the measurements (test statistic '
-                      f'{consistency.statistic_nats:.1f} nats, snapshot solution '
-                      f'{consistency.separation_m:.0f} m away)')
-        elif settled_s < cfg.integrity_settling_s:
-            reason = ('settling after the first fix or a lost heading (heading '
-                      f'acquisition, then {cfg.integrity_settling_s:g} s)')
-        elif not level <= limit:
-            reason = f'protection level {level:.1f} m above the alert limit {limit:g} m'
-        else:
-            reason = ''
         particles, log_w = priors[chosen], post_log_w[chosen]
         acquired = self.distance_since_init_m >= cfg.heading_acquisition_m
         n_out = cfg.n_particles if acquired else n
@@ -560,10 +539,7 @@ class ParticleFilter:
             stamp_ns=epoch.stamp_ns, status=UPDATED, position_enu_m=mean, covariance_m2=cov,
             yaw_rad=float(yaw),
             chosen=chosen, total_log_lik=total, risk=risk, protection_level_m=level,
-            integrity_ok=not reason, integrity_reason=reason,
-            integrity_valid=self._motion_unknown_s == 0.0 and (
-                settled_s >= cfg.integrity_settling_s),
-            motion_unknown_s=self._motion_unknown_s,
+            settling_s=settled_s, motion_unknown_s=self._motion_unknown_s,
             rejected=check.rejected, ess=float(ess), resampled=bool(resampled),
             consistency=consistency, recovered=consistency.recover,
             recoveries=self.consistency.recoveries)
