@@ -230,7 +230,7 @@ class EpochReport:
     Attributes:
         epoch: The GNSS epoch.
         result: The filter's result: estimate, covariance, heading, protection level,
-            risk bounds and the rest of the evidence behind the verdict.
+            risk bounds and the other findings behind the verdict.
         verdict: The integrity verdict (``core.verdict.integrity_verdict``), the only
             one: fusion_node publishes it, the evaluation scores it.
         late: Inputs that had not reached the epoch when it ran after its bounded wait
@@ -541,7 +541,7 @@ class EpochEngine:
     # ------------------------------------------------------------------ verdicts
     def verdict_of(self, result: EpochResult) -> IntegrityVerdict:
         """The integrity verdict of an epoch result (``core.verdict.integrity_verdict``,
-        with the engine's own evidence: re-initialisation, dead-reckoning resets)."""
+        with the engine's own findings: re-initialisation, dead-reckoning resets)."""
         return integrity_verdict(result, self.filter.config, self.reinitialising,
                                  self.motion.resets)
 

@@ -1,4 +1,4 @@
-"""The integrity verdict of an epoch: decided here, once, from the filter's evidence.
+"""The integrity verdict of an epoch: decided here, once, from the filter's findings.
 
 The particle filter reports what it found (``filter.EpochResult``: whether the epoch was
 an update, the part of the interval without dead reckoning, how long it has settled since
@@ -7,7 +7,7 @@ risk bounds); :func:`integrity_verdict` turns that into the one verdict every co
 uses: fusion_node publishes it on ``integrity_risk`` (``msg_adapters.integrity_risk_to_msg``
 encodes this type), and the evaluation scores it. Nothing else decides OK.
 
-OK needs every piece of evidence, in this order of the reasons against it: a GNSS update
+OK needs all of these, in this order of the reasons against it: a GNSS update
 (else STALE), motion known over the whole interval, a cloud consistent with the
 measurements, the settling time after the heading acquisition, the protection level
 within the alert limit and the risk bound at the alert limit within the target.
@@ -46,7 +46,7 @@ class IntegrityVerdict:
         risk_bounds_by_limit: ``{alert limit [m]: risk bound}`` of the further alert
             limits (``extra_alert_limits_m``).
         reasons: Why the level is not OK, most fundamental first (empty when OK).
-        valid: The evidence that does not depend on the alert limit allows OK (an
+        valid: The findings that do not depend on the alert limit allow OK (an
             update, motion known, settled): the flag at a further alert limit L is
             ``valid and protection level <= L``.
         details: Further figures (satellites, KL, epsilon, motion, camera).
@@ -94,8 +94,8 @@ def stale_verdict(stamp_ns: int, reasons: tuple[str, ...], config: FilterConfig,
 
 
 def _reasons_against(result: EpochResult, config: FilterConfig) -> tuple[list[str], bool]:
-    """``(reasons against OK, most fundamental first; whether the evidence that does not
-    depend on the alert limit allows OK)`` of an updated epoch."""
+    """``(reasons against OK, most fundamental first; whether the findings that do not
+    depend on the alert limit allow OK)`` of an updated epoch."""
     risk = result.risk
     consistency = result.consistency
     level = float(result.protection_level_m)
@@ -127,7 +127,7 @@ def integrity_verdict(result: EpochResult, config: FilterConfig,
     """The integrity verdict of an epoch result: the only place OK is decided.
 
     Args:
-        result: The filter's result of the epoch (its evidence).
+        result: The filter's result of the epoch (its findings).
         config: The filter parameters in force (alert limit, target, settling time).
         reinitialising: Why the filter waits for a fix to start again (None: it does
             not); part of a STALE verdict's reasons.

@@ -368,16 +368,21 @@ def summarize(record: RunRecord, config: FilterConfig) -> dict:
     diff = record.estimate_enu_m - record.truth_enu_m
     err = np.hypot(diff[:, 0], diff[:, 1]) if config.horizontal_risk else np.linalg.norm(
         diff, axis=1)
-    # Declared sufficient = the flag a user sees at that alert limit: settled, motion
-    # known and PL <= AL (configured method); for the other inverse, settled, motion
-    # known and its bound within the target.
+    # Declared sufficient = the flag a user sees at that alert limit: at the configured
+    # one the verdict itself (as the evaluation of a result bag takes it); at a further
+    # limit, the verdict's valid (settled, motion known) and PL <= AL (configured
+    # method); for the other inverse, valid and its bound within the target.
     valid = (record.integrity_valid if record.integrity_valid.size == err.size
              else np.ones(err.size, dtype=bool))
     by_method = {}
     for method, bounds in record.risk_bound.items():
         by_method[method] = {}
         for a, limit in enumerate(record.alert_limits_m):
-            if method == config.inverse_bernoulli and record.protection_level_m.size == err.size:
+            if (method == config.inverse_bernoulli and a == 0
+                    and record.integrity_ok.size == err.size):
+                declared = record.integrity_ok
+            elif (method == config.inverse_bernoulli
+                  and record.protection_level_m.size == err.size):
                 declared = valid & (record.protection_level_m <= limit)
             else:
                 declared = valid & (bounds[:, a] <= config.target_risk)
