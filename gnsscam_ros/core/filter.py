@@ -31,7 +31,8 @@ from .particles import (POS, STATE_DIM, SYSTEMATIC, YAW, MotionIncrement,
                         motion_samples, normalize_log_weights, propagate, weighted_mean_cov)
 from .rng import spawn
 from .snapshot import solve_snapshot
-from .types import GnssEpoch
+# Epoch outcomes (``core.types``, so that the verdict needs no filter to read them).
+from .types import INVALID, PROPAGATED, REJECTED, UPDATED, WAITING, GnssEpoch
 
 # Importable from here as before: the parameter names and values of the configuration
 # (``core.config``), the likelihoods (``core.gnss``) and the bias models (``core.bias``).
@@ -40,14 +41,6 @@ __all__ = ['BIAS_CN0', 'BIAS_LEARNED', 'BIAS_MODELS', 'BIAS_NONE', 'HEADING_LOST
            'PARTICLE_RAIM', 'PROPAGATED', 'REINITIALISING', 'REJECTED', 'ROBUST', 'UPDATED',
            'WAITING', 'EpochResult', 'FilterConfig', 'ParticleFilter']
 
-# Epoch outcomes.
-UPDATED = 'updated'            # GNSS update applied; integrity computed
-PROPAGATED = 'propagated'      # epoch unusable: motion only, integrity not available
-REJECTED = 'rejected'          # epoch refused (time going backwards): state unchanged
-WAITING = 'waiting'            # no initial fix yet
-# The epoch left the state non-finite or absurd: it was discarded and the next usable fix
-# initialises the filter again.
-INVALID = 'invalid'
 #: How the results and verdicts of a discarded state end.
 REINITIALISING = 're-initialising from the next fix'
 #: Largest magnitude of a particle coordinate in the map frame [m] and of its (unwrapped)

@@ -16,9 +16,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
-from .config import FilterConfig
-from .filter import INVALID, UPDATED, EpochResult
+from .types import INVALID, UPDATED
+
+if TYPE_CHECKING:       # annotations only: msg_adapters (and with it every node) imports
+    # this module, and the filter would bring numba into the light nodes.
+    from .config import FilterConfig
+    from .filter import EpochResult
 
 #: Integrity levels of a verdict (``integrity_risk``: DiagnosticStatus OK / ERROR / STALE).
 OK, ERROR, STALE = 'OK', 'ERROR', 'STALE'
