@@ -16,8 +16,11 @@
   with ``:g``), plus informational extras (``n_satellites``, ``motion_unknown_s``, ...).
   Floats are written with ``repr`` so they parse back exactly; unknown values are ``nan``.
 
-``status`` and ``risk_bound_<L>m`` are typed fields of :class:`IntegrityRisk`
-(``epoch_status``, ``risk_bounds_by_limit``); this module alone knows their keys.
+The message is encoded from the core's verdict (``gnsscam_ros.core.verdict.
+IntegrityVerdict``, the one the epoch engine decides) by :func:`integrity_risk_to_msg`, and
+parsed back into :class:`IntegrityRisk` for consumers by :func:`parse_integrity_risk`.
+``status`` and ``risk_bound_<L>m`` are typed fields of both (``epoch_status``,
+``risk_bounds_by_limit``); this module alone knows their keys.
 """
 from __future__ import annotations
 
@@ -25,6 +28,8 @@ import math
 import re
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
+
+from gnsscam_ros.core import verdict as core_verdict
 
 from .errors import MessageError
 from .kit import RCLPY
@@ -37,6 +42,8 @@ if TYPE_CHECKING:                  # ROS messages: looked up in RCLPY where buil
 
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 LEVEL_NAMES = {OK: 'OK', WARN: 'WARN', ERROR: 'ERROR', STALE: 'STALE'}
+#: The core verdict's levels -> DiagnosticStatus levels.
+VERDICT_LEVELS = {core_verdict.OK: OK, core_verdict.ERROR: ERROR, core_verdict.STALE: STALE}
 INTEGRITY_STATUS_NAME = 'gnsscam_ros: integrity risk'
 _FLOAT_KEYS = ('risk_bound', 'empirical_risk', 'divergence_risk', 'alert_limit_m',
                'target_risk')
@@ -177,35 +184,39 @@ class IntegrityRisk:
         return LEVEL_NAMES.get(self.level, str(self.level))
 
 
-def integrity_risk_to_msg(risk: IntegrityRisk) -> DiagnosticArray:
-    """:class:`IntegrityRisk` -> the ``integrity_risk`` DiagnosticArray.
+def integrity_risk_to_msg(verdict: core_verdict.IntegrityVerdict) -> DiagnosticArray:
+    """The core's integrity verdict -> the ``integrity_risk`` DiagnosticArray.
+
+    Its details are written as further values after the typed ones.
 
     Raises:
         MessageError: A level other than OK, ERROR and STALE, or OK with a non-finite
-            bound (an OK verdict must be backed by a number).
+            bound above the target or a protection level above the alert limit (an OK
+            verdict must be backed by numbers).
     """
-    if risk.level not in (OK, ERROR, STALE):
-        raise MessageError(f'integrity level {risk.level} is not OK, ERROR or STALE',
+    level = VERDICT_LEVELS.get(verdict.level)
+    if level is None:
+        raise MessageError(f'integrity level {verdict.level!r} is not OK, ERROR or STALE',
                            'value')
-    if risk.level == OK and not (math.isfinite(risk.risk_bound)
-                                 and risk.risk_bound <= risk.target_risk):
-        raise MessageError(f'level OK needs a finite bound <= target, got {risk.risk_bound}',
-                           'value')
-    if risk.level == OK and risk.protection_level_m is not None and not (
-            math.isfinite(risk.protection_level_m)
-            and risk.protection_level_m <= risk.alert_limit_m):
+    if level == OK and not (math.isfinite(verdict.risk_bound)
+                            and verdict.risk_bound <= verdict.target_risk):
+        raise MessageError(f'level OK needs a finite bound <= target, got '
+                           f'{verdict.risk_bound}', 'value')
+    if level == OK and not (math.isfinite(verdict.protection_level_m)
+                            and verdict.protection_level_m <= verdict.alert_limit_m):
         raise MessageError(f'level OK needs a finite protection level <= the alert limit, '
-                           f'got {risk.protection_level_m}', 'value')
-    values = {k: float(getattr(risk, k)) for k in _FLOAT_KEYS}
-    values['epoch_stamp'] = '' if risk.epoch_stamp_ns is None else int(risk.epoch_stamp_ns)
-    if risk.protection_level_m is not None:
-        values['protection_level_m'] = float(risk.protection_level_m)
-    values[_STATUS_KEY] = _NO_GNSS if risk.epoch_status is None else str(risk.epoch_status)
-    for limit, bound in risk.risk_bounds_by_limit.items():
+                           f'got {verdict.protection_level_m}', 'value')
+    values = {k: float(getattr(verdict, k)) for k in _FLOAT_KEYS}
+    values['epoch_stamp'] = ('' if verdict.epoch_stamp_ns is None
+                             else int(verdict.epoch_stamp_ns))
+    values['protection_level_m'] = float(verdict.protection_level_m)
+    values[_STATUS_KEY] = (_NO_GNSS if verdict.epoch_status is None
+                           else str(verdict.epoch_status))
+    for limit, bound in verdict.risk_bounds_by_limit.items():
         values[_bound_key(limit)] = float(bound)
-    values.update(risk.extra)
-    status = make_status(risk.name, risk.level, risk.message, values)
-    return make_diagnostic_array(risk.stamp_ns, [status])
+    values.update(verdict.details)
+    status = make_status(INTEGRITY_STATUS_NAME, level, verdict.message, values)
+    return make_diagnostic_array(verdict.stamp_ns, [status])
 
 
 def parse_integrity_risk(msg: DiagnosticArray, what: str = INTEGRITY

@@ -579,9 +579,10 @@ def _result_bag(path: Path, epochs, with_particles=True, with_fix=True, with_tru
     """Write the fusion node's outputs, built and serialised by rclpy/msg_adapters."""
     from rclpy.serialization import serialize_message
 
-    from msg_adapters import (ERROR, OK, STALE, GeodeticFix, IntegrityRisk, PoseEstimate,
-                              fix_to_navsatfix, integrity_risk_to_msg, particles_to_posearray,
-                              pose_covariance, pose_to_msg)
+    from gnsscam_ros.core.verdict import ERROR, OK, STALE, IntegrityVerdict
+    from msg_adapters import (GeodeticFix, PoseEstimate, fix_to_navsatfix,
+                              integrity_risk_to_msg, particles_to_posearray, pose_covariance,
+                              pose_to_msg)
     frame = LocalFrame(*origin)
     store = schema.typestore()
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
@@ -619,19 +620,20 @@ def _result_bag(path: Path, epochs, with_particles=True, with_fix=True, with_tru
         for ep in epochs:
             s = ep['stamp_ns']
             if ep.get('stale'):
-                put('integrity_risk', s, integrity_risk_to_msg(IntegrityRisk(
-                    stamp_ns=s, level=STALE, message='stale', risk_bound=np.nan,
-                    empirical_risk=np.nan, divergence_risk=np.nan, alert_limit_m=8.0,
+                put('integrity_risk', s, integrity_risk_to_msg(IntegrityVerdict(
+                    stamp_ns=s, level=STALE, message='stale', alert_limit_m=8.0,
                     target_risk=0.1, epoch_stamp_ns=s)))
                 continue
             ok = ep.get('ok', ep['bound8'] <= 0.1)
-            extra = {'inverse_bernoulli': 'exact'}
+            details = {'inverse_bernoulli': 'exact'}
             if 'valid' in ep:
-                extra['integrity_valid'] = ep['valid']
-            put('integrity_risk', s, integrity_risk_to_msg(IntegrityRisk(
+                details['integrity_valid'] = ep['valid']
+            # An OK verdict is backed by a protection level within the alert limit.
+            put('integrity_risk', s, integrity_risk_to_msg(IntegrityVerdict(
                 stamp_ns=s, level=OK if ok else ERROR, message='', risk_bound=ep['bound8'],
                 empirical_risk=ep['bound8'] / 2, divergence_risk=ep['bound8'] / 2,
-                alert_limit_m=8.0, target_risk=0.1, epoch_stamp_ns=s, extra=extra,
+                alert_limit_m=8.0, target_risk=0.1, epoch_stamp_ns=s, details=details,
+                protection_level_m=ep.get('pl', 6.0 if ok else 12.0),
                 epoch_status='updated', risk_bounds_by_limit={16.0: ep['bound16']})))
             put('pose', s, pose_to_msg(PoseEstimate(
                 stamp_ns=s, position_m=ep['enu'], yaw_rad=0.3,
@@ -760,7 +762,8 @@ def test_evaluate_result_bag_agrees_with_offline_run(tmp_path):
         epochs.append({'stamp_ns': int(s), 'enu': record.estimate_enu_m[k],
                        'bound8': float(bounds[k, 0]), 'bound16': float(bounds[k, 1]),
                        'spread': np.zeros((1, 3)), 'ok': bool(record.integrity_ok[k]),
-                       'valid': bool(record.integrity_valid[k])})
+                       'valid': bool(record.integrity_valid[k]),
+                       'pl': float(record.protection_level_m[k])})
     assert OK == 0 and ERROR == 2
     _result_bag(tmp_path / 'res', epochs, with_particles=False, origin=drive.origin_llh)
     out = evaluate_result_bag(tmp_path / 'res', truth_bag=tmp_path / 'dataset')

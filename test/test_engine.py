@@ -145,7 +145,7 @@ def test_verdicts_and_a_restart_of_the_dead_reckoning(drive, states):
     assert verdict.level in (OK, ERROR) and verdict.epoch_status == UPDATED
     assert verdict.details['dead_reckoning_resets'] == 1
     assert set(verdict.risk_bounds_by_limit) == set(
-        float(v) for v in engine.filter.config.alert_limits_m[1:])
+        float(v) for v in engine.config.alert_limits_m[1:])
 
 
 def test_best_match_is_the_first_of_the_top_k():

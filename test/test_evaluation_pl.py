@@ -192,8 +192,8 @@ def _write_result_bag(path, record, frame, stale_stamps):
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     from gnsscam_ros.bags import schema
-    from msg_adapters import (ERROR, OK, STALE, GeodeticFix, IntegrityRisk, fix_to_navsatfix,
-                              integrity_risk_to_msg)
+    from gnsscam_ros.core.verdict import ERROR, OK, STALE, IntegrityVerdict
+    from msg_adapters import GeodeticFix, fix_to_navsatfix, integrity_risk_to_msg
     store = schema.typestore()
     bounds = record.risk_bound['exact']
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
@@ -203,18 +203,17 @@ def _write_result_bag(path, record, frame, stale_stamps):
         items += [(int(s), None) for s in stale_stamps]
         for s, k in sorted(items):
             if k is None:
-                w.write(ci, s, serialize_message(integrity_risk_to_msg(IntegrityRisk(
-                    stamp_ns=s, level=STALE, message='no valid solution', risk_bound=np.nan,
-                    empirical_risk=np.nan, divergence_risk=np.nan, alert_limit_m=8.0,
-                    target_risk=0.1, epoch_stamp_ns=s, protection_level_m=np.nan))))
+                w.write(ci, s, serialize_message(integrity_risk_to_msg(IntegrityVerdict(
+                    stamp_ns=s, level=STALE, message='no valid solution', alert_limit_m=8.0,
+                    target_risk=0.1, epoch_stamp_ns=s))))
                 continue
             ok = bool(record.integrity_ok[k])
-            w.write(ci, s, serialize_message(integrity_risk_to_msg(IntegrityRisk(
+            w.write(ci, s, serialize_message(integrity_risk_to_msg(IntegrityVerdict(
                 stamp_ns=s, level=OK if ok else ERROR, message='', risk_bound=float(
                     bounds[k, 0]), empirical_risk=0.0, divergence_risk=0.0,
                 alert_limit_m=8.0, target_risk=0.1, epoch_stamp_ns=s,
                 protection_level_m=float(record.protection_level_m[k]),
-                extra={'inverse_bernoulli': 'exact'}, epoch_status='updated'))))
+                details={'inverse_bernoulli': 'exact'}, epoch_status='updated'))))
             lat, lon, alt = frame.enu_to_geodetic(record.estimate_enu_m[k])
             w.write(cf, s, serialize_message(fix_to_navsatfix(GeodeticFix(
                 stamp_ns=s, lat_deg=float(lat), lon_deg=float(lon), alt_m=float(alt),

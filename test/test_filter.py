@@ -9,6 +9,7 @@ from gnsscam_ros.core import gnss
 from gnsscam_ros.core.filter import (PROPAGATED, REJECTED, UPDATED, WAITING, FilterConfig,
                                      ParticleFilter)
 from gnsscam_ros.core.particles import MotionIncrement
+from gnsscam_ros.core.verdict import STALE, integrity_verdict
 
 SECOND = 1_000_000_000
 
@@ -67,7 +68,8 @@ def test_unusable_epoch_propagates_without_integrity():
     pr[:5] = np.nan                                  # 3 finite satellites left
     result = filt.step(replace(epoch, pr_m=pr), MotionIncrement(1.0, 8.0, 0.0, 0.01, 1e-6))
     assert result.status == PROPAGATED
-    assert result.integrity_ok is False and result.risk is None
+    assert result.risk is None
+    assert integrity_verdict(result, filt.config).level == STALE
     assert result.rejected == {'non_finite': 5}
     assert abs(result.position_enu_m[0] - 40.0) < 5.0       # still dead reckoning
     # The next good epoch is used again.
@@ -117,14 +119,17 @@ def test_integrity_flag_follows_target_and_alert_limit():
                           frame=FRAME, rng=np.random.default_rng(6))
     result = drive_east(filt, 20)[-1]
     bound = result.risk.risk_bound[0]
+    verdict = integrity_verdict(result, filt.config)
     # OK exactly when the protection level is within the alert limit (once settled, with
     # the motion known), which implies the bound at the alert limit meets the target.
-    assert result.integrity_ok == (result.protection_level_m <= filt.config.alert_limit_m)
-    assert not result.integrity_ok or bound <= filt.config.target_risk
+    assert verdict.valid
+    assert verdict.ok == (result.protection_level_m <= filt.config.alert_limit_m)
+    assert not verdict.ok or bound <= filt.config.target_risk
     filt.set_parameters(alert_limit_m=0.5)          # a limit inside the cloud
     after = drive_east(filt, 1, start=20)[0]
     assert after.risk.alert_limits_m[0] == 0.5
-    assert after.risk.empirical_risk[0] > 0.5 and not after.integrity_ok
+    assert after.risk.empirical_risk[0] > 0.5
+    assert not integrity_verdict(after, filt.config).ok
 
 
 def test_invalid_configuration_is_refused_with_reasons():
@@ -162,10 +167,11 @@ def test_a_static_receiver_settles_without_a_heading_and_must_acquire_one_to_mov
                          None if i == 0 else still) for i in range(8)]
     # Seen not to move (from the second epoch): the heading does not matter; integrity
     # settles 5 s later.
-    assert [r.integrity_valid for r in results] == [False] * 6 + [True] * 2
+    assert [integrity_verdict(r, cfg).valid for r in results] == [False] * 6 + [True] * 2
     # It moves: the heading it never needed is unknown, so acquisition and settling again.
     moving = [filt.step(epoch_at([8.0 * k, 0.0, 0.0], clock_m=5000.0,
                                  stamp_ns=(8 + k) * SECOND),
                         MotionIncrement(1.0, 8.0, 0.0, 0.01, 1e-6)) for k in range(1, 8)]
-    assert not any(r.integrity_valid for r in moving)
-    assert all('settling' in r.integrity_reason for r in moving)
+    verdicts = [integrity_verdict(r, cfg) for r in moving]
+    assert not any(v.valid for v in verdicts)
+    assert all('settling' in v.message for v in verdicts)

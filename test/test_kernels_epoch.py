@@ -70,7 +70,7 @@ def oracle_choice(filt: ParticleFilter, epoch, motion, camera):
         log_lik = oracles.mixture_log_likelihood(e, prep.sigma_m, prep.wide_share,
                                                  prep.wide_mean_m, prep.wide_sd_m,
                                                  gnss.FAULT_SHARE, cfg.outlier_range_m)
-    joint = filt.log_w + filt._evidence_weight(motion.dt_s) * log_lik
+    joint = filt.log_w + filt._tempering_exponent(motion.dt_s) * log_lik
     if camera:
         total = np.log(np.exp(joint).sum(axis=1))
         matches = np.array([c.position_enu_m for c in camera])
@@ -106,12 +106,12 @@ def test_an_epoch_through_the_kernels_is_the_epoch_through_the_oracles(
 
     # To rounding: numpy 1.24's float64 sin/cos (the oracle's) are not libm's (the kernel's)
     # to the last bit (test_kernels_gnss.test_propagation_is_the_oracle_to_rounding).
-    np.testing.assert_allclose(filt.posteriors, priors, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(filt.sample_particles, priors, rtol=0, atol=1e-12)
     np.testing.assert_allclose(result.total_log_lik, total, atol=1e-4)
-    assert result.chosen == int(np.argmax(total))
-    np.testing.assert_allclose(filt.posterior_log_w, post_log_w, atol=1e-4)
-    mean, cov = oracles.weighted_mean_cov(priors[result.chosen, :, :3],
-                                          post_log_w[result.chosen])
+    assert result.chosen_sample == int(np.argmax(total))
+    np.testing.assert_allclose(filt.sample_log_w, post_log_w, atol=1e-4)
+    mean, cov = oracles.weighted_mean_cov(priors[result.chosen_sample, :, :3],
+                                          post_log_w[result.chosen_sample])
     np.testing.assert_allclose(result.position_enu_m, mean, atol=1e-4)
     np.testing.assert_allclose(result.covariance_m2, cov, rtol=1e-5, atol=1e-6)
     if with_camera:

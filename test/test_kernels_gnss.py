@@ -63,12 +63,12 @@ def test_residuals_match_the_oracle(case):
 
 
 @pytest.mark.parametrize('single, tolerance', [(False, 1e-6), (True, 1e-4)])
-@pytest.mark.parametrize('evidence', [1.0, 0.2])
-def test_robust_joint_matches_the_oracle(case, evidence, single, tolerance):
+@pytest.mark.parametrize('tempering', [1.0, 0.2])
+def test_robust_joint_matches_the_oracle(case, tempering, single, tolerance):
     prep, sets, prior, clock_w, z = case
     lik = gnss.RobustLikelihood(0.3, 300.0, single_precision=single).joint(
-        sets, prep, clock_w, evidence, prior)
-    expected = prior + evidence * oracles.robust_log_likelihood(
+        sets, prep, clock_w, tempering, prior)
+    expected = prior + tempering * oracles.robust_log_likelihood(
         z, np.log(prep.sigma_m), 0.3, 300.0).log_lik
     np.testing.assert_allclose(lik.joint, expected, atol=tolerance)
     np.testing.assert_allclose(lik.total, np.log(np.exp(expected).sum(axis=1)),
@@ -106,12 +106,12 @@ def test_single_precision_is_not_used_where_a_density_leaves_its_range(case):
     np.testing.assert_array_equal(single.joint, double.joint)
 
 
-@pytest.mark.parametrize('evidence', [1.0, 0.2])
-def test_particle_raim_joint_matches_the_oracle(case, evidence):
+@pytest.mark.parametrize('tempering', [1.0, 0.2])
+def test_particle_raim_joint_matches_the_oracle(case, tempering):
     prep, sets, prior, clock_w, z = case
-    lik = gnss.ParticleRaimLikelihood(1.05).joint(sets, prep, clock_w, evidence, prior)
+    lik = gnss.ParticleRaimLikelihood(1.05).joint(sets, prep, clock_w, tempering, prior)
     expected = oracles.particle_raim_log_likelihood(z, np.log(prep.sigma_m), prior, 1.05)
-    np.testing.assert_allclose(lik.joint, prior + evidence * expected.log_lik, atol=1e-6)
+    np.testing.assert_allclose(lik.joint, prior + tempering * expected.log_lik, atol=1e-6)
     np.testing.assert_allclose(lik.gamma, expected.gamma, atol=1e-9)
 
 

@@ -123,3 +123,21 @@ def test_functions_and_files_stay_small():
                     long_functions.append(f'{path.relative_to(ROOT)}:{node.name} {length}')
     assert not long_files, long_files
     assert not long_functions, long_functions
+
+
+#: Packages that consume the epoch engine: they take its reports, never its filter.
+ENGINE_CONSUMERS = ('gnsscam_ros.nodes', 'gnsscam_ros.live', 'gnsscam_ros.evaluation',
+                    'gnsscam_ros.bench')
+
+
+def test_consumers_of_the_engine_never_reach_into_its_filter():
+    """The epoch's outputs are the engine's report (``EpochReport``) and the engine's own
+    attributes; an ``x.filter`` attribute in a consumer reads past them."""
+    reaching = []
+    for name, path in MODULES.items():
+        if not name.startswith(ENGINE_CONSUMERS):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Attribute) and node.attr == 'filter':
+                reaching.append(f'{path.relative_to(ROOT)}:{node.lineno}')
+    assert not reaching, reaching

@@ -10,6 +10,7 @@ from sensor_msgs.msg import Image, NavSatFix, PointCloud2, PointField
 import msg_adapters as ma
 from gnsscam_ros.core.motion import DeadReckoningState
 from gnsscam_ros.core.types import GnssEpoch
+from gnsscam_ros.core.verdict import ERROR, OK, STALE, IntegrityVerdict
 
 STAMP = 1_718_204_613_123_456_789
 
@@ -386,66 +387,79 @@ def test_global_odometry_round_trip_and_errors():
 
 
 # ---------------------------------------------------------------------- integrity
-def _risk(level=ma.OK, bound=0.05, **kw):
-    return ma.IntegrityRisk(stamp_ns=STAMP, level=level, message='m', risk_bound=bound,
+def _verdict(level=OK, bound=0.05, **kw):
+    """A core verdict (what fusion_node publishes), with a protection level that backs an
+    OK unless given."""
+    kw.setdefault('protection_level_m', 6.25)
+    return IntegrityVerdict(stamp_ns=STAMP, level=level, message='m', risk_bound=bound,
                             empirical_risk=0.01, divergence_risk=bound - 0.01,
                             alert_limit_m=8.0, target_risk=0.1, epoch_stamp_ns=STAMP, **kw)
 
 
 def test_integrity_risk_round_trip_is_exact():
-    risk = _risk(bound=0.1 / 3, protection_level_m=6.25, epoch_status='updated',
-                 risk_bounds_by_limit={16.0: 0.01 / 3}, extra={'n_satellites': '11'})
-    msg = ma.integrity_risk_to_msg(risk)
+    verdict = _verdict(bound=0.1 / 3, epoch_status='updated',
+                       risk_bounds_by_limit={16.0: 0.01 / 3}, details={'n_satellites': 11})
+    msg = ma.integrity_risk_to_msg(verdict)
     assert isinstance(msg, DiagnosticArray) and len(msg.status) == 1
     assert msg.status[0].level == DiagnosticStatus.OK
     back = ma.parse_integrity_risk(msg)
-    assert back == risk and back.integrity_ok and not back.stale
-    err = ma.parse_integrity_risk(ma.integrity_risk_to_msg(_risk(ma.ERROR, 0.4)))
+    assert back == ma.IntegrityRisk(
+        stamp_ns=STAMP, level=ma.OK, message='m', risk_bound=0.1 / 3, empirical_risk=0.01,
+        divergence_risk=0.1 / 3 - 0.01, alert_limit_m=8.0, target_risk=0.1,
+        epoch_stamp_ns=STAMP, protection_level_m=6.25, extra={'n_satellites': '11'},
+        epoch_status='updated', risk_bounds_by_limit={16.0: 0.01 / 3})
+    assert back.integrity_ok and not back.stale
+    err = ma.parse_integrity_risk(ma.integrity_risk_to_msg(_verdict(ERROR, 0.4)))
     assert err.level == ma.ERROR and not err.integrity_ok and err.level_name == 'ERROR'
     stale = ma.parse_integrity_risk(ma.integrity_risk_to_msg(
-        ma.IntegrityRisk(STAMP, ma.STALE, 'no gnss', math.nan, math.nan, math.nan, 8.0, 0.1)))
+        IntegrityVerdict(STAMP, STALE, 'no gnss', 8.0, 0.1)))
     assert stale.stale and not stale.integrity_ok and math.isnan(stale.risk_bound)
-    assert stale.epoch_stamp_ns is None and stale.protection_level_m is None
+    assert stale.epoch_stamp_ns is None and math.isnan(stale.protection_level_m)
     assert stale.epoch_status is None and stale.risk_bounds_by_limit == {}
 
 
 def test_integrity_typed_fields_keep_the_wire_keys():
     """epoch_status and risk_bounds_by_limit travel as 'status' and 'risk_bound_<L>m' (the
     keys of older bags), and come back typed, out of extra."""
-    risk = _risk(epoch_status='propagated', risk_bounds_by_limit={16.0: 0.25, 2.5: 0.5},
-                 extra={'inverse_bernoulli': 'exact'})
-    values = ma.status_values(ma.integrity_risk_to_msg(risk).status[0])
+    verdict = _verdict(epoch_status='propagated',
+                       risk_bounds_by_limit={16.0: 0.25, 2.5: 0.5},
+                       details={'inverse_bernoulli': 'exact'})
+    values = ma.status_values(ma.integrity_risk_to_msg(verdict).status[0])
     assert values['status'] == 'propagated'
     assert values['risk_bound_16m'] == '0.25' and values['risk_bound_2.5m'] == '0.5'
-    back = ma.parse_integrity_risk(ma.integrity_risk_to_msg(risk))
+    back = ma.parse_integrity_risk(ma.integrity_risk_to_msg(verdict))
     assert back.epoch_status == 'propagated'
     assert back.risk_bounds_by_limit == {16.0: 0.25, 2.5: 0.5}
     assert back.extra == {'inverse_bernoulli': 'exact'}
     # No GNSS epoch behind the verdict: None, 'no_gnss' on the wire.
-    none = ma.integrity_risk_to_msg(_risk(ma.ERROR, 0.4))
+    none = ma.integrity_risk_to_msg(_verdict(ERROR, 0.4))
     assert ma.status_values(none.status[0])['status'] == 'no_gnss'
     assert ma.parse_integrity_risk(none).epoch_status is None
     # A message without a status (another producer) has no epoch status either.
     none.status[0].values = [kv for kv in none.status[0].values if kv.key != 'status']
     assert ma.parse_integrity_risk(none).epoch_status is None
-    bad = ma.integrity_risk_to_msg(risk)
+    bad = ma.integrity_risk_to_msg(verdict)
     bad.status[0].values.append(KeyValue(key='risk_bound_32m', value='high'))
     with pytest.raises(ma.MessageError) as err:
         ma.parse_integrity_risk(bad)
     assert err.value.reason == 'value'
 
 
-def test_integrity_producer_with_wire_keys_in_extra():
-    """A producer that still writes 'status' and 'risk_bound_<L>m' into extra gets the
-    typed fields; the message is the same as with the typed fields."""
+def _risk(**kw):
+    return ma.IntegrityRisk(stamp_ns=STAMP, level=ma.OK, message='m', risk_bound=0.05,
+                            empirical_risk=0.01, divergence_risk=0.04, alert_limit_m=8.0,
+                            target_risk=0.1, epoch_stamp_ns=STAMP, **kw)
+
+
+def test_integrity_risk_built_with_wire_keys_in_extra():
+    """An IntegrityRisk built with 'status' and 'risk_bound_<L>m' in extra (as older
+    consumers did) gets the typed fields."""
     legacy = _risk(extra={'status': 'updated', 'n_satellites': 9, 'risk_bound_16m': 0.02})
     assert legacy.epoch_status == 'updated' and legacy.risk_bounds_by_limit == {16.0: 0.02}
     assert legacy.extra == {'n_satellites': 9}
     typed = _risk(epoch_status='updated', risk_bounds_by_limit={16.0: 0.02},
                   extra={'n_satellites': 9})
     assert legacy == typed
-    assert (ma.status_values(ma.integrity_risk_to_msg(legacy).status[0])
-            == ma.status_values(ma.integrity_risk_to_msg(typed).status[0]))
     assert _risk(extra={'status': 'no_gnss'}).epoch_status is None
     # Typed fields win over the same keys in extra.
     both = _risk(epoch_status='rejected', risk_bounds_by_limit={16.0: 0.5},
@@ -455,28 +469,33 @@ def test_integrity_producer_with_wire_keys_in_extra():
 
 
 def test_integrity_risk_refuses_an_unbacked_ok():
-    with pytest.raises(ma.MessageError):
-        ma.integrity_risk_to_msg(_risk(ma.OK, 0.3))        # bound above target
-    with pytest.raises(ma.MessageError):
-        ma.integrity_risk_to_msg(_risk(ma.OK, math.nan))
-    with pytest.raises(ma.MessageError):
-        ma.integrity_risk_to_msg(_risk(ma.WARN))
+    ma.integrity_risk_to_msg(_verdict(OK, 0.1))             # backed: encodes
+    with pytest.raises(ma.MessageError, match='bound'):
+        ma.integrity_risk_to_msg(_verdict(OK, 0.3))        # bound above target
+    with pytest.raises(ma.MessageError, match='bound'):
+        ma.integrity_risk_to_msg(_verdict(OK, math.nan))
+    with pytest.raises(ma.MessageError, match='protection level'):
+        ma.integrity_risk_to_msg(_verdict(OK, protection_level_m=8.5))
+    with pytest.raises(ma.MessageError, match='protection level'):
+        ma.integrity_risk_to_msg(_verdict(OK, protection_level_m=math.inf))
+    with pytest.raises(ma.MessageError, match='not OK, ERROR or STALE'):
+        ma.integrity_risk_to_msg(_verdict('WARN'))
 
 
 def test_parse_integrity_risk_errors():
     with pytest.raises(ma.MessageError) as err:
         ma.parse_integrity_risk(DiagnosticArray())
     assert err.value.reason == 'fields'
-    msg = ma.integrity_risk_to_msg(_risk())
+    msg = ma.integrity_risk_to_msg(_verdict())
     msg.status[0].values = [kv for kv in msg.status[0].values if kv.key != 'target_risk']
     with pytest.raises(ma.MessageError, match='target_risk'):
         ma.parse_integrity_risk(msg)
-    msg = ma.integrity_risk_to_msg(_risk())
+    msg = ma.integrity_risk_to_msg(_verdict())
     msg.status[0].values.append(KeyValue(key='risk_bound', value='abc'))
     msg.status[0].values = [msg.status[0].values[-1]] + msg.status[0].values[1:]
     with pytest.raises(ma.MessageError):
         ma.parse_integrity_risk(msg)
-    msg = ma.integrity_risk_to_msg(_risk())
+    msg = ma.integrity_risk_to_msg(_verdict())
     msg.status[0].level = DiagnosticStatus.WARN
     with pytest.raises(ma.MessageError):
         ma.parse_integrity_risk(msg)

@@ -116,9 +116,9 @@ def test_params_files_load_through_ros_args(tmp_path):
         nodes = [GnssNode(context=ctx), ImuNode(context=ctx), CameraNode(context=ctx),
                  FusionNode(context=ctx)]
         fusion = nodes[-1]
-        assert fusion.filter.config.alert_limit_m == 16.0
-        assert fusion.filter.config.n_particles == 300
-        assert fusion.filter.config.target_risk == FilterConfig().target_risk
+        assert fusion.engine.config.alert_limit_m == 16.0
+        assert fusion.engine.config.n_particles == 300
+        assert fusion.engine.config.target_risk == FilterConfig().target_risk
         assert nodes[1].dead_reckoner.config == DeadReckoningConfig()
     finally:
         for node in nodes:
@@ -317,7 +317,7 @@ def test_parameters_update_at_run_time_or_are_refused_with_a_reason(graph, drive
     ok = fusion.set_parameters([Parameter('alert_limit_m', value=16.0),
                                 Parameter('target_risk', value=0.3)])
     assert all(r.successful for r in ok)
-    assert fusion.filter.config.alert_limit_m == 16.0
+    assert fusion.engine.config.alert_limit_m == 16.0
     second = epoch(1)
     assert (second.alert_limit_m, second.target_risk) == (16.0, 0.3)
 
@@ -330,7 +330,7 @@ def test_parameters_update_at_run_time_or_are_refused_with_a_reason(graph, drive
         assert not result.successful and text in result.reason, (name, result.reason)
     result = fusion.set_parameters([Parameter('alert_limit_m', value='far')])[0]
     assert not result.successful                 # wrong type
-    assert fusion.filter.config.alert_limit_m == 16.0 and fusion.filter.config.target_risk == 0.3
+    assert fusion.engine.config.alert_limit_m == 16.0 and fusion.engine.config.target_risk == 0.3
 
     # The same refusal through the parameter service, as `ros2 param set` would see it.
     from rcl_interfaces.srv import SetParameters
@@ -549,7 +549,7 @@ def test_odometry_global_map_origin_and_integrity_on_diagnostics(graph, drive):
     g.spin_for(0.2)
     assert len(late) == 1
     origin = ma.navsatfix_to_fix(late[0])
-    lat, lon, alt = fusion.filter.frame.origin_llh
+    lat, lon, alt = fusion.engine.frame.origin_llh
     assert (origin.lat_deg, origin.lon_deg, origin.alt_m) == (lat, lon, alt)
     assert late[0].header.frame_id == 'map' and origin.status == 0
     assert late[0].position_covariance_type == NavSatFix.COVARIANCE_TYPE_UNKNOWN
@@ -575,12 +575,12 @@ def test_integers_are_accepted_for_float_parameters_at_start_and_at_run_time():
     try:
         fusion = g.add(FusionNode(context=g.ctx, parameter_overrides=overrides(
             n_particles=100, gnss_timeout_s=5)))
-        assert fusion.filter.config.alert_limit_m == 16.0
+        assert fusion.engine.config.alert_limit_m == 16.0
         assert type(fusion.param('alert_limit_m')) is float
         assert fusion.param('gnss_timeout_s') == 5.0 and fusion.param('camera_gate_m') == 30.0
         result = fusion.set_parameters([Parameter('alert_limit_m', value=12)])[0]
         assert result.successful, result.reason
-        assert fusion.filter.config.alert_limit_m == 12.0
+        assert fusion.engine.config.alert_limit_m == 12.0
         assert type(fusion.param('alert_limit_m')) is float
         # An integer parameter still refuses a float, a float one a string.
         assert not fusion.set_parameters([Parameter('n_posteriors', value=2.5)])[0].successful

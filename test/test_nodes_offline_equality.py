@@ -128,9 +128,8 @@ def offline_run(drive, frame, matches):
     gd = gnss_node.DEFAULTS
     checked = [epoch.subset(check_epoch(epoch, gd['min_satellites'], gd['elevation_mask_deg'],
                                         gd['cn0_mask_dbhz']).keep) for epoch in drive.gnss]
-    filt = engine.filter
-    return [(report.result, filt.particles.copy(),
-             yaw_variance(filt.particles[:, 3], filt.log_w))
+    return [(report.result, report.verdict, report.cloud.particles.copy(),
+             yaw_variance(report.cloud.particles[:, 3], report.cloud.log_w))
             for report in engine_reports(engine, checked, states, camera)]
 
 
@@ -144,13 +143,13 @@ def check_outputs_equal(pipe, offline, results, frame) -> None:
     cloud_by = {ma.stamp_to_ns(m.header.stamp): ma.posearray_to_particles(m)
                 for m in pipe.clouds}
     fix_by = {ma.stamp_to_ns(m.header.stamp): ma.navsatfix_to_fix(m) for m in pipe.fixes}
-    for (r, particles, yaw_var), status in zip(offline, results):
+    for (r, verdict, particles, yaw_var), status in zip(offline, results):
         assert r.status == status
         risk = by_stamp[r.stamp_ns]
         if r.status != UPDATED:
             assert risk.level == ma.STALE and math.isnan(risk.risk_bound)
             continue
-        assert risk.level == (ma.OK if r.integrity_ok else ma.ERROR)
+        assert risk.level == (ma.OK if verdict.ok else ma.ERROR)
         np.testing.assert_allclose(
             [risk.risk_bound, risk.empirical_risk, risk.divergence_risk],
             [r.risk.risk_bound[0], r.risk.empirical_risk[0], r.risk.divergence_risk[0]],
@@ -203,7 +202,7 @@ def test_nodes_equal_offline_core_run(graph, drive, tmp_path):
         range(len(cam_stamps)))                    # each image finds itself first
 
     offline = offline_run(drive, frame, pipe.matches)
-    assert any(r.camera_alpha is not None for r, _, _ in offline), \
+    assert any(r.camera_alpha is not None for r, _, _, _ in offline), \
         'the camera matches reached the filter'
     check_outputs_equal(pipe, offline, results, frame)
     values = pipe.fusion.stats.values()

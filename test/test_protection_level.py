@@ -12,6 +12,7 @@ from gnsscam_ros.core.bias import BiasHypotheses, BiasModel, projected_weights
 from gnsscam_ros.core.filter import UPDATED, FilterConfig, ParticleFilter
 from gnsscam_ros.core.motion import (ADDED, RESET, DeadReckoningState, MotionAccumulator)
 from gnsscam_ros.core.particles import MotionIncrement
+from gnsscam_ros.core.verdict import integrity_verdict
 
 SECOND = 1_000_000_000
 EXCERPT = Path(__file__).parent / 'data' / 'smartloc_excerpt'
@@ -251,7 +252,8 @@ def test_a_tight_consistent_cloud_is_certified_with_the_defaults():
     filt = ParticleFilter(small_config(), frame=FRAME, rng=np.random.default_rng(0))
     results = run_static(filt, 30, lambda i: MotionIncrement.stationary(1.0))
     last = results[-1]
-    assert last.status == UPDATED and last.integrity_ok and last.integrity_reason == ''
+    verdict = integrity_verdict(last, filt.config)
+    assert last.status == UPDATED and verdict.ok and verdict.reasons == ()
     assert 0.0 < last.protection_level_m <= 25.0
     assert last.risk.risk_bound[0] <= 0.1
     assert np.linalg.norm(last.position_enu_m[:2]) < last.protection_level_m
@@ -262,9 +264,10 @@ def test_unknown_motion_grows_the_level_and_is_never_ok():
     known = run_static(filt, 20, lambda i: MotionIncrement.stationary(1.0))
     lost = [filt.step(epoch_at(np.zeros(3), clock_m=100.0, stamp_ns=(20 + i) * SECOND),
                       None) for i in range(5)]
-    assert known[-1].integrity_ok
-    assert all(r.status == UPDATED and not r.integrity_ok and r.motion_unknown_s == 1.0
-               and 'motion unknown' in r.integrity_reason for r in lost)
+    assert integrity_verdict(known[-1], filt.config).ok
+    verdicts = [integrity_verdict(r, filt.config) for r in lost]
+    assert all(r.status == UPDATED and not v.ok and r.motion_unknown_s == 1.0
+               and 'motion unknown' in v.reasons[0] for r, v in zip(lost, verdicts))
     assert lost[-1].protection_level_m > 2.0 * known[-1].protection_level_m
 
 

@@ -22,7 +22,8 @@ import pytest
 from ros_harness import RosGraph, ros_env, stop
 from diagnostic_msgs.msg import DiagnosticArray
 
-from msg_adapters import OK, STALE, IntegrityRisk, integrity_risk_to_msg
+from gnsscam_ros.core.verdict import OK, STALE, IntegrityVerdict
+from msg_adapters import integrity_risk_to_msg
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / 'README.md').read_text(encoding='utf-8')
@@ -135,14 +136,12 @@ class _Reader:
 
 
 def _verdicts():
-    ok = IntegrityRisk(stamp_ns=1_000_000_000, level=OK, message='integrity sufficient',
-                       risk_bound=0.02, empirical_risk=0.01, divergence_risk=0.01,
-                       alert_limit_m=8.0, target_risk=0.1, epoch_stamp_ns=1_000_000_000,
-                       protection_level_m=6.5)
-    stale = IntegrityRisk(stamp_ns=2_000_000_000, level=STALE, message='no GNSS',
-                          risk_bound=float('nan'), empirical_risk=float('nan'),
-                          divergence_risk=float('nan'), alert_limit_m=8.0,
-                          target_risk=0.1, epoch_stamp_ns=None)
+    ok = IntegrityVerdict(stamp_ns=1_000_000_000, level=OK, message='integrity sufficient',
+                          risk_bound=0.02, empirical_risk=0.01, divergence_risk=0.01,
+                          alert_limit_m=8.0, target_risk=0.1, epoch_stamp_ns=1_000_000_000,
+                          protection_level_m=6.5)
+    stale = IntegrityVerdict(stamp_ns=2_000_000_000, level=STALE, message='no GNSS',
+                             alert_limit_m=8.0, target_risk=0.1)
     return integrity_risk_to_msg(ok), integrity_risk_to_msg(stale)
 
 

@@ -67,7 +67,7 @@ def small_engine(seed=1):
 def horizontal_errors(drive, engine, reports):
     """Horizontal error [m] of every report with an estimate (NaN without one)."""
     stamps = np.array([r.result.stamp_ns for r in reports], dtype=np.int64)
-    truth = truth_at(drive, engine.filter.frame, stamps)
+    truth = truth_at(drive, engine.frame, stamps)
     out = np.full(len(reports), np.nan)
     for i, r in enumerate(reports):
         if r.result.position_enu_m is not None:
@@ -278,7 +278,7 @@ def test_reset_time_base_drops_everything_and_accepts_an_earlier_time_base(drive
     engine.reset_time_base('stamps jumped back by a day')
     assert not engine.queue and not engine.camera and not engine.motion.states
     assert not engine.filter.initialised and engine.filter.last_stamp_ns is None
-    assert engine.filter.frame is not None               # the published map frame stays
+    assert engine.frame is not None                      # the published map frame stays
     assert engine.counts['time_base_resets'] == 1 and engine.motion.resets == resets_before
     # The same drive a day earlier: taken as it comes, the first usable fix starts again.
     day = 86_400 * S
@@ -294,7 +294,7 @@ def test_reset_time_base_drops_everything_and_accepts_an_earlier_time_base(drive
     assert after[1].result.status == UPDATED and engine.reinitialising is None
     assert all(r.result.status == UPDATED for r in after[1:])
     assert all(r.result.motion_unknown_s == 0.0 for r in after[2:])   # new motion used
-    truth = truth_at(drive, engine.filter.frame,
+    truth = truth_at(drive, engine.frame,
                      np.array([r.result.stamp_ns + day for r in after[1:]]))
     est = np.array([r.result.position_enu_m for r in after[1:]])
     err = np.hypot(*(est - truth)[:, :2].T)
@@ -444,8 +444,8 @@ def test_run_time_changes_beyond_the_limits_are_refused_and_the_old_values_kept(
             assert result.successful, result.reason
             continue
         assert not result.successful and text in result.reason, (name, result.reason)
-    assert fusion.filter.config.n_particles == 100
-    assert fusion.filter.config.n_posteriors == 10_000
+    assert fusion.engine.config.n_particles == 100
+    assert fusion.engine.config.n_posteriors == 10_000
     assert fusion.param('gnss_timeout_s') == 2.0 and fusion.engine.timing.camera_wait_s == 0.2
     assert fusion.ready_settings()['satellite_limit'] == 64
 
@@ -485,7 +485,7 @@ def test_fusion_node_publishes_nothing_from_a_poisoned_state_and_says_so(graph, 
 
     for k in range(3):
         assert epoch(k).level in (ma.OK, ma.ERROR)
-    fusion.filter.particles[:, 0] = np.inf               # poisoned between two epochs
+    fusion.engine.filter.particles[:, 0] = np.inf               # poisoned between two epochs
     bad = epoch(3)
     assert bad.stale and 'filter state invalid (' in bad.message and REINIT in bad.message
     t3 = drive.gnss[3].stamp_ns

@@ -147,13 +147,13 @@ def test_reset_service_starts_every_stateful_node_afresh(drive_bag, running_node
     graph, namespace, nodes = running_nodes
     assert_complete(play(bag, graph, namespace))
     fusion = nodes['fusion_node']
-    assert fusion.filter.particles is not None
+    assert fusion.engine.initialised
     for name in ('gnss_node', 'imu_node', 'camera_node', 'fusion_node'):
         answer = call_reset(graph, namespace, name)
         assert answer.success and answer.message, name
         assert nodes[name].stats.get('resets') == 1
         assert all(h.gate.newest_ns is None for h in nodes[name].inputs.values()), name
-    assert fusion.filter.particles is None
+    assert not fusion.engine.initialised
     assert fusion.engine.counts.get('time_base_resets') == 1
     # After a reset the same bag is a fresh start, not a time base to be detected.
     assert_complete(play(bag, graph, namespace))

@@ -75,7 +75,8 @@ def straight_state(stamp_ns: int, x_m: float, previous: DeadReckoningState | Non
 
 def _timed_engine(config: FilterConfig, epochs: list, frame: LocalFrame, seed: int,
                   camera_matches: int):
-    """An engine after its first epoch, and a function that runs one more epoch.
+    """The report of an engine's first epoch, and a function that runs one more epoch
+    (the first returned as a one-item list that each call updates to the latest).
 
     Every call advances the stamp by 1 s with 8 m of dead reckoning (through the engine,
     as fusion_node) and, with ``camera_matches``, that many camera matches spread over
@@ -83,40 +84,40 @@ def _timed_engine(config: FilterConfig, epochs: list, frame: LocalFrame, seed: i
     with GNSS: the fusion is computed, not excluded).
     """
     engine = EpochEngine(config, frame=frame, rng=np.random.default_rng(seed))
-    filt = engine.filter
     rng = np.random.default_rng(seed + 1)
     state = {'i': 1, 'dr': straight_state(epochs[0].stamp_ns - 1_000_000_000, 0.0)}
     engine.add_dead_reckoning(state['dr'])
     engine.add_gnss(epochs[0])
-    list(engine.ready_reports())
+    latest = list(engine.ready_reports())
 
     def one_epoch():
         template = epochs[state['i'] % len(epochs)]
-        previous = filt.last_stamp_ns
+        previous = latest[-1].result.stamp_ns
         stamp = previous + 1_000_000_000
         state['dr'] = straight_state(stamp, state['dr'].x_m + 8.0, state['dr'])
         engine.add_dead_reckoning(state['dr'])
-        centre = filt.last_result.position_enu_m
+        centre = latest[-1].result.position_enu_m
         for j in range(camera_matches):
             at = previous + (j + 1) * (1_000_000_000 // camera_matches)
             engine.add_camera(at, CameraMeasurement(
                 stamp_ns=at, position_enu_m=centre + rng.normal(scale=3.0, size=3),
                 score=1.0, frame_id=state['i'] * camera_matches + j))
         engine.add_gnss(replace(template, stamp_ns=stamp))
-        list(engine.ready_reports())
+        latest[:] = list(engine.ready_reports())[-1:] or latest
         state['i'] += 1
 
-    return engine, one_epoch
+    return latest, one_epoch
 
 
 def _repeats(evaluations: int, repeats: int) -> int:
     return max(3, min(repeats, int(2e6 // evaluations) + 3))
 
 
-def _bare_ms(filt, epoch, frame: LocalFrame, config: FilterConfig, evaluations: int,
-             repeats: int) -> float:
-    """The bare arithmetic over ``evaluations`` positions of the filter's last sets."""
-    positions = filt.posteriors[..., :3].reshape(-1, 3)
+def _bare_ms(latest: list, epoch, frame: LocalFrame, config: FilterConfig,
+             evaluations: int, repeats: int) -> float:
+    """The bare arithmetic over ``evaluations`` positions of the motion samples of the
+    latest report (``latest[-1]``, an update)."""
+    positions = latest[-1].posterior_set.positions_m.reshape(-1, 3)
     positions = np.ascontiguousarray(np.resize(positions, (evaluations, 3)))
     prep = prepare_epoch(epoch, frame, positions.mean(0), config.measurement_var_m2, False)
     reps = _repeats(evaluations, repeats)
@@ -149,9 +150,9 @@ def bench(counts=DEFAULT_COUNTS, n_posteriors: int = BENCH_POSTERIORS,
             config = replace(config, likelihood=likelihood)
         evaluations = n * config.motion_sample_count
         reps = _repeats(evaluations, repeats)
-        engine, one_epoch = _timed_engine(config, epochs, frame, seed, 0)
+        latest, one_epoch = _timed_engine(config, epochs, frame, seed, 0)
         epoch_ms = median_ms(one_epoch, reps)
-        bare_ms = _bare_ms(engine.filter, epochs[1], frame, config, evaluations, repeats)
+        bare_ms = _bare_ms(latest, epochs[1], frame, config, evaluations, repeats)
         camera_ms = float('nan')
         if camera_matches:
             _, one_camera_epoch = _timed_engine(config, epochs, frame, seed, camera_matches)
@@ -181,10 +182,10 @@ def _default_config(config: FilterConfig, epochs: list, frame: LocalFrame, seed:
     S * N (what its likelihood evaluates)."""
     config = replace(config, acquisition_particles=0)
     n, m, s = config.n_particles, config.n_posteriors, config.motion_sample_count
-    engine, one_epoch = _timed_engine(config, epochs, frame, seed, 0)
+    latest, one_epoch = _timed_engine(config, epochs, frame, seed, 0)
     epoch_ms = median_ms(one_epoch, _repeats(n * s, repeats))
-    bare_mn = _bare_ms(engine.filter, epochs[1], frame, config, m * n, repeats)
-    bare_sn = _bare_ms(engine.filter, epochs[1], frame, config, s * n, repeats)
+    bare_mn = _bare_ms(latest, epochs[1], frame, config, m * n, repeats)
+    bare_sn = _bare_ms(latest, epochs[1], frame, config, s * n, repeats)
     return {'n_particles': n, 'n_posteriors': m, 'motion_samples': s,
             'epoch_ms_median': epoch_ms, 'bare_likelihood_ms_at_mn': bare_mn,
             'bare_likelihood_ms_at_sn': bare_sn, 'ratio_at_mn': epoch_ms / bare_mn,

@@ -8,7 +8,7 @@ measurements a second question: would the same cloud explain them better somewhe
 else? The alternative is the cloud moved horizontally onto a robust snapshot solution of
 the epoch (:func:`snapshot_position`; its height stays the cloud's: snapshot heights in a
 canyon are tens of metres off). Both are weighed by the same likelihood with the same
-evidence exponent, so their difference ``d = log L(moved) - log L(cloud)`` is a log
+tempering exponent, so their difference ``d = log L(moved) - log L(cloud)`` is a log
 likelihood ratio between two hypotheses of equal spread, and its sum over epochs is a
 sequential test (Page's CUSUM, ``S <- max(0, S + d - allowance)``,
 :class:`ConsistencyMonitor`):
@@ -126,7 +126,7 @@ class ConsistencyMonitor:
     place is beaten by it on average: for a Gaussian model the log likelihood ratio of a
     fitted position against the true one is ``chi^2 / 2`` with as many degrees of freedom
     as the move has (two: east and north), one nat per epoch before tempering. That
-    expectation is the test's allowance: ``S <- max(0, S + d - evidence * 1)``.
+    expectation is the test's allowance: ``S <- max(0, S + d - tempering * 1)``.
 
     The move of a recovery is the separation smoothed over ``SHIFT_SMOOTHING_S`` (one
     epoch's snapshot solution in a canyon may be tens of metres off; a lock is a
@@ -145,7 +145,7 @@ class ConsistencyMonitor:
         self.shift_m: np.ndarray | None = None       # smoothed snapshot - cloud, E, N
         self._stamp_ns: int | None = None
 
-    def observe(self, stamp_ns: int, step_nats: float, evidence: float = 0.0,
+    def observe(self, stamp_ns: int, step_nats: float, tempering: float = 0.0,
                 shift_m: np.ndarray | None = None) -> ConsistencyState:
         """Fold one epoch into the test.
 
@@ -153,12 +153,12 @@ class ConsistencyMonitor:
             stamp_ns: Epoch time [ns].
             step_nats: The epoch's log likelihood ratio (NaN: no test this epoch; the
                 statistic stays).
-            evidence: The epoch's evidence exponent (scales the allowance).
+            tempering: The epoch's tempering exponent (scales the allowance).
             shift_m: (2,) snapshot solution minus cloud centre, east and north [m].
         """
         if np.isfinite(step_nats) and shift_m is not None:
             self.statistic_nats = max(
-                0.0, self.statistic_nats + float(step_nats) - SHIFT_DOF / 2.0 * evidence)
+                0.0, self.statistic_nats + float(step_nats) - SHIFT_DOF / 2.0 * tempering)
             if self.shift_m is None or self._stamp_ns is None:
                 self.shift_m = np.asarray(shift_m, dtype=float).copy()
             else:

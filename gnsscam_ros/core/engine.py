@@ -12,8 +12,12 @@ reproduce the offline run" holds by construction instead of by copies:
 * GNSS epochs are queued until they are *ready* (:meth:`EpochEngine.waiting_for`): every
   input stream has reached the epoch's stamp, has ended, or has been waited for long
   enough (bounded waits, wall time, only when a clock is given);
-* each epoch runs ``ParticleFilter.step`` and yields an :class:`EpochReport` with the
-  result and the :class:`IntegrityVerdict` that ``integrity_risk`` publishes.
+* each epoch runs ``ParticleFilter.step`` and yields an :class:`EpochReport`: the
+  filter's result, the one :class:`~.verdict.IntegrityVerdict` (decided by
+  ``core.verdict.integrity_verdict``) that ``integrity_risk`` publishes, the particle
+  cloud and the posteriors of the risk bound. Consumers take everything from the report
+  and the engine's own attributes (:attr:`EpochEngine.config`, :attr:`EpochEngine.frame`,
+  :meth:`EpochEngine.set_parameters`), never from the filter.
 
 Which inputs an epoch uses never depends on when the later ones arrive: the motion and
 the camera matches of an interval only use inputs stamped at or before its end (as long as
@@ -40,7 +44,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -49,13 +53,22 @@ from .filter import (INVALID, MAX_STATE_COORDINATE, PROPAGATED, REINITIALISING, 
 from .frames import LocalFrame
 from .fusion import MAX_CAMERA_MATCHES, CameraMeasurement, measurements_at_epoch
 from .gnss import epoch_problem
+from .integrity import PosteriorSet
 from .motion import OUT_OF_ORDER, DeadReckoningState, MotionAccumulator
 from .particles import MotionIncrement
 from .types import GnssEpoch
+from .verdict import ERROR, OK, STALE, IntegrityVerdict, integrity_verdict, stale_verdict
 
-#: Integrity levels of a verdict (``integrity_risk``: DiagnosticStatus OK / ERROR / STALE).
-OK, ERROR, STALE = 'OK', 'ERROR', 'STALE'
+# Importable from here as before: the verdict's levels and type (``core.verdict``).
+__all__ = ['CAMERA', 'DEAD_RECKONING', 'DROPPED_OLDEST', 'ERROR', 'ESTIMATE_STATUSES',
+           'MAX_BUFFER_S', 'MAX_CAMERA_BUFFER', 'MAX_DR_VARIANCE', 'MAX_GNSS_QUEUE',
+           'MAX_ODOM_COORDINATE', 'MAX_SPEED_MPS', 'MAX_TIMEOUT_S', 'MAX_WAIT_S',
+           'MAX_YAW_RATE_RPS', 'NO_MATCH', 'OK', 'QUEUED', 'REFUSED', 'STALE', 'EpochEngine',
+           'EpochReport', 'InputTiming', 'IntegrityVerdict', 'ParticleCloud', 'best_match',
+           'camera_problem', 'dead_reckoning_problem']
 
+#: Filter statuses with an estimate to publish.
+ESTIMATE_STATUSES = (UPDATED, PROPAGATED)
 #: Outcomes of the ``add_*`` methods besides ``motion.ADDED``/``OUT_OF_ORDER``/``RESET``;
 #: ``REFUSED``: the input failed the engine's checks and changed nothing.
 QUEUED, DROPPED_OLDEST, NO_MATCH, REFUSED = 'queued', 'dropped_oldest', 'no_match', 'refused'
@@ -197,60 +210,42 @@ class InputTiming:
 
 
 @dataclass(frozen=True)
-class IntegrityVerdict:
-    """What ``integrity_risk`` publishes for one epoch (or for silence).
+class ParticleCloud:
+    """The filter's particle set after an epoch (resampled or not), as published.
 
     Attributes:
-        stamp_ns: Time of the verdict [ns] (the epoch's; a STALE report for silence
-            carries the time it was made).
-        level: ``OK`` (integrity sufficient), ``ERROR`` (alarm) or ``STALE`` (no valid
-            solution behind it).
-        message: Human-readable reason.
-        risk_bound: Risk bound at the configured alert limit (NaN when STALE).
-        empirical_risk: Its empirical part (NaN when STALE).
-        divergence_risk: Its divergence part (NaN when STALE).
-        alert_limit_m: Configured alert limit [m].
-        target_risk: Configured target integrity risk.
-        epoch_stamp_ns: Stamp of the GNSS epoch behind the verdict (None: none yet).
-        protection_level_m: Protection level [m] (NaN when STALE, inf when none).
-        epoch_status: Filter status of that epoch ('updated', 'propagated', 'rejected',
-            'waiting'); None when no GNSS epoch is behind the verdict.
-        risk_bounds_by_limit: ``{alert limit [m]: risk bound}`` of the further alert
-            limits (``extra_alert_limits_m``).
-        details: Further figures (satellites, KL, epsilon, motion, camera).
+        particles: (N, 4) east, north, up [m] and heading [rad] in the map frame.
+        log_w: (N,) normalised log-weights.
     """
 
-    stamp_ns: int
-    level: str
-    message: str
-    alert_limit_m: float
-    target_risk: float
-    risk_bound: float = math.nan
-    empirical_risk: float = math.nan
-    divergence_risk: float = math.nan
-    epoch_stamp_ns: int | None = None
-    protection_level_m: float = math.nan
-    epoch_status: str | None = None
-    risk_bounds_by_limit: dict = field(default_factory=dict)
-    details: dict = field(default_factory=dict)
+    particles: np.ndarray
+    log_w: np.ndarray
 
 
 @dataclass(frozen=True)
 class EpochReport:
-    """One processed GNSS epoch.
+    """Everything one processed GNSS epoch gives its consumers (the nodes, the
+    evaluation, the benches): none of them looks into the filter.
 
     Attributes:
         epoch: The GNSS epoch.
-        result: The filter's result.
-        verdict: Its integrity verdict.
+        result: The filter's result: estimate, covariance, heading, protection level,
+            risk bounds and the other findings behind the verdict.
+        verdict: The integrity verdict (``core.verdict.integrity_verdict``), the only
+            one: fusion_node publishes it, the evaluation scores it.
         late: Inputs that had not reached the epoch when it ran after its bounded wait
             (``DEAD_RECKONING``, ``CAMERA``).
+        cloud: The particle set after the epoch (None without an estimate: statuses
+            other than ``ESTIMATE_STATUSES``).
+        posterior_set: The M posteriors the risk bound saw (None unless updated).
     """
 
     epoch: GnssEpoch
     result: EpochResult
     verdict: IntegrityVerdict
     late: tuple = ()
+    cloud: ParticleCloud | None = None
+    posterior_set: PosteriorSet | None = None
 
 
 def best_match(stamp_ns: int, positions_m: np.ndarray, scores: np.ndarray,
@@ -294,6 +289,26 @@ class EpochEngine:
         self._camera_stamps: deque = deque(maxlen=16)   # every image, matched or not
         self._first_gnss_s: float | None = None
         self._last_dr_s: float | None = None
+
+    @property
+    def config(self) -> FilterConfig:
+        """The filter parameters in force."""
+        return self.filter.config
+
+    def set_parameters(self, **changes) -> None:
+        """Change filter parameters between epochs (``ParticleFilter.set_parameters``:
+        validated as a whole ``FilterConfig``, the old ones stay on error)."""
+        self.filter.set_parameters(**changes)
+
+    @property
+    def frame(self) -> LocalFrame | None:
+        """The map frame (None until the first robust fix anchors it)."""
+        return self.filter.frame
+
+    @property
+    def initialised(self) -> bool:
+        """The filter has a particle state (a fix initialised it and it was not reset)."""
+        return self.filter.initialised
 
     # ------------------------------------------------------------------ inputs
     def add_dead_reckoning(self, state: DeadReckoningState, now_s: float | None = None) -> str:
@@ -464,7 +479,10 @@ class EpochEngine:
             self.reinitialising = result.reason
         elif result.status == UPDATED:
             self.reinitialising = None
-        return EpochReport(epoch, result, self.verdict_of(result), late)
+        cloud = (ParticleCloud(filt.particles, filt.log_w)
+                 if result.status in ESTIMATE_STATUSES else None)
+        return EpochReport(epoch, result, self.verdict_of(result), late, cloud,
+                           filt.posterior_set if result.status == UPDATED else None)
 
     def reset_time_base(self, reason: str) -> None:
         """The inputs adopt a new time base (a deliberate jump of their stamps): drop the
@@ -522,60 +540,16 @@ class EpochEngine:
 
     # ------------------------------------------------------------------ verdicts
     def verdict_of(self, result: EpochResult) -> IntegrityVerdict:
-        """The integrity verdict of an epoch result.
+        """The integrity verdict of an epoch result (``core.verdict.integrity_verdict``,
+        with the engine's own findings: re-initialisation, dead-reckoning resets)."""
+        return integrity_verdict(result, self.filter.config, self.reinitialising,
+                                 self.motion.resets)
 
-        OK needs every piece of evidence: an update, the filter's verdict (settled,
-        motion known, protection level within the alert limit) and the risk bound it
-        implies within the target.
-        """
-        cfg = self.filter.config
-        if result.status != UPDATED or result.risk is None:
-            message = f'no valid solution ({result.status}): {result.reason}'
-            if self.reinitialising and result.status != INVALID:
-                message += f'; {self.reinitialising}'
-            return self.stale_verdict(result.stamp_ns, message, result)
-        risk = result.risk
-        bound = float(risk.risk_bound[0])
-        level = float(result.protection_level_m)
-        ok = bool(result.integrity_ok) and bound <= cfg.target_risk
-        details = {'n_satellites': result.n_satellites, 'kl_nats': float(risk.kl_nats),
-                   'epsilon': float(risk.epsilon), 'inverse_bernoulli': cfg.inverse_bernoulli,
-                   'motion_unknown_s': float(result.motion_unknown_s),
-                   'integrity_valid': bool(result.integrity_valid),
-                   'dead_reckoning_resets': int(self.motion.resets)}
-        if result.camera_alpha is not None:
-            details['camera_images'] = len(result.camera_frame_ids)
-            details['camera_excluded'] = bool(result.camera_excluded)
-        limit = float(risk.alert_limits_m[0])
-        if ok:
-            message = (f'integrity sufficient: protection level {level:.1f} m <= alert limit '
-                       f'{limit:g} m (risk bound {bound:.3g} <= {cfg.target_risk:g})')
-        else:
-            why = result.integrity_reason or (f'risk bound {bound:.3g} > target '
-                                              f'{cfg.target_risk:g}')
-            message = f'integrity insufficient: {why}'
-        return IntegrityVerdict(
-            stamp_ns=int(result.stamp_ns), level=OK if ok else ERROR, message=message,
-            alert_limit_m=limit, target_risk=float(cfg.target_risk), risk_bound=bound,
-            empirical_risk=float(risk.empirical_risk[0]),
-            divergence_risk=float(risk.divergence_risk[0]),
-            epoch_stamp_ns=int(result.stamp_ns), protection_level_m=level,
-            epoch_status=result.status,
-            risk_bounds_by_limit={float(risk.alert_limits_m[a]): float(risk.risk_bound[a])
-                                  for a in range(1, len(risk.alert_limits_m))},
-            details=details)
-
-    def stale_verdict(self, stamp_ns: int, message: str,
-                      result: EpochResult | None = None) -> IntegrityVerdict:
-        """A STALE verdict: no valid solution behind it (``result``: the epoch that gave
-        none; None: no GNSS, the last epoch's stamp is carried)."""
-        cfg = self.filter.config
-        epoch = result.stamp_ns if result is not None else self.filter.last_stamp_ns
-        return IntegrityVerdict(
-            stamp_ns=int(stamp_ns), level=STALE, message=message,
-            alert_limit_m=float(cfg.alert_limit_m), target_risk=float(cfg.target_risk),
-            epoch_stamp_ns=None if epoch is None else int(epoch),
-            epoch_status=result.status if result is not None else None)
+    def stale_verdict(self, stamp_ns: int, message: str) -> IntegrityVerdict:
+        """A STALE verdict for silence (no GNSS, or no epoch processed): no valid
+        solution behind it; the last epoch's stamp is carried."""
+        return stale_verdict(stamp_ns, (message,), self.filter.config,
+                             self.filter.last_stamp_ns)
 
     def _count(self, key: str, n: int = 1) -> None:
         self.counts[key] = self.counts.get(key, 0) + n
@@ -584,7 +558,3 @@ class EpochEngine:
         self._count(f'refused_{what}')
         self.last_refusal = f'{what}: {problem}'
         return REFUSED
-
-
-#: Filter statuses with an estimate to publish.
-ESTIMATE_STATUSES = (UPDATED, PROPAGATED)

@@ -31,7 +31,8 @@ from .particles import (POS, STATE_DIM, SYSTEMATIC, YAW, MotionIncrement,
                         motion_samples, normalize_log_weights, propagate, weighted_mean_cov)
 from .rng import spawn
 from .snapshot import solve_snapshot
-from .types import GnssEpoch
+# Epoch outcomes (``core.types``, so that the verdict needs no filter to read them).
+from .types import INVALID, PROPAGATED, REJECTED, UPDATED, WAITING, GnssEpoch
 
 # Importable from here as before: the parameter names and values of the configuration
 # (``core.config``), the likelihoods (``core.gnss``) and the bias models (``core.bias``).
@@ -40,14 +41,6 @@ __all__ = ['BIAS_CN0', 'BIAS_LEARNED', 'BIAS_MODELS', 'BIAS_NONE', 'HEADING_LOST
            'PARTICLE_RAIM', 'PROPAGATED', 'REINITIALISING', 'REJECTED', 'ROBUST', 'UPDATED',
            'WAITING', 'EpochResult', 'FilterConfig', 'ParticleFilter']
 
-# Epoch outcomes.
-UPDATED = 'updated'            # GNSS update applied; integrity computed
-PROPAGATED = 'propagated'      # epoch unusable: motion only, integrity not available
-REJECTED = 'rejected'          # epoch refused (time going backwards): state unchanged
-WAITING = 'waiting'            # no initial fix yet
-# The epoch left the state non-finite or absurd: it was discarded and the next usable fix
-# initialises the filter again.
-INVALID = 'invalid'
 #: How the results and verdicts of a discarded state end.
 REINITIALISING = 're-initialising from the next fix'
 #: Largest magnitude of a particle coordinate in the map frame [m] and of its (unwrapped)
@@ -86,29 +79,27 @@ class EpochResult:
             starts again from the next usable fix).
         reason: Why the epoch was not used for an update ('' when it was).
         position_enu_m: (3,) estimate in the map frame [m] (None while waiting).
-        covariance_m2: (3, 3) covariance of the chosen posterior [m^2].
+        covariance_m2: (3, 3) covariance of the chosen motion sample's set [m^2].
         yaw_rad: Heading estimate [rad].
-        chosen: Index of the chosen posterior.
-        total_log_lik: (M,) total log-likelihood of each posterior.
+        chosen_sample: Index of the chosen motion sample (of the S, the one with the
+            highest total log-likelihood: the estimate's set).
+        total_log_lik: (S,) total log-likelihood of each motion sample.
         risk: Risk bound for ``config.alert_limits_m`` (None when not updated).
         protection_level_m: Horizontal (or 3D, see ``horizontal_risk``) protection level:
             the smallest radius around the estimate whose risk bound is at most the target
             [m]; inf when none is, None when not updated.
-        integrity_ok: The solution is an update, the filter has settled
-            (``integrity_settling_s``), the motion over the interval is known and the
-            protection level is within the alert limit (False when unknown).
-        integrity_reason: Why integrity is not OK ('' when it is).
-        integrity_valid: Everything but the protection level allows OK (settled, motion
-            known): the flag at any alert limit L is ``integrity_valid and PL <= L``.
+        settling_s: Time since the heading was acquired (or since the start of a
+            vehicle seen not to move) [s]; -1 while it is not: integrity settles for
+            ``integrity_settling_s`` from then (``core.verdict``).
         motion_unknown_s: Part of the interval without dead reckoning [s].
         n_satellites: Satellites used in the update.
         rejected: ``{reason: count}`` of satellites dropped by the checks.
-        gamma: (k,) mixture weights of the chosen posterior.
-        ess: Effective sample size of the chosen posterior before resampling.
-        resampled: Whether the chosen posterior was resampled.
+        gamma: (k,) mixture weights of the chosen motion sample's set.
+        ess: Effective sample size of the chosen motion sample's set before resampling.
+        resampled: Whether the chosen motion sample's set was resampled.
         camera_frame_ids: Frame ids of the camera measurements offered this epoch.
-        camera_alpha: (K,) mixture weights alpha*_j of the chosen posterior.
-        camera_kl_nats: (K,) KL(Q_j || P) of the chosen posterior.
+        camera_alpha: (K,) mixture weights alpha*_j of the chosen motion sample's set.
+        camera_kl_nats: (K,) KL(Q_j || P) of the chosen motion sample's set.
         camera_excluded: The camera disagreed with GNSS and was left out this epoch.
         consistency: The consistency test of the cloud against the measurements after
             this epoch (``core.consistency``).
@@ -123,13 +114,11 @@ class EpochResult:
     position_enu_m: np.ndarray | None = None
     covariance_m2: np.ndarray | None = None
     yaw_rad: float = float('nan')
-    chosen: int = -1
+    chosen_sample: int = -1
     total_log_lik: np.ndarray | None = None
     risk: integrity.RiskBound | None = None
     protection_level_m: float | None = None
-    integrity_ok: bool = False
-    integrity_reason: str = ''
-    integrity_valid: bool = False
+    settling_s: float = -1.0
     motion_unknown_s: float = 0.0
     n_satellites: int = 0
     rejected: dict = field(default_factory=dict)
@@ -163,8 +152,10 @@ class ParticleFilter:
         self.noise = ProcessNoise(spawn(self.rng, 1)[0])
         self.particles: np.ndarray | None = None        # (N, 4) chosen set
         self.log_w: np.ndarray | None = None            # (N,)
-        self.posteriors: np.ndarray | None = None       # (S, N, 4) motion samples, last epoch
-        self.posterior_log_w: np.ndarray | None = None  # (S, N)
+        # The S motion samples of the last epoch (each the previous set moved by one draw
+        # of the motion) and their weights after it; not the M posteriors of the bound.
+        self.sample_particles: np.ndarray | None = None  # (S, N, 4)
+        self.sample_log_w: np.ndarray | None = None      # (S, N)
         # The M posteriors of the last update as the risk bound saw them.
         self.posterior_set: integrity.PosteriorSet | None = None
         self.bias = BiasHypotheses(config.bias, config.n_posteriors, self.rng)
@@ -200,7 +191,7 @@ class ParticleFilter:
         published) and the time of the last epoch stay; the bias hypotheses start afresh.
         """
         self.particles = self.log_w = None
-        self.posteriors = self.posterior_log_w = None
+        self.sample_particles = self.sample_log_w = None
         self.posterior_set = None
         self.bias = BiasHypotheses(self.config.bias, self.config.n_posteriors, self.rng)
         self.errors = AdaptiveErrorModel(self.config.error_window_s,
@@ -409,13 +400,12 @@ class ParticleFilter:
                         priors: np.ndarray) -> EpochResult:
         # No usable measurements: keep the measured-motion sample and report no integrity.
         self.particles = priors[0]
-        self.posteriors = priors
-        self.posterior_log_w = np.broadcast_to(self.log_w, priors.shape[:2]).copy()
+        self.sample_particles = priors
+        self.sample_log_w = np.broadcast_to(self.log_w, priors.shape[:2]).copy()
         mean, cov, yaw, _ = weight_kernels.set_summary(self.particles, self.log_w)
         result = EpochResult(stamp_ns=epoch.stamp_ns, status=PROPAGATED, reason=check.reason,
                              position_enu_m=mean, covariance_m2=cov, yaw_rad=float(yaw),
-                             chosen=0, rejected=check.rejected, integrity_ok=False,
-                             integrity_reason=f'no GNSS update: {check.reason}',
+                             chosen_sample=0, rejected=check.rejected,
                              motion_unknown_s=self._motion_unknown_s)
         self.last_result = result
         return result
@@ -428,11 +418,11 @@ class ParticleFilter:
         # (profiled out inside the likelihood kernel).
         spread_m = min(float(np.sqrt(max(np.trace(cov), 0.0))), cfg.clock_kernel_max_m)
         clock_w = gnss.clock_weights(prep, centre, spread_m)
-        evidence = self._evidence_weight(dt_s)
-        lik = self.likelihood.joint(priors, prep, clock_w, evidence, self.log_w)
+        tempering = self._tempering_exponent(dt_s)
+        lik = self.likelihood.joint(priors, prep, clock_w, tempering, self.log_w)
         joint, total = lik.joint, lik.total
         self._consistency_state = self._snapshot_step(epoch.stamp_ns, priors[0], prep,
-                                                      centre, spread_m, evidence,
+                                                      centre, spread_m, tempering,
                                                       float(total[0]))
         fusion = None
         if camera and cfg.use_camera:
@@ -453,7 +443,7 @@ class ParticleFilter:
                                                   clock_w, cfg.outlier_prob,
                                                   cfg.outlier_range_m)
         result = self._finish(epoch, check, priors, post_log_w, chosen, total,
-                              (prep, inlier, evidence, clock_w))
+                              (prep, inlier, tempering, clock_w))
         if fusion is not None:
             result.camera_frame_ids = tuple(c.frame_id for c in camera)
             result.camera_alpha = fusion.alpha[:, chosen]
@@ -464,7 +454,7 @@ class ParticleFilter:
         return result
 
     def _snapshot_step(self, stamp_ns: int, cloud: np.ndarray, prep: gnss.PreparedEpoch,
-                       centre: np.ndarray, spread_m: float, evidence: float,
+                       centre: np.ndarray, spread_m: float, tempering: float,
                        cloud_total: float) -> ConsistencyState:
         """What the epoch's own robust snapshot solution tells: its residuals teach the
         error model (``core.error_model``; the snapshot depends on this epoch alone, so
@@ -490,13 +480,13 @@ class ParticleFilter:
             thin = SYSTEMATIC.thin(cloud.shape[0], CONSISTENCY_PARTICLES)
             cloud, log_w = cloud[thin], normalize_log_weights(log_w[thin])
             cloud_total = float(self.likelihood.joint(
-                cloud[None], prep, gnss.clock_weights(prep, centre, spread_m), evidence,
+                cloud[None], prep, gnss.clock_weights(prep, centre, spread_m), tempering,
                 log_w).total[0])
         moved = (cloud + shift)[None]
         clock_w = gnss.clock_weights(prep, centre + shift[:3], spread_m)
-        moved_total = float(self.likelihood.joint(moved, prep, clock_w, evidence,
+        moved_total = float(self.likelihood.joint(moved, prep, clock_w, tempering,
                                                   log_w).total[0])
-        return self.consistency.observe(stamp_ns, moved_total - cloud_total, evidence,
+        return self.consistency.observe(stamp_ns, moved_total - cloud_total, tempering,
                                         shift[:2])
 
     def _recover(self, stamp_ns: int) -> None:
@@ -522,7 +512,6 @@ class ParticleFilter:
         mean, cov, yaw, ess = weight_kernels.set_summary(priors[chosen], post_log_w[chosen])
         risk, level = self._integrity(pos, post_log_w, chosen, mean, cov, epoch.stamp_ns,
                                       update)
-        limit = float(cfg.alert_limits_m[0])
         # The heading matters once the vehicle moves: settling starts when it is acquired,
         # or at once while the vehicle has not moved (and again from acquisition if it
         # starts to move before that).
@@ -541,20 +530,6 @@ class ParticleFilter:
         if consistency.inconsistent and np.isfinite(consistency.separation_m):
             # The estimate may be the wrong one of two places: the level covers the other.
             level = max(level, consistency.separation_m)
-        if self._motion_unknown_s > 0.0:
-            reason = (f'dead reckoning missing for {self._motion_unknown_s:.2f} s of this '
-                      f'interval: motion unknown')
-        elif consistency.inconsistent:
-            reason = (f'the cloud is inconsistent with the measurements (test statistic '
-                      f'{consistency.statistic_nats:.1f} nats, snapshot solution '
-                      f'{consistency.separation_m:.0f} m away)')
-        elif settled_s < cfg.integrity_settling_s:
-            reason = ('settling after the first fix or a lost heading (heading '
-                      f'acquisition, then {cfg.integrity_settling_s:g} s)')
-        elif not level <= limit:
-            reason = f'protection level {level:.1f} m above the alert limit {limit:g} m'
-        else:
-            reason = ''
         particles, log_w = priors[chosen], post_log_w[chosen]
         acquired = self.distance_since_init_m >= cfg.heading_acquisition_m
         n_out = cfg.n_particles if acquired else n
@@ -566,15 +541,12 @@ class ParticleFilter:
         self.particles, self.log_w = particles, normalize_log_weights(log_w)
         if consistency.recover:
             self._recover(epoch.stamp_ns)
-        self.posteriors, self.posterior_log_w = priors, post_log_w
+        self.sample_particles, self.sample_log_w = priors, post_log_w
         result = EpochResult(
             stamp_ns=epoch.stamp_ns, status=UPDATED, position_enu_m=mean, covariance_m2=cov,
             yaw_rad=float(yaw),
-            chosen=chosen, total_log_lik=total, risk=risk, protection_level_m=level,
-            integrity_ok=not reason, integrity_reason=reason,
-            integrity_valid=self._motion_unknown_s == 0.0 and (
-                settled_s >= cfg.integrity_settling_s),
-            motion_unknown_s=self._motion_unknown_s,
+            chosen_sample=chosen, total_log_lik=total, risk=risk, protection_level_m=level,
+            settling_s=settled_s, motion_unknown_s=self._motion_unknown_s,
             rejected=check.rejected, ess=float(ess), resampled=bool(resampled),
             consistency=consistency, recovered=consistency.recover,
             recoveries=self.consistency.recoveries)
@@ -591,7 +563,7 @@ class ParticleFilter:
             post_log_w: (S, N) their posterior log-weights.
             chosen: The chosen motion sample.
             mean: (3,) the estimate [m].
-            cov: (3, 3) the chosen posterior's covariance [m^2].
+            cov: (3, 3) the chosen motion sample's covariance [m^2].
             stamp_ns: Epoch time [ns].
             update: ``(prepared epoch, (k,) inlier probabilities, tempering exponent,
                 (k,) clock weights)`` of the GNSS update.
@@ -609,7 +581,7 @@ class ParticleFilter:
         else:
             prior_log_w = self.log_w
         prior_offsets = self.bias.offsets_m.copy()
-        prep, inlier, evidence, clock_w = update
+        prep, inlier, tempering, clock_w = update
         if cfg.bias_model == BIAS_NONE:
             offsets = prior_offsets
         else:
@@ -625,7 +597,7 @@ class ParticleFilter:
                 at_estimate = gnss.clock_corrected_residuals(mean[None], prep, clock_w)[0]
                 self.bias.observe_residuals(stamp_ns, at_estimate, inlier,
                                             3 + prep.n_systems)
-            weights = evidence * inlier / prep.sigma_m ** 2
+            weights = tempering * inlier / prep.sigma_m ** 2
             line = prep.sv_enu_m - mean
             line /= np.linalg.norm(line, axis=1, keepdims=True)
             _, prior_cov = weighted_mean_cov(pos[chosen], prior_log_w)
@@ -649,7 +621,7 @@ class ParticleFilter:
         self.posterior_set = posteriors
         return risk, level
 
-    def _evidence_weight(self, dt_s: float) -> float:
+    def _tempering_exponent(self, dt_s: float) -> float:
         """Tempering exponent of this epoch's GNSS log-likelihood.
 
         Errors that follow a first-order Gauss-Markov process with correlation time
@@ -657,7 +629,7 @@ class ParticleFilter:
         ``(1 - phi) / (1 + phi) = tanh(dt / (2 tau))`` of an independent one,
         ``phi = exp(-dt / tau)`` (the information an AR(1) sample adds about a constant):
         ``dt / (2 tau)`` per epoch at a high rate, one per epoch when they are far apart,
-        so that the evidence per second of driving is the same at any GNSS rate.
+        so that the information per second of driving is the same at any GNSS rate.
         """
         cfg = self.config
         if cfg.error_correlation_time_s <= 0.0:

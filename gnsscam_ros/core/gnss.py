@@ -298,7 +298,7 @@ class GnssLikelihood:
     Attributes:
         joint: (S, N) joint log-weights: prior log-weight plus the tempered
             log-likelihood of each particle.
-        total: (S,) log-sum-exp of each set's joint (its evidence).
+        total: (S,) log-sum-exp of each set's joint (its log marginal likelihood).
         gamma: (S, k) satellite mixture weights of each set (Particle RAIM; None for the
             robust likelihood, whose weights are those of the chosen set only).
     """
@@ -313,9 +313,9 @@ class Likelihood(Protocol):
     (:func:`make_likelihood`)."""
 
     def joint(self, sets: np.ndarray, prep: PreparedEpoch, clock_weights: np.ndarray,
-              evidence: float, prior_log_w: np.ndarray) -> GnssLikelihood:
+              tempering: float, prior_log_w: np.ndarray) -> GnssLikelihood:
         """Joint log-weights of the (S, N, >= 3) sets: ``prior_log_w`` (N,) plus
-        ``evidence`` times each particle's log-likelihood, its clock profiled out."""
+        ``tempering`` times each particle's log-likelihood, its clock profiled out."""
 
     def mixture_weights(self, lik: GnssLikelihood, chosen: int,
                         inlier_share: np.ndarray) -> np.ndarray:
@@ -346,13 +346,13 @@ class ParticleRaimLikelihood:
     def from_config(cls, config) -> 'ParticleRaimLikelihood':
         return cls(dirichlet_alpha=config.dirichlet_alpha)
 
-    def joint(self, sets, prep, clock_weights, evidence, prior_log_w) -> GnssLikelihood:
+    def joint(self, sets, prep, clock_weights, tempering, prior_log_w) -> GnssLikelihood:
         sets = _sets(sets)
         joint = np.empty(sets.shape[:2])
         gamma = np.empty((sets.shape[0], prep.pr_m.shape[0]))
         total = gnss_kernels.particle_raim_joint(
             sets, prep.sv_enu_m, prep.pr_m, 1.0 / prep.sigma_m, prep.sys_index,
-            clock_weights, prep.n_systems, float(self.dirichlet_alpha), float(evidence),
+            clock_weights, prep.n_systems, float(self.dirichlet_alpha), float(tempering),
             np.ascontiguousarray(prior_log_w, dtype=float), joint, gamma)
         return GnssLikelihood(joint=joint, total=total, gamma=gamma)
 
@@ -365,7 +365,7 @@ class RobustLikelihood:
     """Product over satellites of a Gaussian with a uniform outlier floor.
 
     ``log L = sum_k log((1 - eps) N(e_k; 0, sigma_k) + eps / range_out)``: every healthy
-    satellite contributes evidence, while a faulty one costs at most a constant.
+    satellite contributes information, while a faulty one costs at most a constant.
 
     Attributes:
         outlier_prob: Outlier probability eps.
@@ -381,7 +381,7 @@ class RobustLikelihood:
 
     single_precision: bool = True
 
-    def joint(self, sets, prep, clock_weights, evidence, prior_log_w) -> GnssLikelihood:
+    def joint(self, sets, prep, clock_weights, tempering, prior_log_w) -> GnssLikelihood:
         """The joint in float32 (relative coordinates) where that is exact enough: densities
         within the float32 range and a finite cloud centre; else in float64."""
         sets = _sets(sets)
@@ -396,13 +396,13 @@ class RobustLikelihood:
                 sets, geometry.centre_m, geometry.unit, geometry.base_m,
                 geometry.half_inv_range, geometry.max_offset_m, prep.sv_enu_m, prep.pr_m,
                 inv_sigma, prep.sys_index, clock_weights, prep.n_systems, *terms.arrays,
-                terms.group, float(evidence), prior_log_w, joint)
+                terms.group, float(tempering), prior_log_w, joint)
             return GnssLikelihood(joint=joint, total=total)
         terms = robust_terms(prep, self.outlier_prob, self.outlier_range_m)
         total = gnss_kernels.robust_joint(
             sets, prep.sv_enu_m, prep.pr_m, inv_sigma, prep.sys_index,
             clock_weights, prep.n_systems, *terms.arrays, max(terms.group, 1),
-            float(evidence), prior_log_w, joint)
+            float(tempering), prior_log_w, joint)
         return GnssLikelihood(joint=joint, total=total)
 
     def mixture_weights(self, lik, chosen, inlier_share) -> np.ndarray:

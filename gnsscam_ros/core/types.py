@@ -8,6 +8,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+# Outcomes of a filter epoch (``EpochResult.status``; ``core.filter``).
+UPDATED = 'updated'            # GNSS update applied; integrity computed
+PROPAGATED = 'propagated'      # epoch unusable: motion only, integrity not available
+REJECTED = 'rejected'          # epoch refused (time going backwards): state unchanged
+WAITING = 'waiting'            # no initial fix yet
+# The epoch left the state non-finite or absurd: it was discarded and the next usable fix
+# initialises the filter again.
+INVALID = 'invalid'
+
 # GNSS system identifiers, as in the smartLoc files and the `system` PointCloud2 field.
 GPS, SBAS, GLONASS, GALILEO, QZSS, BEIDOU = 1, 2, 4, 8, 16, 32
 

@@ -61,8 +61,9 @@ def add_filter_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument('--particles', type=int, default=defaults.n_particles,
                        help='particles per posterior N (default %(default)s)')
     group.add_argument('--posteriors', type=int, default=defaults.n_posteriors,
-                       help='posteriors M of the risk bound (motion samples or bias '
-                            'hypotheses, see --bias-model; default %(default)s)')
+                       help='posteriors M of the risk bound: the motion samples, each '
+                            'displaced by a bias hypothesis of --bias-model (FilterConfig.'
+                            'n_posteriors; default %(default)s)')
     group.add_argument('--likelihood', choices=LIKELIHOODS, default=defaults.likelihood,
                        help='GNSS likelihood (default %(default)s)')
     group.add_argument('--correlation-time-s', type=float,

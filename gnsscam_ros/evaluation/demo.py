@@ -115,7 +115,7 @@ def offline_run(drive: Drive, config: FilterConfig, seed: int,
         The run record (as :func:`.runner.run_filter`) and the filter's map frame.
     """
     record, engine = run_epochs(drive, config, seed, camera_matches, dr_config=dr_config)
-    return record, engine.filter.frame
+    return record, engine.frame
 
 
 def node_series(result_bag: Path, frame: LocalFrame) -> dict:

@@ -32,8 +32,8 @@ class EpochTable:
         lat_deg, lon_deg, height_m: (E,) the estimate in WGS84; NaN while there is none.
         protection_level_m: (E,) PL [m] (inf: none within reach); NaN when not updated.
         risk_bound: (E,) risk bound at the configured alert limit; NaN when not updated.
-        integrity: (E,) 'OK' (``EpochResult.integrity_ok``), 'ERROR' (updated, not OK) or
-            'STALE' (not updated).
+        integrity: (E,) the verdict's level (``core.verdict``): 'OK', 'ERROR' (updated,
+            not OK) or 'STALE' (not updated).
         horizontal_error_m: (E,) horizontal error against the truth; NaN without truth or
             estimate.
         satellites: (E,) satellites used in the update.
@@ -89,8 +89,10 @@ class RunRecord:
     reference_risk: np.ndarray  # (T, A)
     alert_limits_m: np.ndarray
     protection_level_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,)
+    # (T,) the verdict is OK (``IntegrityVerdict.ok``).
     integrity_ok: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
-    # (T,) settled and motion known: the flag at alert limit L is valid & (PL <= L).
+    # (T,) ``IntegrityVerdict.valid``: the flag at a further alert limit L is
+    # valid & (PL <= L).
     integrity_valid: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     statuses: dict = field(default_factory=dict)
     seconds: float = 0.0
@@ -229,7 +231,6 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int,
         states = dead_reckon(drive.imu, drive.odometry, dr_config)
     engine = EpochEngine(config, frame=frame, rng=np.random.default_rng(seed),
                          timing=InputTiming(gnss_queue_size=None))
-    filt = engine.filter
     limits = config.alert_limits_m
     other = integrity.APPROX if config.inverse_bernoulli == integrity.EXACT else integrity.EXACT
     stamps, estimates, bounds, bounds_other, references = [], [], [], [], []
@@ -250,11 +251,11 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int,
         statuses[result.status] = statuses.get(result.status, 0) + 1
         recoveries += int(result.recovered)
         bar.update(i + 1)
-        rows.append(_epoch_row(result))
+        rows.append(_epoch_row(report))
         if result.status != UPDATED or drive.truth is None:
             continue
         if truth_enu is None:
-            truth_enu = filt.frame.ecef_to_enu(drive.truth.ecef_m)
+            truth_enu = engine.frame.ecef_to_enu(drive.truth.ecef_m)
         truth = np.array([np.interp(epoch.stamp_ns, drive.truth.stamp_ns, truth_enu[:, j])
                           for j in range(3)])
         stamps.append(epoch.stamp_ns)
@@ -263,15 +264,16 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int,
         bounds_other.append(integrity.risk_bound(
             result.risk.empirical_risk, result.risk.kl_nats, config.n_posteriors,
             config.risk_delta, other).risk_bound)
-        references.append(filt.posterior_set.hazard_mass(truth, limits))
+        references.append(report.posterior_set.hazard_mass(truth, limits))
         levels.append(result.protection_level_m)
-        oks.append(result.integrity_ok)
-        valids.append(result.integrity_valid)
+        oks.append(report.verdict.ok)
+        valids.append(report.verdict.valid)
     seconds = time.monotonic() - start
     stamps_arr = np.array(stamps, dtype=np.int64)
     record = RunRecord(
         stamp_ns=stamps_arr, estimate_enu_m=np.array(estimates).reshape(-1, 3),
-        truth_enu_m=(truth_at(drive, filt.frame, stamps_arr) if stamps else np.zeros((0, 3))),
+        truth_enu_m=(truth_at(drive, engine.frame, stamps_arr) if stamps
+                     else np.zeros((0, 3))),
         risk_bound={config.inverse_bernoulli: np.array(bounds).reshape(-1, len(limits)),
                     other: np.array(bounds_other).reshape(-1, len(limits))},
         reference_risk=np.array(references).reshape(-1, len(limits)), alert_limits_m=limits,
@@ -280,11 +282,12 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int,
         integrity_valid=np.array(valids, dtype=bool),
         statuses=statuses, seconds=seconds, camera_alpha=camera_alpha,
         camera_excluded_epochs=camera_excluded, camera_epochs=camera_epochs,
-        epochs=_epoch_table(rows, filt.frame, drive), recoveries=recoveries)
+        epochs=_epoch_table(rows, engine.frame, drive), recoveries=recoveries)
     return record, engine
 
 
-def _epoch_row(result) -> tuple:
+def _epoch_row(report: EpochReport) -> tuple:
+    result, verdict = report.result, report.verdict
     updated = result.status == UPDATED
     enu = (np.full(3, np.nan) if result.position_enu_m is None
            else np.asarray(result.position_enu_m, dtype=float))
@@ -292,10 +295,11 @@ def _epoch_row(result) -> tuple:
           is not None else np.nan)
     bound = (float(result.risk.risk_bound[0]) if updated and result.risk is not None
              else np.nan)
-    level = 'STALE' if not updated else ('OK' if result.integrity_ok else 'ERROR')
-    reason = result.reason if not updated else result.integrity_reason
-    return (int(result.stamp_ns), result.status, reason or '', enu, pl, bound, level,
-            int(result.n_satellites))
+    # Not updated: the filter's reason (the verdict adds its STALE prefix); updated: the
+    # verdict's first reason against OK ('' when OK).
+    reason = result.reason if not updated else (verdict.reasons or ('',))[0]
+    return (int(result.stamp_ns), result.status, reason or '', enu, pl, bound,
+            verdict.level, int(result.n_satellites))
 
 
 def _epoch_table(rows: list[tuple], frame: LocalFrame | None, drive: Drive) -> EpochTable:
@@ -364,16 +368,21 @@ def summarize(record: RunRecord, config: FilterConfig) -> dict:
     diff = record.estimate_enu_m - record.truth_enu_m
     err = np.hypot(diff[:, 0], diff[:, 1]) if config.horizontal_risk else np.linalg.norm(
         diff, axis=1)
-    # Declared sufficient = the flag a user sees at that alert limit: settled, motion
-    # known and PL <= AL (configured method); for the other inverse, settled, motion
-    # known and its bound within the target.
+    # Declared sufficient = the flag a user sees at that alert limit: at the configured
+    # one the verdict itself (as the evaluation of a result bag takes it); at a further
+    # limit, the verdict's valid (settled, motion known) and PL <= AL (configured
+    # method); for the other inverse, valid and its bound within the target.
     valid = (record.integrity_valid if record.integrity_valid.size == err.size
              else np.ones(err.size, dtype=bool))
     by_method = {}
     for method, bounds in record.risk_bound.items():
         by_method[method] = {}
         for a, limit in enumerate(record.alert_limits_m):
-            if method == config.inverse_bernoulli and record.protection_level_m.size == err.size:
+            if (method == config.inverse_bernoulli and a == 0
+                    and record.integrity_ok.size == err.size):
+                declared = record.integrity_ok
+            elif (method == config.inverse_bernoulli
+                  and record.protection_level_m.size == err.size):
                 declared = valid & (record.protection_level_m <= limit)
             else:
                 declared = valid & (bounds[:, a] <= config.target_risk)

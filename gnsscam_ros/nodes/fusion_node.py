@@ -63,33 +63,31 @@ from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from sensor_msgs.msg import NavSatFix, NavSatStatus, PointCloud2
 
-from gnsscam_ros.core.engine import (CAMERA, DEAD_RECKONING, DROPPED_OLDEST, ERROR as V_ERROR,
+from gnsscam_ros.core.engine import (CAMERA, DEAD_RECKONING, DROPPED_OLDEST,
                                      ESTIMATE_STATUSES, MAX_BUFFER_S, MAX_GNSS_QUEUE,
-                                     MAX_TIMEOUT_S, MAX_WAIT_S, NO_MATCH, OK as V_OK,
-                                     STALE as V_STALE, EpochEngine, EpochReport, InputTiming,
-                                     IntegrityVerdict, best_match)
+                                     MAX_TIMEOUT_S, MAX_WAIT_S, NO_MATCH, EpochEngine,
+                                     EpochReport, InputTiming, best_match)
 from gnsscam_ros.core.filter import INVALID, REJECTED, UPDATED, EpochResult, FilterConfig
+from gnsscam_ros.core.verdict import IntegrityVerdict
 from gnsscam_ros.core.frames import LocalFrame
 from gnsscam_ros.core.motion import OUT_OF_ORDER, RESET
 from gnsscam_ros.core.particles import SYSTEMATIC
-from gnsscam_ros.core.types import GnssEpoch
 from gnsscam_ros.core.warmup import warm_up_kernels
-from msg_adapters import (ERROR, OK, STALE, WARN, GeodeticFix, GlobalOdometry,
-                          IntegrityRisk, MessageError, PoseEstimate, check_serialized_gnss,
+from msg_adapters import (OK, STALE, WARN, GeodeticFix, GlobalOdometry, MessageError,
+                          PoseEstimate, check_serialized_gnss,
                           check_serialized_matches, check_serialized_size, fix_to_navsatfix,
                           global_odometry_to_msg, integrity_risk_to_msg, make_status,
                           odometry_to_dead_reckoning, particles_to_posearray_cdr,
                           pointcloud2_to_gnss_epoch, pointcloud2_to_matches, pose_covariance,
                           pose_to_msg, service_bits)
 from msg_adapters.geometry import UNESTIMATED_VAR
+from msg_adapters.integrity import VERDICT_LEVELS
 from msg_adapters.wire import EARTH_FRAME
 
 from .common import BIG, GnssCamNode, ParameterError, latched_qos, reliable_qos
 from .memory import keep_epoch_memory
 from .runtime import run_node
 
-#: Engine verdict levels -> DiagnosticStatus levels of integrity_risk.
-_LEVELS = {V_OK: OK, V_ERROR: ERROR, V_STALE: STALE}
 #: Longest silence of GNSS (or of processed epochs) before integrity_risk is STALE [s]: a
 #: larger value would let a consumer take the last verdict as current for longer than a
 #: minute (1e12 disabled STALE altogether).
@@ -247,7 +245,6 @@ class FusionNode(GnssCamNode):
             raise ParameterError(f'{node_name}: {err}') from err
         self.engine = EpochEngine(config, frame=frame, rng=rng, timing=InputTiming(
             **{field: self.param(name) for name, field in TIMING_PARAMETERS.items()}))
-        self.filter = self.engine.filter
         self._camera_count = 0
         self._started = time.monotonic()
         self._last_gnss_receipt: float | None = None
@@ -255,7 +252,7 @@ class FusionNode(GnssCamNode):
         self._last_dr_receipt: float | None = None
         self._last_stale_report = -math.inf
         self.last_result: EpochResult | None = None
-        self.last_risk: IntegrityRisk | None = None
+        self.last_verdict: IntegrityVerdict | None = None
         self.origin_published = False
 
         self.pub_integrity = self.create_publisher(DiagnosticArray, 'integrity_risk',
@@ -279,12 +276,12 @@ class FusionNode(GnssCamNode):
             PointCloud2, 'camera/matches', self.on_matches, reliable_qos(depth),
             'received_matches', check_serialized_matches).subscription
         self._timer = self.create_timer(0.02, self.on_timer)
-        if self.filter.frame is not None:
+        if self.engine.frame is not None:
             self.publish_origin(self.now_ns())
         self.parameters_declared()
 
     def ready_settings(self) -> dict:
-        cfg = self.filter.config
+        cfg = self.engine.config
         origin = (f'map_origin_llh {list(self.param("map_origin_llh"))}'
                   if self.param('use_map_origin') else 'first robust fix')
         return {'n_particles': cfg.n_particles, 'likelihood': cfg.likelihood,
@@ -313,7 +310,7 @@ class FusionNode(GnssCamNode):
     def validate_parameters(self, changes: dict) -> str | None:
         if any(name in FILTER_PARAMETERS for name in changes):
             try:
-                replace(self.filter.config, **{k: v for k, v in changes.items()
+                replace(self.engine.config, **{k: v for k, v in changes.items()
                                                if k in FILTER_PARAMETERS})
             except (ValueError, TypeError) as err:
                 return str(err)
@@ -326,7 +323,7 @@ class FusionNode(GnssCamNode):
             self.engine.timing = replace(self.engine.timing, **timing)
         filter_changes = {k: v for k, v in changes.items() if k in FILTER_PARAMETERS}
         if filter_changes:
-            self.filter.set_parameters(**filter_changes)
+            self.engine.set_parameters(**filter_changes)
             self.get_logger().info(f'filter parameters changed: {filter_changes}')
 
     # ------------------------------------------------------------------- callbacks
@@ -432,8 +429,7 @@ class FusionNode(GnssCamNode):
             self.stats.count('stale_reports')
             why = (f'no GNSS measurements for {since:.1f} s' if since > timeout else
                    f'no epoch processed for {since_verdict:.1f} s')
-            self.publish_integrity(self.integrity_risk(self.engine.stale_verdict(
-                self.now_ns(), f'stale: {why}')))
+            self.publish_integrity(self.engine.stale_verdict(self.now_ns(), f'stale: {why}'))
 
     # --------------------------------------------------------------------- epochs
     def process_ready(self) -> None:
@@ -464,14 +460,14 @@ class FusionNode(GnssCamNode):
             # Nothing of the broken state is published; the verdict (STALE) says why.
             self.get_logger().error(f'epoch {result.stamp_ns} ns: {result.reason}',
                                     throttle_duration_sec=5.0)
-        if not self.origin_published and self.filter.frame is not None:
+        if not self.origin_published and self.engine.frame is not None:
             self.publish_origin(epoch.stamp_ns, service_bits(epoch.system))
-        self.publish_integrity(self.integrity_risk(report.verdict))
+        self.publish_integrity(report.verdict)
         self._last_verdict = time.monotonic()
         self.stats.add_time(time.perf_counter() - start)
         if result.status in ESTIMATE_STATUSES:
             try:
-                self._publish_estimate(result, epoch)
+                self._publish_estimate(report)
             except MessageError as err:
                 # The filter checks its state after every epoch; should an estimate still
                 # not encode, it is dropped and counted rather than ending the node.
@@ -479,26 +475,15 @@ class FusionNode(GnssCamNode):
                 self.get_logger().error(f'epoch {result.stamp_ns} ns: estimate not '
                                         f'published: {err}', throttle_duration_sec=5.0)
 
-    @staticmethod
-    def integrity_risk(verdict: IntegrityVerdict) -> IntegrityRisk:
-        """The ``integrity_risk`` content of an engine verdict."""
-        return IntegrityRisk(
-            stamp_ns=verdict.stamp_ns, level=_LEVELS[verdict.level], message=verdict.message,
-            risk_bound=verdict.risk_bound, empirical_risk=verdict.empirical_risk,
-            divergence_risk=verdict.divergence_risk, alert_limit_m=verdict.alert_limit_m,
-            target_risk=verdict.target_risk, epoch_stamp_ns=verdict.epoch_stamp_ns,
-            protection_level_m=verdict.protection_level_m, extra=dict(verdict.details),
-            epoch_status=verdict.epoch_status,
-            risk_bounds_by_limit=dict(verdict.risk_bounds_by_limit))
-
-    def publish_integrity(self, risk: IntegrityRisk) -> None:
-        self.pub_integrity.publish(integrity_risk_to_msg(risk))
-        self.last_risk = risk
+    def publish_integrity(self, verdict: IntegrityVerdict) -> None:
+        """``integrity_risk``: the engine's verdict, encoded as it is."""
+        self.pub_integrity.publish(integrity_risk_to_msg(verdict))
+        self.last_verdict = verdict
         self.stats.count('published_integrity_risk')
 
     def publish_origin(self, stamp_ns: int, service: int = 0) -> None:
         """``map/origin`` (latched): the geodetic origin of the filter's map frame."""
-        lat, lon, alt = (float(v) for v in self.filter.frame.origin_llh)
+        lat, lon, alt = (float(v) for v in self.engine.frame.origin_llh)
         self.pub_origin.publish(fix_to_navsatfix(GeodeticFix(
             stamp_ns=stamp_ns, lat_deg=lat, lon_deg=lon, alt_m=alt, covariance_enu_m2=None,
             status=NavSatStatus.STATUS_FIX, service=service,
@@ -510,27 +495,26 @@ class FusionNode(GnssCamNode):
 
     def extra_statuses(self) -> list:
         """``<node>: integrity``: the latest integrity verdict as a diagnostics status."""
-        risk, cfg = self.last_risk, self.filter.config
-        if risk is None:
+        verdict, cfg = self.last_verdict, self.engine.config
+        if verdict is None:
             level, message = STALE, 'no integrity verdict yet'
             values = {'protection_level_m': math.nan,
                       'alert_limit_m': float(cfg.alert_limit_m)}
         else:
-            level, message = risk.level, risk.message
-            values = {'protection_level_m': (math.nan if risk.protection_level_m is None
-                                             else float(risk.protection_level_m)),
-                      'alert_limit_m': float(risk.alert_limit_m),
-                      'risk_bound': float(risk.risk_bound),
-                      'target_risk': float(risk.target_risk),
-                      'epoch_stamp': ('' if risk.epoch_stamp_ns is None
-                                      else int(risk.epoch_stamp_ns))}
+            level, message = VERDICT_LEVELS[verdict.level], verdict.message
+            values = {'protection_level_m': float(verdict.protection_level_m),
+                      'alert_limit_m': float(verdict.alert_limit_m),
+                      'risk_bound': float(verdict.risk_bound),
+                      'target_risk': float(verdict.target_risk),
+                      'epoch_stamp': ('' if verdict.epoch_stamp_ns is None
+                                      else int(verdict.epoch_stamp_ns))}
         return [make_status(f'{self.get_name()}: integrity', level, message, values,
                             hardware_id='gnsscam_ros')]
 
-    def _publish_estimate(self, result: EpochResult, epoch: GnssEpoch) -> None:
-        filt = self.filter
+    def _publish_estimate(self, report: EpochReport) -> None:
+        result, epoch, cloud = report.result, report.epoch, report.cloud
         map_frame = self.param('map_frame_id')
-        yaw_var = yaw_variance(filt.particles[:, 3], filt.log_w)
+        yaw_var = yaw_variance(cloud.particles[:, 3], cloud.log_w)
         cov = np.asarray(result.covariance_m2, dtype=float)
         pose_cov = pose_covariance(cov, yaw_var)
         self.pub_pose.publish(pose_to_msg(PoseEstimate(
@@ -545,15 +529,15 @@ class FusionNode(GnssCamNode):
             speed_var=speed_var, yaw_rate_var=yaw_rate_var, frame_id=map_frame,
             child_frame_id=self.param('base_frame_id'))))
         if result.status == UPDATED:
-            lat, lon, alt = filt.frame.enu_to_geodetic(result.position_enu_m)
+            lat, lon, alt = self.engine.frame.enu_to_geodetic(result.position_enu_m)
             self.pub_fix.publish(fix_to_navsatfix(GeodeticFix(
                 stamp_ns=result.stamp_ns, lat_deg=float(lat), lon_deg=float(lon),
                 alt_m=float(alt), covariance_enu_m2=cov, status=NavSatStatus.STATUS_FIX,
                 service=service_bits(epoch.system), frame_id=self.param('fix_frame_id'))))
-        cloud = published_particles(filt.particles, filt.log_w,
-                                    self.param('max_published_particles'))
+        published = published_particles(cloud.particles, cloud.log_w,
+                                        self.param('max_published_particles'))
         # Serialised with numpy: building N Pose objects would cost more than the epoch.
-        self.pub_particles.publish(particles_to_posearray_cdr(cloud, result.stamp_ns,
+        self.pub_particles.publish(particles_to_posearray_cdr(published, result.stamp_ns,
                                                               map_frame))
 
     def diagnostic_summary(self):
@@ -564,11 +548,11 @@ class FusionNode(GnssCamNode):
         values = {'seconds_since_gnss': since_gnss, 'seconds_since_dead_reckoning': since_dr,
                   'gnss_queue_length': len(self.engine.queue),
                   'camera_buffer_length': len(self.engine.camera),
-                  'n_particles': self.filter.config.n_particles,
-                  'alert_limit_m': self.filter.config.alert_limit_m,
-                  'target_risk': self.filter.config.target_risk}
+                  'n_particles': self.engine.config.n_particles,
+                  'alert_limit_m': self.engine.config.alert_limit_m,
+                  'target_risk': self.engine.config.target_risk}
         values['dead_reckoning_resets'] = self.engine.motion.resets
-        values['satellite_limit'] = self.filter.config.satellite_limit
+        values['satellite_limit'] = self.engine.config.satellite_limit
         values.update({key: self.engine.counts.get(key, 0) for key in ENGINE_COUNTS})
         if self.last_result is not None:
             values['last_status'] = self.last_result.status

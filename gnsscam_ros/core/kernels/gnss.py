@@ -122,8 +122,8 @@ def residuals_of_points(points, sv, pr, sys_index, clock_w, n_systems):
 
 @contracted_kernel
 def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_scale, floor,
-                 wide_log_scale, wide_low, wide_high, wide_inv_sigma, group, evidence, prior_log_w,
-                 joint):
+                 wide_log_scale, wide_low, wide_high, wide_inv_sigma, group, tempering,
+                 prior_log_w, joint):
     """Joint log-weights under the robust likelihood, for S sets of N particles.
 
     ``log L = sum_k log(scale_k exp(-z_k^2 / 2) + wide_k exp(-w_k^2 / 2) + floor_k)``
@@ -149,9 +149,9 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
         wide_low, wide_high: (k,) the ends of its flat part [m].
         wide_inv_sigma: (k,) its inverse standard deviation ``1 / s_k`` [1/m].
         group: Satellites per log.
-        evidence: Tempering exponent of the log-likelihood.
+        tempering: Tempering exponent of the log-likelihood.
         prior_log_w: (N,) prior log-weights.
-        joint: (S, N) written: ``prior_log_w + evidence * log L``.
+        joint: (S, N) written: ``prior_log_w + tempering * log L``.
 
     Returns:
         (S,) log-sum-exp of each set's joint.
@@ -190,7 +190,7 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
             if count > 0:
                 _fold_logs(prod, log_sum, m)
             for b in range(m):
-                joint[s, start + b] = prior_log_w[start + b] + evidence * log_sum[b]
+                joint[s, start + b] = prior_log_w[start + b] + tempering * log_sum[b]
         total[s] = _log_sum_exp(joint[s])
     return total
 
@@ -198,7 +198,7 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
 @contracted_kernel
 def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, sv, pr,
                         inv_sigma, sys_index, clock_w, n_systems, log_scale, floor,
-                        wide_log_scale, wide_low, wide_high, wide_inv_sigma, group, evidence,
+                        wide_log_scale, wide_low, wide_high, wide_inv_sigma, group, tempering,
                         prior_log_w, joint):
     """:func:`robust_joint` with the per-satellite arithmetic in float32 (twice the SIMD
     lanes), on coordinates relative to a ``centre`` near the cloud.
@@ -215,7 +215,7 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
 
     Args:
         sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_scale, floor,
-            wide_log_scale, wide_low, wide_high, wide_inv_sigma, evidence, prior_log_w, joint: As
+            wide_log_scale, wide_low, wide_high, wide_inv_sigma, tempering, prior_log_w, joint: As
             :func:`robust_joint` (``floor`` and the densities within the float32 range,
             ``group`` for it).
         centre: (3,) the centre c [m].
@@ -312,14 +312,14 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
             if count > 0:
                 _fold_logs(prod, log_sum, m)
             for b in range(m):
-                joint[s, start + b] = prior_log_w[start + b] + evidence * log_sum[b]
+                joint[s, start + b] = prior_log_w[start + b] + tempering * log_sum[b]
         total[s] = _log_sum_exp(joint[s])
     return total
 
 
 @contracted_kernel
 def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
-                        dirichlet_alpha, evidence, prior_log_w, joint, gamma):
+                        dirichlet_alpha, tempering, prior_log_w, joint, gamma):
     """Joint log-weights under the Particle RAIM mixture, weights by one EM step.
 
     E-step: each particle votes for satellite k with ``exp(-z_k^2 / 2)`` normalised over
@@ -328,7 +328,7 @@ def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
     particles (the second recomputes the residuals rather than storing S x N x k).
 
     Args:
-        sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, evidence, prior_log_w,
+        sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, tempering, prior_log_w,
             joint: As :func:`robust_joint`.
         dirichlet_alpha: Dirichlet concentration of the pooling.
         gamma: (S, k) written: the mixture weights of each set.
@@ -383,7 +383,7 @@ def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
                         for b in range(m):
                             acc[b] += scale * elementary.exp(r[j, b] - a_max[b])
                     for b in range(m):
-                        joint[s, start + b] = prior_log_w[start + b] + evidence * (
+                        joint[s, start + b] = prior_log_w[start + b] + tempering * (
                             a_max[b] + math.log(acc[b]) - LOG_SQRT_2PI)
             if second == 0:
                 for j in range(k):
