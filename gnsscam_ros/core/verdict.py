@@ -52,8 +52,8 @@ class IntegrityVerdict:
             limits (``extra_alert_limits_m``).
         reasons: Why the level is not OK, most fundamental first (empty when OK).
         valid: The findings that do not depend on the alert limit allow OK (an
-            update, motion known, settled): the flag at a further alert limit L is
-            ``valid and protection level <= L``.
+            update, motion known, settled, consistent with the measurements): the
+            flag at a further alert limit L is ``valid and protection level <= L``.
         details: Further figures (satellites, KL, epsilon, motion, camera).
     """
 
@@ -123,7 +123,7 @@ def _reasons_against(result: EpochResult, config: FilterConfig) -> tuple[list[st
         reasons.append(f'protection level {level:.1f} m above the alert limit {limit:g} m')
     if not bound <= config.target_risk:
         reasons.append(f'risk bound {bound:.3g} > target {config.target_risk:g}')
-    return reasons, motion_known and settled
+    return reasons, motion_known and settled and not consistency.inconsistent
 
 
 def integrity_verdict(result: EpochResult, config: FilterConfig,
