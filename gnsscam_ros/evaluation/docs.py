@@ -34,7 +34,8 @@ from pathlib import Path
 
 from ..io.atomic import atomic_output, write_json_atomic
 from ..io.tables import format_table
-from .report import protection_level_headers, protection_level_rows
+from .campaign_summary import campaign_tables
+from .plots import dataset_title
 from .rinex_report import render_tables as rinex_tables
 
 EXIT_OK, EXIT_STALE, EXIT_INPUT, EXIT_OUTPUT = 0, 1, 3, 4
@@ -112,14 +113,35 @@ def _num(value, digits: int = 2) -> str:
     return str(value)
 
 
+def _rate(value) -> str:
+    """A rate or share with three decimals (two hide an MI rate of 0.004)."""
+    return _num(value, 3)
+
+
 def _code(text: str) -> list[str]:
     return ['```', text, '```']
+
+
+def _pl_table(runs: list[tuple[str, dict]]) -> str:
+    """Protection level of runs (label, ``protection_level`` block): MI rate, PL median and
+    p95, availability at every alert limit, the flag's misses at its alert limit."""
+    first = runs[0][1]
+    limits = list(first['availability'])
+    rows = []
+    for label, pl in runs:
+        flag = pl.get('flag_ok') or {}
+        rows.append([label, pl['epochs'], _rate(pl['mi_rate']), pl['median_m'], pl['p95_m']]
+                    + [_rate(pl['availability'].get(k)) for k in limits]
+                    + [f"{flag.get('error_above_al_epochs')}/{flag.get('ok_epochs')}"])
+    return format_table(['run', 'epochs', 'MI rate', 'PL p50 [m]', 'PL p95 [m]']
+                        + [f'avail {k} m' for k in limits]
+                        + [f"err>{first['alert_limit_m']:g}|OK"], rows)
 
 
 def _evaluation_section(name: str, result: dict, figures: list[str]) -> list[str]:
     """One ``gnsscam_eval smartloc|emulated|rinex`` result: accuracy, integrity, PL."""
     base = result['baseline_wls']
-    lines = [f"### {result['dataset']['name']} (`docs/results/{name}.json`)", '',
+    lines = [f"### {dataset_title(result['dataset']['name'])} (`docs/results/{name}.json`)", '',
              f"Seed {result['seed']}, N = {result['config']['n_particles']} x M = "
              f"{result['config']['n_posteriors']}.", '']
     lines += _code(format_table(
@@ -129,12 +151,11 @@ def _evaluation_section(name: str, result: dict, figures: list[str]) -> list[str
           base['rmse_2d_m'], base['rmse_3d_m'], result['rmse_2d_ratio_to_wls']]]))
     pl = result.get('protection_level')
     if pl:
-        lines += [''] + _code(format_table(protection_level_headers(pl),
-                                           protection_level_rows(name, pl)))
+        lines += [''] + _code(_pl_table([(name, pl)]))
     integ = result.get('integrity', {})
     if integ:
-        rows = [[limit, m['p_fa'], m['p_mi'], m['failure_ratio'], f"{m['faults']}/"
-                 f"{m['epochs']}"] for limit, m in integ.items()]
+        rows = [[limit, _rate(m['p_fa']), _rate(m['p_mi']), _rate(m['failure_ratio']),
+                 f"{m['faults']}/{m['epochs']}"] for limit, m in integ.items()]
         lines += [''] + _code(format_table(['AL [m]', 'P_FA', 'P_MI', 'failure ratio',
                                             'err>AL/epochs'], rows))
     lines += [''] + [f'![{Path(f).stem}]({f})' for f in figures]
@@ -152,17 +173,16 @@ def _demo_section(demo: dict) -> list[str]:
             m = r[label]
             pl = m['protection_level']
             rows.append([key, label, m['epochs'], m['rmse_2d_m'], m['rmse_3d_m'],
-                         pl['mi_rate'], pl['median_m'], pl['p95_m']])
+                         _rate(pl['mi_rate']), pl['median_m'], pl['p95_m']])
         w = r['wls']
         rows.append([key, 'snapshot WLS', w['epochs'], w['rmse_2d_m'], w['rmse_3d_m'],
                      None, None, None])
     lines += _code(format_table(['data', 'run', 'epochs', 'RMSE 2D [m]', 'RMSE 3D [m]',
                                  'MI rate', 'PL p50 [m]', 'PL p95 [m]'], rows))
-    first = next(iter(demo['results'].values()))['nodes']['protection_level']
     lines += ['', 'Availability (share of epochs with PL <= AL) at each alert limit:', '']
-    lines += _code(format_table(protection_level_headers(first), [
-        protection_level_rows(f'{key} {label}', r[label]['protection_level'])[0]
-        for key, r in demo['results'].items() for label in ('nodes', 'offline')]))
+    lines += _code(_pl_table([(f'{key} {label}', r[label]['protection_level'])
+                              for key, r in demo['results'].items()
+                              for label in ('nodes', 'offline')]))
     timing = 'under load: not speed figures' if under_load(demo) else 'machine idle'
     lines += ['', f'Replay and stages ({timing}):', '']
     for key, r in demo['results'].items():
@@ -187,8 +207,8 @@ def _variants_section(results: dict) -> list[str]:
     for key in present:
         r = results[key]
         pl = r['protection_level']
-        rows.append([key, r['rmse_2d_m'], r['rmse_2d_ratio_to_wls'], pl['mi_rate'],
-                     pl['median_m'], pl['p95_m'], pl['availability'].get('25')])
+        rows.append([key, r['rmse_2d_m'], r['rmse_2d_ratio_to_wls'], _rate(pl['mi_rate']),
+                     pl['median_m'], pl['p95_m'], _rate(pl['availability'].get('25'))])
     lines = ['## What each variant measured (smartLoc Berlin, one filter seed)', '',
              'The same drive and seed; only what the row names differs (one run is one '
              'Monte Carlo draw: the robustness matrix has the default over ten seeds):', '']
@@ -198,7 +218,8 @@ def _variants_section(results: dict) -> list[str]:
 
 
 def _robustness_section(result: dict) -> list[str]:
-    rows = [[c['name'], c['mi_rate']['mean'], c['mi_rate']['upper'], c['rmse_ratio_to_wls'],
+    rows = [[c['name'], _rate(c['mi_rate']['mean']), _rate(c['mi_rate']['upper']),
+             c['rmse_ratio_to_wls'],
              c['pl_to_error_ratio'],
              'yes' if c['pass'] else 'no: ' + ', '.join(
                  k for k, t in c['targets'].items() if not t['pass'])]
@@ -241,7 +262,6 @@ def render_results(results: dict[str, dict]) -> str:
                   'Targets and context: [rinex.md](rinex.md).', '',
                   rinex_tables(results['rinex'])]
     if 'campaign' in results:
-        from .campaign_summary import campaign_tables
         c = results['campaign']
         lines += ['', '## Emulated campaign (`docs/results/campaign.json`)', '']
         lines += _code(campaign_tables(c['cases'], c['intervals']))
@@ -277,7 +297,7 @@ def render_readme_block(results: dict[str, dict]) -> str:
         m, pl = r['nodes'], r['nodes']['protection_level']
         rows.append(f"| {key} | {m['epochs']} | {_num(m['rmse_2d_m'])} m | "
                     f"{_num(r['wls']['rmse_2d_m'])} m | {_num(pl['median_m'])} m | "
-                    f"{_num(pl['mi_rate'], 3)} |")
+                    f"{_rate(pl['mi_rate'])} |")
     return '\n'.join([f"The demo of {demo['date'][:10]} (`docs/results/demo.json`; "
                       'more in [docs/results.md](docs/results.md)), through the nodes:', '',
                       '| data | epochs | 2D RMSE | snapshot WLS | median PL | MI rate |',
