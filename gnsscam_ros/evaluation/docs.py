@@ -325,6 +325,23 @@ def rendered_pages(root: Path, results: dict[str, dict]) -> dict[Path, str]:
                                   render_readme_block(results))}
 
 
+def figure_sources(results: dict[str, dict]) -> dict[str, str]:
+    """Each figure of ``docs/`` (path relative to it) -> the result file that names it: the
+    ``--plots`` of an evaluation, the demo's imported figures, the robustness ``--figure``."""
+    sources = {}
+    for name, result in results.items():
+        for plot in result.get('plots') or []:
+            if name != 'demo':
+                sources[f'figures/{Path(plot).name}'] = name
+    if 'demo' in results:
+        for key, figure in DEMO_FIGURES:
+            if key in results['demo']['results']:
+                sources[f'figures/demo_{key}_{figure}'] = 'demo'
+    if results.get('robustness', {}).get('figure'):
+        sources['robustness.png'] = 'robustness'
+    return sources
+
+
 # ============================================================================== main
 def import_demo(run_dir: Path, root: Path) -> None:
     """Copy a finished demo run's summary and figures into ``docs/``.
