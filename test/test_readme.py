@@ -197,7 +197,7 @@ def test_options_named_in_bash_blocks_exist():
             if key not in helps:
                 helps[key] = _help(command)
             text = helps[key]
-            sub = re.search(r'\{([\w,-]+)\}', text)
+            sub = re.match(r'usage: \S+ \[-h\]\s+\{([\w,-]+)\}', text)   # subcommands
             if sub and own and own[0] in sub.group(1).split(','):
                 key = (exe, own[0])
                 if key not in helps:

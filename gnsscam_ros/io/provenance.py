@@ -17,7 +17,8 @@ def provenance(program: str, argv) -> dict:
     """When, where and how a result was made.
 
     Args:
-        program: The command's name as a user types it (``gnsscam_eval``, ``./run demo``).
+        program: The command as a user types it (``gnsscam_eval``,
+            ``python -m gnsscam_ros.evaluation.demo``), written as it is.
         argv: Its arguments (without the program).
 
     Returns:
@@ -31,4 +32,4 @@ def provenance(program: str, argv) -> dict:
                         'processor': platform.machine(), 'cpus': os.cpu_count(),
                         'python': platform.python_version(),
                         'load_average_at_start': list(load) if load else None},
-            'command_line': shlex.join([program, *[str(a) for a in argv]])}
+            'command_line': ' '.join([program, shlex.join([str(a) for a in argv])]).strip()}
