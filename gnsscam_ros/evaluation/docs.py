@@ -298,8 +298,11 @@ def render_readme_block(results: dict[str, dict]) -> str:
         rows.append(f"| {key} | {m['epochs']} | {_num(m['rmse_2d_m'])} m | "
                     f"{_num(r['wls']['rmse_2d_m'])} m | {_num(pl['median_m'])} m | "
                     f"{_rate(pl['mi_rate'])} |")
-    return '\n'.join([f"The demo of {demo['date'][:10]} (`docs/results/demo.json`; "
-                      'more in [docs/results.md](docs/results.md)), through the nodes:', '',
+    first = next(iter(demo['results'].values()))
+    return '\n'.join([f"The demo of {demo['date'][:10]} through the nodes (filter seed "
+                      f"{first['seed']}, alert limit {first['config']['alert_limit_m']:g} m; "
+                      '`docs/results/demo.json`, more in [docs/results.md](docs/results.md)):',
+                      '',
                       '| data | epochs | 2D RMSE | snapshot WLS | median PL | MI rate |',
                       '|---|---|---|---|---|---|', *rows])
 
