@@ -2,9 +2,9 @@
 test/ros_harness.py, imported by ROS tests only). Tests never read ../shared: fixtures
 live in test/data.
 
-Without rclpy (a platform tier without ROS 2, README "Platforms") the core, vision,
-dataset and evaluation tests run; tests marked ``ros`` or using the ``graph`` fixture are
-skipped, and so are the modules that import ros_harness.
+Without rclpy (a platform tier without ROS 2, docs/development.md "Platform tiers") the
+core, vision, dataset and evaluation tests run; tests marked ``ros`` or using the ``graph``
+fixture are skipped, and so are the modules that import ros_harness.
 """
 import importlib.util
 import itertools

@@ -1,8 +1,8 @@
 """The structure holds: every import points down the layers, no cycles, small files.
 
-Read from the source (ast), nothing is imported: the layers of the README's layout, the
-import graph of files and packages, function-local imports of the project, and the sizes
-the next engineer can hold in mind (functions <= 120 lines, files <= 700 lines).
+Read from the source (ast), nothing is imported: the layers of docs/development.md's
+layout, the import graph of files and packages, function-local imports of the project, and
+the sizes the next engineer can hold in mind (functions <= 120 lines, files <= 700 lines).
 """
 import ast
 from pathlib import Path

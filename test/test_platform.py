@@ -1,6 +1,6 @@
-"""The supported platforms (README "Platforms"): the forms that work on the oldest numpy
-and OpenCV the tiers pin (Debian 12: numpy 1.24.2, OpenCV 4.6.0), the same results as
-the newer forms where the newest versions have both, and the tiers' own files.
+"""The supported platforms (docs/development.md "Platform tiers"): the forms that work on the
+oldest numpy and OpenCV the tiers pin (Debian 12: numpy 1.24.2, OpenCV 4.6.0), the same
+results as the newer forms where the newest versions have both, and the tiers' own files.
 
 No rclpy needed: this runs in every tier.
 """

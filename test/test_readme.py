@@ -6,11 +6,21 @@
   Ctrl-C (SIGINT) with exit status 0 and no traceback; a block that is not a long-running
   node must finish by itself with status 0;
 * every ``./run <job>`` and every executable named in a ```bash block exists (a job of
-  ``run`` or a console script of setup.py) and its ``--help`` exits 0.
+  ``run`` or a console script of setup.py) and its ``--help`` exits 0; every option a
+  block gives it (``--flag``, a subcommand) is in that help, every ``-p NAME:=VALUE`` is a
+  parameter of ``config/``, every ``--params-file`` exists, every ``python -m MODULE``
+  imports;
+* every relative link of the README and of ``docs/*.md`` resolves (file and heading);
+* the exit-code table is the code's: each constant it names has its row's value wherever
+  it is defined, and every ``EXIT_*`` constant of the package is in the table;
+* a figure with a unit in the README's prose (outside code and the generated results
+  block) is a default of the code (a measured figure is rendered, never typed).
 """
 import ast
+import importlib.util
 import os
 import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -23,6 +33,8 @@ from ros_harness import RosGraph, ros_env, stop
 from diagnostic_msgs.msg import DiagnosticArray
 
 from gnsscam_ros.core.verdict import OK, STALE, IntegrityVerdict
+from gnsscam_ros.evaluation.demo import build_parser as demo_parser
+from gnsscam_ros.evaluation.docs import BEGIN, END
 from msg_adapters import integrity_risk_to_msg
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -113,6 +125,193 @@ def test_run_jobs_named_in_bash_blocks_have_help():
     result = subprocess.run([sys.executable, '-m', 'gnsscam_ros.evaluation.demo', '--help'],
                             capture_output=True, text=True, timeout=120)
     assert result.returncode == 0 and 'usage' in result.stdout.lower(), result.stderr
+
+
+def bash_commands() -> list[list[str]]:
+    """Each command of the bash blocks as tokens: continuations joined, comments dropped,
+    pipelines and ``&&`` lists split."""
+    commands = []
+    for body in blocks('bash'):
+        for line in body.replace('\\\n', ' ').splitlines():
+            code = line.split('#', 1)[0].replace('&&', ';').replace('&', ' ')
+            for part in code.split(';'):
+                tokens = shlex.split(part)
+                if tokens:
+                    commands.append(tokens)
+    return commands
+
+
+def invocations() -> list[tuple[str, list[str]]]:
+    """``(executable, its arguments)`` of every ``./run X`` and ``ros2 run gnsscam_ros X``."""
+    found = []
+    for tokens in bash_commands():
+        if tokens[0] == './run' and len(tokens) > 1:
+            found.append((tokens[1], tokens[2:]))
+        elif tokens[:3] == ['ros2', 'run', 'gnsscam_ros'] and len(tokens) > 3:
+            found.append((tokens[3], tokens[4:]))
+    return found
+
+
+def _help(argv: list[str]) -> str:
+    result = subprocess.run(argv + ['--help'], capture_output=True, text=True, timeout=120,
+                            env=dict(os.environ, ROS_LOG_DIR=os.environ.get(
+                                'ROS_LOG_DIR', '/tmp/gnsscam_ros_log')))
+    assert result.returncode == 0, (argv, result.stderr[-400:])
+    return result.stdout
+
+
+def parameter_names() -> set[str]:
+    names = set()
+    for path in (ROOT / 'config').glob('*.yaml'):
+        names |= set(re.findall(r'^\s{4}(\w+):', path.read_text(encoding='utf-8'), re.M))
+    return names
+
+
+@pytest.mark.slow
+def test_options_named_in_bash_blocks_exist():
+    params = parameter_names()
+    checked, problems = 0, []
+    helps: dict[tuple, str] = {}
+    for exe, args in invocations():
+        ros = args.index('--ros-args') if '--ros-args' in args else len(args)
+        own, ros_args = args[:ros], args[ros + 1:]
+        for i, arg in enumerate(ros_args):
+            if arg == '-p' and i + 1 < len(ros_args):
+                name = ros_args[i + 1].split(':=')[0]
+                if name not in params:
+                    problems.append(f'{exe}: -p {name} is no parameter of config/')
+            if arg == '--params-file' and i + 1 < len(ros_args):
+                path = ros_args[i + 1].replace('$CFG/', 'config/')
+                if not (ROOT / path).is_file():
+                    problems.append(f'{exe}: --params-file {path} does not exist')
+        if exe == 'python':
+            if own[:1] == ['-m'] and importlib.util.find_spec(own[1]) is None:
+                problems.append(f'python -m {own[1]}: no such module')
+            continue
+        if exe == 'test':
+            continue                    # pytest's own arguments
+        if exe == 'demo':
+            text = demo_parser().format_help()
+        else:
+            command = [script('gnsscam_bench' if exe == 'bench' else exe)]
+            key = (exe,)
+            if key not in helps:
+                helps[key] = _help(command)
+            text = helps[key]
+            sub = re.match(r'usage: \S+ \[-h\]\s+\{([\w,-]+)\}', text)   # subcommands
+            if sub and own and own[0] in sub.group(1).split(','):
+                key = (exe, own[0])
+                if key not in helps:
+                    helps[key] = _help(command + [own[0]])
+                text = helps[key]
+            elif sub and (not own or own[0].startswith('-')):
+                problems.append(f'{exe}: no subcommand given')
+        for flag in (a.split('=')[0] for a in own if a.startswith('--')):
+            checked += 1
+            if not re.search(re.escape(flag) + r'(?![\w-])', text):
+                problems.append(f'{exe} {" ".join(own[:1])}: {flag} is not in its --help')
+    assert checked >= 10, checked
+    assert not problems, problems
+
+
+# ========================================================================= links
+LINK = re.compile(r'\]\(([^)\s]+)\)')
+
+
+def anchors(path: Path) -> set[str]:
+    """GitHub's heading anchors of a Markdown file."""
+    found = set()
+    for heading in re.findall(r'^#+\s+(.*)$', path.read_text(encoding='utf-8'), re.M):
+        slug = re.sub(r'[^\w\- ]', '', heading.strip().lower()).replace(' ', '-')
+        found.add(slug)
+    return found
+
+
+def test_every_link_of_the_readme_and_docs_resolves():
+    problems, seen = [], 0
+    for page in [ROOT / 'README.md', *sorted((ROOT / 'docs').glob('*.md'))]:
+        for target in LINK.findall(page.read_text(encoding='utf-8')):
+            if re.match(r'\w+://', target):
+                continue
+            seen += 1
+            path, _, anchor = target.partition('#')
+            dest = (page.parent / path).resolve() if path else page
+            if not dest.exists():
+                problems.append(f'{page.name}: {target}: no such file')
+            elif anchor and dest.suffix == '.md' and anchor not in anchors(dest):
+                problems.append(f'{page.name}: {target}: no such heading')
+    assert seen >= 20, seen
+    assert not problems, problems
+
+
+# ==================================================================== exit codes
+def exit_constants() -> dict[str, set[int]]:
+    """Every ``EXIT_*`` constant of the package and msg_adapters -> its values."""
+    found: dict[str, set[int]] = {}
+    for path in [*(ROOT / 'gnsscam_ros').rglob('*.py'), *(ROOT / 'msg_adapters').rglob('*.py')]:
+        for node in ast.walk(ast.parse(path.read_text(encoding='utf-8'))):
+            if not isinstance(node, ast.Assign) or len(node.targets) != 1:
+                continue
+            target, value = node.targets[0], node.value
+            pairs = (zip(target.elts, value.elts) if isinstance(target, ast.Tuple)
+                     and isinstance(value, ast.Tuple) else [(target, value)])
+            for name, val in pairs:
+                if (isinstance(name, ast.Name) and name.id.startswith('EXIT_')
+                        and isinstance(val, ast.Constant) and isinstance(val.value, int)):
+                    found.setdefault(name.id, set()).add(val.value)
+    return found
+
+
+def exit_table() -> dict[int, set[str]]:
+    section = README[README.index('## Exit codes'):]
+    section = section[:section.index('\n## ', 5)]
+    table = {}
+    for code, constants in re.findall(r'^\| (\d+) \| ([^|]*) \|', section, re.M):
+        table[int(code)] = set(re.findall(r'`(EXIT_\w+)`', constants))
+    return table
+
+
+def test_exit_code_table_is_the_code():
+    table, code = exit_table(), exit_constants()
+    assert {0, 1, 2, 3, 4, 130} <= set(table), table
+    problems = [f'{name}: {sorted(code.get(name, []))} in the code, {value} in the README'
+                for value, names in table.items() for name in names
+                if code.get(name) != {value}]
+    named = {n for names in table.values() for n in names}
+    problems += [f'{name} ({sorted(values)}) is not in the README table'
+                 for name, values in code.items() if name not in named]
+    assert not problems, problems
+    run = (ROOT / 'run').read_text(encoding='utf-8')
+    assert 77 in table and 'exit 77' in run
+    assert re.search(r"usage >&2 .*\n\s+exit 2", run), 'run: no job -> usage, exit 2'
+
+
+# ===================================================================== figures
+def prose() -> str:
+    """The README without code blocks, inline code and the generated results block."""
+    text = README
+    begin, end = BEGIN.format('results'), END.format('results')
+    text = text[:text.index(begin)] + text[text.index(end):]
+    text = re.sub(r'^```.*?^```', '', text, flags=re.S | re.M)
+    return re.sub(r'`[^`]*`', '', text)
+
+
+def code_defaults() -> set[float]:
+    values = set()
+    for path in (ROOT / 'config').glob('*.yaml'):
+        text = path.read_text(encoding='utf-8')
+        values |= {float(v) for v in re.findall(r'^\s{4}\w+:\s*(-?[\d.]+)\s*$', text, re.M)}
+    values |= {float(a.default) for a in demo_parser()._actions
+               if isinstance(a.default, (int, float)) and not isinstance(a.default, bool)}
+    return values
+
+
+def test_readme_prose_types_no_measured_figure():
+    figures = re.findall(r'(\d+(?:\.\d+)?) ?(?:m²|m|s|ms|MB|GB|%|x real time)\b', prose())
+    defaults = code_defaults()
+    typed = sorted({f for f in figures if float(f) not in defaults})
+    assert not typed, (f'README prose states {typed} with a unit and no code default has '
+                       'that value: render measured figures from docs/results instead')
 
 
 # =================================================================== python blocks

@@ -28,6 +28,7 @@ from ..core.motion import DeadReckoningState
 from ..core.warmup import warm_up_kernels
 from ..datasets.emulated.drive import make_emulated_drive
 from ..io.atomic import OutputExistsError, write_json_atomic
+from ..io.provenance import provenance
 from ..io.tables import format_table
 
 DEFAULT_COUNTS = (120, 1000, 10000, 100000)
@@ -240,6 +241,9 @@ def main(argv: list[str] | None = None) -> int:
               f" ms (ratio {default['ratio_at_sn']:.2f})")
     print(f"peak RSS: {result['peak_rss_mb']:.0f} MB")
     if args.json is not None:
+        # When, where and how (the load average at the start says if it ran alone).
+        result = {'command': 'bench', **provenance('gnsscam_bench', argv if argv is not None
+                                                   else sys.argv[1:]), **result}
         try:
             write_json_atomic(args.json, result, force=args.force)
         except (OSError, OutputExistsError) as err:

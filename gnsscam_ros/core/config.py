@@ -249,7 +249,7 @@ class MotionConfig(_Part):
 
     propagation_var_m2: float = parameter(
         0.3, 'Horizontal position process noise per axis per second (paper Table 1 uses '
-        '3 m^2; with odometry this good, 0.3 measured better on smartLoc, see README).',
+        '3 m^2; with odometry this good, 0.3 measured better on smartLoc, see docs/algorithm.md).',
         'm^2/s', low=0.0)
     vertical_propagation_var_m2: float = parameter(
         0.3, "Height process noise per second; a road vehicle's height changes slowly and "
@@ -333,7 +333,7 @@ class BiasConfig(_Part):
         2.0, 'Smallest bias standard deviation at high C/N0.', 'm', low=0.0)
     bias_residual_scale: float = parameter(
         0.23, 'Bias standard deviation at high C/N0 per metre of smoothed residual RMS at '
-        'the estimate (calibrated on smartLoc, see README).', low=0.0)
+        'the estimate (calibrated on smartLoc, see docs/integrity.md).', low=0.0)
     bias_cn0_knee_dbhz: float = parameter(
         41.6, 'Below this C/N0 the bias grows 10 dB per decade.', 'dB-Hz', low=0.0)
     bias_correlation_time_s: float = parameter(

@@ -25,7 +25,7 @@ EPOCH_MEMORY_BUDGET_BYTES = 2 * 2 ** 30
 #: geometry in every epoch.
 MIN_SATELLITE_LIMIT = 16
 
-# Bytes per array element an epoch holds at its peak (README "Memory per epoch"), measured
+# Bytes per array element an epoch holds at its peak (docs/nodes.md "Memory per epoch"), measured
 # with tracemalloc on the filter (numpy registers its buffers there) and rounded up to
 # what the code allocates at worst. S motion samples, N particles (the heading acquisition
 # set while it lasts), k satellites, K camera images, M posteriors of N_int particles:
@@ -53,7 +53,7 @@ def epoch_memory_bytes(n_particles: int, acquisition_particles: int, n_posterior
                        motion_samples: int, satellites: int = MAX_SATELLITES,
                        camera_images: int = MAX_CAMERA_MATCHES) -> int:
     """Estimated peak memory of one filter epoch [bytes], an upper bound of the measured
-    peaks (README "Memory per epoch": 37-88 % of it).
+    peaks (docs/nodes.md "Memory per epoch").
 
     The residuals live through the update; the likelihood, the camera fusion and the
     integrity bound come one after the other, so the largest of the three counts::

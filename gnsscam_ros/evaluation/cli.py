@@ -32,6 +32,7 @@ from ..datasets.rinex_args import (add_rinex_arguments, load_rinex_args,
 from ..datasets.smartloc import load_smartloc_args
 from ..io.atomic import (OutputExistsError, check_writable, write_csv_atomic,
                          write_json_atomic)
+from ..io.provenance import provenance
 from ..io.tables import format_table
 from .bag_eval import evaluate_result_bag_epochs
 from .campaign import GNSS_CASES, METHODS, campaign_config
@@ -273,6 +274,7 @@ def write_result(args: argparse.Namespace, result: dict, epochs=None, label: str
         result['plots'] = [str(p) for p in paths]
         print('wrote ' + ', '.join(str(p) for p in paths))
     if args.json is not None:
+        result = {'command': args.command, **getattr(args, 'provenance', {}), **result}
         try:
             write_json_atomic(args.json, result, force=args.force)
         except (OSError, OutputExistsError, ValueError) as err:
@@ -355,6 +357,7 @@ def run_campaign_command(args: argparse.Namespace) -> int:
           + (f', {rate:.1f} epochs/s' if rate else ''))
     print(f"wrote {args.out}/campaign.json, runs.csv, intervals.csv")
     if args.json is not None:
+        result = {'command': 'campaign', **getattr(args, 'provenance', {}), **result}
         try:
             write_json_atomic(args.json, result, force=args.force)
         except (OSError, OutputExistsError, ValueError) as err:
@@ -392,9 +395,12 @@ def load_drive(args: argparse.Namespace):
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
     args = parser.parse_args(argv)
     if args.command == 'robustness':
-        return run_robustness_command(args, sys.argv[1:] if argv is None else argv)
+        return run_robustness_command(args, argv)
+    # When, where and how: every result JSON carries it (docs/results.md shows it).
+    args.provenance = provenance('gnsscam_eval', argv)
     for path in (args.json, None if args.command == 'campaign' else args.epochs_csv):
         if path is not None and path.exists() and not args.force:
             print(f'gnsscam_eval: {path} exists; pass --force to replace it',

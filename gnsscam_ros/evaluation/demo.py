@@ -62,6 +62,7 @@ from ..datasets.emulated.views import route_range_of
 from ..datasets.errors import DatasetError
 from ..datasets.smartloc import discover_files, load_smartloc
 from ..io.atomic import atomic_output, write_json_atomic
+from ..io.provenance import provenance
 from ..io.tables import format_table
 from ..live.replay import replay_through_nodes, use_dds_profile
 from ..nodes.camera_node import DEFAULTS as CAMERA_DEFAULTS
@@ -346,7 +347,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """The demo; its exit status (0 done, 130 stopped by Ctrl-C)."""
+    argv = sys.argv[1:] if argv is None else argv
     args = build_parser().parse_args(argv)
+    # ``./run demo ARGS`` runs this module with --shared and --out added: the line says so.
+    args.provenance = provenance('python -m gnsscam_ros.evaluation.demo', argv)
     stages = Stages()
     out_dir = new_run_folder(args.out)
     marker = out_dir / INCOMPLETE
@@ -463,7 +467,8 @@ def run_demo(args: argparse.Namespace, out_dir: Path, stages: Stages) -> None:
               f'{rep["speed_x_real_time"]:.1f}x real time; GNSS epochs {rep["gnss_epochs"]} '
               f'published, {done}; nodes vs offline estimates differ by at most '
               f'{r["max_estimate_difference_m"]:.2g} m over {r["common_epochs"]} epochs')
-    summary = {'results': results, 'stages_s': stages.times, 'total_s': stages.total_s,
+    summary = {'command': 'demo', **getattr(args, 'provenance', {}),
+               'results': results, 'stages_s': stages.times, 'total_s': stages.total_s,
                'out_dir': str(out_dir)}
     path = write_json_atomic(out_dir / 'summary.json', summary)
     kept = sorted(f for f in out_dir.rglob('*') if f.is_file() and f.name != INCOMPLETE)

@@ -18,17 +18,13 @@ that exists (without ``--force``) or cannot be written, 130 interrupted.
 from __future__ import annotations
 
 import argparse
-import datetime
-import os
-import platform
-import shlex
-import socket
 import sys
 from pathlib import Path
 
 from ..datasets.errors import DatasetError
 from ..datasets.smartloc import load_smartloc_args
 from ..io.atomic import OutputExistsError, check_writable, write_json_atomic
+from ..io.provenance import provenance as tool_provenance
 from ..io.tables import format_table
 from .campaign import campaign_config
 from .campaign_cluster import ClusterError
@@ -89,13 +85,7 @@ def add_robustness_parser(sub) -> argparse.ArgumentParser:
 
 def provenance(argv) -> dict:
     """When, where and how a result was made: date (UTC), machine, command line."""
-    load = os.getloadavg() if hasattr(os, 'getloadavg') else None
-    return {'date': datetime.datetime.now(datetime.timezone.utc).isoformat(timespec='seconds'),
-            'machine': {'hostname': socket.gethostname(), 'platform': platform.platform(),
-                        'processor': platform.machine(), 'cpus': os.cpu_count(),
-                        'python': platform.python_version(),
-                        'load_average_at_start': list(load) if load else None},
-            'command_line': shlex.join(['gnsscam_eval', *[str(a) for a in argv]])}
+    return tool_provenance('gnsscam_eval', argv)
 
 
 def _fmt_rate(mi: dict) -> str:
