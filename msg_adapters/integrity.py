@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from .errors import MessageError
-from .kit import RCLPY
+from .message_classes import RCLPY
 from .stamps import ns_to_stamp, stamp_to_ns
 from .wire import INTEGRITY
 

@@ -32,7 +32,7 @@ from .checks import (check_abs, check_covariance, check_finite, check_frame,
                      check_unit_quaternion)
 from .errors import MessageError
 from .geometry import UNESTIMATED_VAR, quaternion_to_yaw, yaw_to_quaternion
-from .kit import RCLPY, MessageKit
+from .message_classes import RCLPY, MessageKit
 from .limits import (MAX_ACCEL_MPS2, MAX_GYRO_RPS, MAX_POSITION_M, MAX_SPEED_MPS,
                      MAX_YAW_RATE_RPS)
 from .stamps import make_header, ns_to_stamp, stamp_to_ns
@@ -121,8 +121,9 @@ def imu_to_sample(msg: Imu, what: str = IMU) -> ImuSample:
 
 
 def sample_to_imu(sample: ImuSample, frame_id: str = IMU_FRAME, kit: MessageKit = RCLPY):
-    """:class:`ImuSample` -> Imu (of ``kit``, :mod:`.kit`): orientation marked unavailable
-    (``orientation_covariance[0] = -1``, REP 145), the other covariances zero (unknown)."""
+    """:class:`ImuSample` -> Imu (of ``kit``, :mod:`.message_classes`): orientation marked
+    unavailable (``orientation_covariance[0] = -1``, REP 145), the other covariances zero
+    (unknown)."""
     a = np.asarray(sample.accel_mps2, dtype=float)
     g = np.asarray(sample.gyro_rps, dtype=float)
     vector = kit['geometry_msgs/msg/Vector3']
@@ -172,7 +173,7 @@ def _check_twist(what: str, t) -> None:
 
 def sample_to_twist(sample: TwistSample, frame_id: str = BASE_FRAME,
                     kit: MessageKit = RCLPY):
-    """:class:`TwistSample` -> TwistWithCovarianceStamped (of ``kit``, :mod:`.kit`)."""
+    """:class:`TwistSample` -> TwistWithCovarianceStamped (of ``kit``, :mod:`.message_classes`)."""
     vector = kit['geometry_msgs/msg/Vector3']
     cov = np.zeros(36)
     cov[0], cov[35] = sample.speed_var, sample.yaw_rate_var

@@ -17,7 +17,7 @@ from gnsscam_ros.core.types import GnssEpoch
 
 from .checks import check_abs, check_count, check_range
 from .errors import MessageError
-from .kit import RCLPY, MessageKit
+from .message_classes import RCLPY, MessageKit
 from .limits import (MAX_ABS_ELEVATION_DEG, MAX_CN0_DBHZ, MAX_MATCH_SCORE, MAX_MATCHES,
                      MAX_MESSAGE_BYTES, MAX_POINT_STEP_BYTES, MAX_POSITION_M,
                      MAX_PSEUDORANGE_M, MAX_SATELLITE_RADIUS_M,
@@ -37,7 +37,7 @@ def structured_to_pointcloud2(points: np.ndarray, stamp_ns: int, frame_id: str,
         stamp_ns: Header stamp [ns].
         frame_id: Header frame.
         is_dense: The cloud has no invalid (non-finite) points.
-        kit: Message classes to build with (:mod:`.kit`).
+        kit: Message classes to build with (:mod:`.message_classes`).
 
     Raises:
         MessageError: A field is not a scalar of a PointField type.

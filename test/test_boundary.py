@@ -16,9 +16,9 @@ from sensor_msgs.msg import Image, PointCloud2
 import msg_adapters as ma
 from gnsscam_ros.core.motion import DeadReckoningState
 from gnsscam_ros.core.types import GnssEpoch
-from gnsscam_ros.nodes.common import SequenceGaps
+from gnsscam_ros.nodes.node_base import SequenceGaps
 from msg_adapters import limits as lim
-from msg_adapters.gate import ADVANCE, BEHIND, NEW_BASE, StampGate
+from msg_adapters.stamp_gate import ADVANCE, BEHIND, NEW_BASE, StampGate
 
 S = 1_000_000_000
 T0 = 1_718_204_613 * S

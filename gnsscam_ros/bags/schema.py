@@ -52,7 +52,7 @@ from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                 QosReliability, QosTime)
 from rosbags.typesys import Stores, get_typestore
 
-from msg_adapters.kit import MessageKit, numpy_kit
+from msg_adapters.message_classes import MessageKit, numpy_kit
 from msg_adapters.wire import (BASE_FRAME, CAMERA_FRAME, DEAD_RECKONING, DIAGNOSTICS,
                                EARTH_FRAME, FIX, GNSS, GNSS_FIX, GNSS_MEASUREMENTS, IMAGE, IMU,
                                INFO, INTEGRITY, MAP_FRAME, MATCHES, ODOMETRY_GLOBAL, ORIGIN,

@@ -10,7 +10,7 @@ the *oldest* waiting frame is dropped and counted, so the node always works on r
 images and never builds an unbounded backlog. Empty images, unsupported encodings, wrong
 buffer sizes, sides beyond the limits of ``msg_adapters.limits`` (checked from the
 serialised header before the pixels are copied), invalid stamps, stamps far from the
-stream (``msg_adapters.gate``) and stamps older than the last matched image are refused
+stream (``msg_adapters.stamp_gate``) and stamps older than the last matched image are refused
 and counted.
 
 Every frame taken from the queue is answered on ``camera/matches``: a frame that cannot be
@@ -46,7 +46,7 @@ from msg_adapters import (OK, WARN, CameraMatches, MessageError, check_image,
                           check_serialized_image, image_to_array, matches_to_pointcloud2,
                           stamp_to_ns)
 
-from .common import GnssCamNode, InputFileError, reliable_qos, sensor_qos
+from .node_base import GnssCamNode, InputFileError, reliable_qos, sensor_qos
 from .runtime import run_node
 
 # Code defaults; config/camera_node.yaml documents the same values (a test checks).

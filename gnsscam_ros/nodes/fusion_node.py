@@ -84,7 +84,7 @@ from msg_adapters import (ERROR, OK, STALE, WARN, GeodeticFix, GlobalOdometry,
 from msg_adapters.geometry import UNESTIMATED_VAR
 from msg_adapters.wire import EARTH_FRAME
 
-from .common import BIG, GnssCamNode, ParameterError, latched_qos, reliable_qos
+from .node_base import BIG, GnssCamNode, ParameterError, latched_qos, reliable_qos
 from .memory import keep_epoch_memory
 from .runtime import run_node
 

@@ -9,7 +9,7 @@ Checks (``core.gnss_checks.check_epoch``): non-finite values, non-positive range
 duplicated satellites, unknown system code, elevation and C/N0 masks, minimum satellite
 count; whole messages with wrong fields or frame, more satellites or values beyond the
 limits of ``msg_adapters.limits``, invalid stamps, stamps far from the stream
-(``msg_adapters.gate``) or not after the previous epoch, are refused. Everything refused
+(``msg_adapters.stamp_gate``) or not after the previous epoch, are refused. Everything refused
 is counted and reported on ``diagnostics``.
 
 Exit codes: 0 stopped (Ctrl-C, shutdown), 1 failed while running, 2 a parameter refused at
@@ -34,7 +34,7 @@ from msg_adapters import (OK, WARN, GeodeticFix, MessageError, check_serialized_
                           pointcloud2_to_gnss_epoch, service_bits)
 from msg_adapters.wire import KNOWN_SYSTEMS
 
-from .common import BIG, GnssCamNode, reliable_qos, sensor_qos
+from .node_base import BIG, GnssCamNode, reliable_qos, sensor_qos
 from .runtime import run_node
 
 # Code defaults; config/gnss_node.yaml documents the same values (a test checks).

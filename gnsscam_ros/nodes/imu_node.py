@@ -13,7 +13,7 @@ A source is *active* while its messages keep arriving (``source_timeout_s``, wal
 states are emitted up to the newest stamp every active source has reached, so the output
 does not depend on how the two streams interleave. Messages with non-finite values,
 values beyond the limits of ``msg_adapters.limits`` (speeds, rates, accelerations,
-variances), invalid stamps, stamps far from their stream (``msg_adapters.gate``) or not
+variances), invalid stamps, stamps far from their stream (``msg_adapters.stamp_gate``) or not
 after their stream's previous one are refused and counted; a new time base (a replay
 started again) restarts the dead reckoning.
 
@@ -35,7 +35,7 @@ from gnsscam_ros.core.motion import IMU, ODOMETRY, DeadReckoner, DeadReckoningCo
 from msg_adapters import (OK, WARN, MessageError, check_serialized_size,
                           dead_reckoning_to_odometry, imu_to_sample, twist_to_sample)
 
-from .common import BIG, GnssCamNode, ParameterError, reliable_qos, sensor_qos
+from .node_base import BIG, GnssCamNode, ParameterError, reliable_qos, sensor_qos
 from .runtime import run_node
 
 _DR = DeadReckoningConfig()
