@@ -34,7 +34,7 @@ from .errors import MessageError
 from .geometry import UNESTIMATED_VAR, quaternion_to_yaw, yaw_to_quaternion
 from .message_classes import RCLPY, MessageKit
 from .limits import (MAX_ACCEL_MPS2, MAX_GYRO_RPS, MAX_POSITION_M, MAX_SPEED_MPS,
-                     MAX_YAW_RATE_RPS)
+                     MAX_MESSAGE_YAW_RATE_RPS)
 from .stamps import make_header, ns_to_stamp, stamp_to_ns
 from .wire import (BASE_FRAME, DEAD_RECKONING, IMU, IMU_FRAME, MAP_FRAME, ODOM_FRAME,
                    ODOMETRY_GLOBAL, TWIST)
@@ -93,7 +93,7 @@ def imu_to_sample(msg: Imu, what: str = IMU) -> ImuSample:
             non-finite rates or accelerations, or ones beyond the sensor and vehicle
             limits of :mod:`.limits` (``'range'``: any axis beyond
             :data:`.limits.MAX_ACCEL_MPS2` or :data:`.limits.MAX_GYRO_RPS`, the yaw rate
-            beyond :data:`.limits.MAX_YAW_RATE_RPS`), a covariance that is none or a
+            beyond :data:`.limits.MAX_MESSAGE_YAW_RATE_RPS`), a covariance that is none or a
             reported orientation that is no rotation (``'range'``, ``'non_finite'``).
     """
     if msg.angular_velocity_covariance[0] == -1.0:
@@ -109,7 +109,7 @@ def imu_to_sample(msg: Imu, what: str = IMU) -> ImuSample:
                            'non_finite')
     check_abs(what, 'acceleration', accel, MAX_ACCEL_MPS2, ' m/s^2')
     check_abs(what, 'angular velocity', gyro, MAX_GYRO_RPS, ' rad/s')
-    check_abs(what, 'yaw rate', gyro[2], MAX_YAW_RATE_RPS, ' rad/s')
+    check_abs(what, 'yaw rate', gyro[2], MAX_MESSAGE_YAW_RATE_RPS, ' rad/s')
     check_covariance(what, 'angular velocity covariance', msg.angular_velocity_covariance)
     check_covariance(what, 'linear acceleration covariance',
                      msg.linear_acceleration_covariance)
@@ -167,7 +167,7 @@ def _check_twist(what: str, t) -> None:
                                                     ang.z]})
     check_abs(what, 'speed', lin.x, MAX_SPEED_MPS, ' m/s')
     check_abs(what, 'lateral or vertical speed', [lin.y, lin.z], MAX_SPEED_MPS, ' m/s')
-    check_abs(what, 'yaw rate', ang.z, MAX_YAW_RATE_RPS, ' rad/s')
+    check_abs(what, 'yaw rate', ang.z, MAX_MESSAGE_YAW_RATE_RPS, ' rad/s')
     check_abs(what, 'roll or pitch rate', [ang.x, ang.y], MAX_GYRO_RPS, ' rad/s')
 
 

@@ -325,8 +325,8 @@ def test_satellite_checks_drop_implausible_values_and_keep_the_strongest():
     cn0[7] = np.nan                                  # unknown: last
     many = replace(many, cn0_dbhz=cn0)
     check = gnss.check_epoch(many)
-    assert check.rejected == {'satellite_limit': n - gnss.MAX_SATELLITES}
-    assert check.keep.sum() == gnss.MAX_SATELLITES == 64
+    assert check.rejected == {'satellite_limit': n - gnss.MAX_EPOCH_SATELLITES}
+    assert check.keep.sum() == gnss.MAX_EPOCH_SATELLITES == 64
     assert cn0[check.keep].min() >= np.nanmax(cn0[~check.keep]) and not check.keep[7]
     assert gnss.check_epoch(many, max_satellites=20).keep.sum() == 20
 

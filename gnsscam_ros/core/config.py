@@ -17,7 +17,7 @@ parameters, ``FilterConfig(alert_limit_m=25.0)``, ``config.n_particles`` and
 Besides each parameter's own range, :class:`FilterConfig` checks what the sizes cost
 together: the estimated peak memory of one epoch (:func:`epoch_memory_bytes`) must be
 within ``EPOCH_MEMORY_BUDGET_BYTES``. The satellites an epoch uses are part of that cost:
-a configuration uses up to ``gnss.MAX_SATELLITES`` of them, fewer (the strongest) when its
+a configuration uses up to ``gnss.MAX_EPOCH_SATELLITES`` of them, fewer (the strongest) when its
 sizes would exceed the budget with that many (``FilterConfig.satellite_limit``), and is
 refused when not even ``MIN_SATELLITE_LIMIT`` fit. So a node refuses such a configuration
 at start-up (or a change to it while running) instead of dying in the middle of an epoch,
@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from .bias import BIAS_LEARNED, BIAS_MODELS, BIAS_NONE, BiasModel
-from .gnss import LIKELIHOODS, MAX_SATELLITES, ROBUST
+from .gnss import LIKELIHOODS, MAX_EPOCH_SATELLITES, ROBUST
 from .integrity import EXACT, INVERSE_METHODS
 from .memory_budget import (EPOCH_MEMORY_BUDGET_BYTES, MIN_SATELLITE_LIMIT,  # noqa: F401
                             epoch_memory_bytes)
@@ -271,7 +271,7 @@ class GnssConfig(_Part):
 
     min_satellites: int = parameter(
         4, 'Fewest satellites for an update (position and clock need 4); at most the '
-        'satellites an epoch uses (``gnss.MAX_SATELLITES``).', low=4, high=MAX_SATELLITES)
+        'satellites an epoch uses (``gnss.MAX_EPOCH_SATELLITES``).', low=4, high=MAX_EPOCH_SATELLITES)
     elevation_mask_deg: float = parameter(
         0.0, 'Satellites below this elevation are dropped.', 'deg', low=-90.0, high=90.0)
     cn0_mask_dbhz: float = parameter(
@@ -482,10 +482,10 @@ class FilterConfig:
                 f'than the {_gib(EPOCH_MEMORY_BUDGET_BYTES)} budget'])
 
     def _fitting_satellites(self) -> int | None:
-        """The most satellites (up to MAX_SATELLITES) whose epoch fits the budget, or None
+        """The most satellites (up to MAX_EPOCH_SATELLITES) whose epoch fits the budget, or None
         when not even the fewest this configuration needs do."""
         fewest = max(MIN_SATELLITE_LIMIT, self.min_satellites)
-        for k in range(MAX_SATELLITES, fewest - 1, -1):
+        for k in range(MAX_EPOCH_SATELLITES, fewest - 1, -1):
             if self.epoch_memory_bytes(k) <= EPOCH_MEMORY_BUDGET_BYTES:
                 return k
         return None
@@ -523,7 +523,7 @@ class FilterConfig:
 
     @property
     def satellite_limit(self) -> int:
-        """Most satellites an epoch uses (the strongest by C/N0): ``gnss.MAX_SATELLITES``,
+        """Most satellites an epoch uses (the strongest by C/N0): ``gnss.MAX_EPOCH_SATELLITES``,
         or fewer when these sizes would need more than ``EPOCH_MEMORY_BUDGET_BYTES`` with
         that many (never fewer than ``MIN_SATELLITE_LIMIT``: such sizes are refused)."""
         return self._satellite_limit

@@ -63,15 +63,20 @@ QUEUED, DROPPED_OLDEST, NO_MATCH, REFUSED = 'queued', 'dropped_oldest', 'no_matc
 DEAD_RECKONING, CAMERA = 'dead_reckoning', 'camera'
 
 # Limits of the inputs the engine takes (beyond them a value comes from a fault, and
-# its arithmetic would overflow or swamp the filter's).
+# its arithmetic would overflow or swamp the filter's). ``DR``: of a dead-reckoning state.
+# They are the backstop behind the nodes' message limits (``msg_adapters.limits``), for
+# every caller, offline ones included, so speed and yaw rate are at least as wide as the
+# messages': motion a node accepted is never refused here (a test checks the order).
 #: Largest odom-frame coordinate of a dead-reckoning state [m] and unwrapped heading
 #: [rad]: the frame starts where the dead reckoner started, so it grows with the distance
 #: driven; 1e9 m is 290 days at 40 m/s and still resolves 0.1 um.
 MAX_ODOM_COORDINATE = 1e9
 #: Fastest forward speed of a dead-reckoning state [m/s] (either direction; 360 km/h).
-MAX_SPEED_MPS = 100.0
-#: Fastest yaw rate [rad/s] (a road vehicle stays below ~1.5; a spin, 10).
-MAX_YAW_RATE_RPS = 10.0
+MAX_DR_SPEED_MPS = 100.0
+#: Fastest yaw rate of a dead-reckoning state [rad/s] (a road vehicle stays below ~1.5; a
+#: spin, 10). The message limit is 5 rad/s (``msg_adapters.limits.
+#: MAX_MESSAGE_YAW_RATE_RPS``: what a car does); this one only keeps the arithmetic sane.
+MAX_DR_YAW_RATE_RPS = 10.0
 #: Largest variance of a dead-reckoning state (rates and accumulated) [SI units squared].
 MAX_DR_VARIANCE = 1e12
 #: Most camera matches buffered (the oldest dropped first, counted ``camera_dropped``):
@@ -99,7 +104,7 @@ def _within(value: float, bound: float) -> bool:
 def dead_reckoning_problem(state: DeadReckoningState) -> str | None:
     """Why the engine refuses a dead-reckoning state (None: it takes it): a non-integer
     stamp, or values non-finite or beyond the limits (``MAX_ODOM_COORDINATE``,
-    ``MAX_SPEED_MPS``, ``MAX_YAW_RATE_RPS``, variances in [0, ``MAX_DR_VARIANCE``])."""
+    ``MAX_DR_SPEED_MPS``, ``MAX_DR_YAW_RATE_RPS``, variances in [0, ``MAX_DR_VARIANCE``])."""
     if not isinstance(state.stamp_ns, (int, np.integer)) or isinstance(state.stamp_ns, bool):
         return f'stamp must be an integer number of nanoseconds, got {state.stamp_ns!r}'
     try:
@@ -113,10 +118,10 @@ def dead_reckoning_problem(state: DeadReckoningState) -> str | None:
     if not all(_within(v, MAX_ODOM_COORDINATE) for v in (x, y, yaw)):
         return (f'position or heading non-finite or beyond {MAX_ODOM_COORDINATE:g}: '
                 f'({x:g}, {y:g}, {yaw:g})')
-    if not _within(speed, MAX_SPEED_MPS):
-        return f'speed {speed:g} m/s non-finite or beyond {MAX_SPEED_MPS:g} m/s'
-    if not _within(rate, MAX_YAW_RATE_RPS):
-        return f'yaw rate {rate:g} rad/s non-finite or beyond {MAX_YAW_RATE_RPS:g} rad/s'
+    if not _within(speed, MAX_DR_SPEED_MPS):
+        return f'speed {speed:g} m/s non-finite or beyond {MAX_DR_SPEED_MPS:g} m/s'
+    if not _within(rate, MAX_DR_YAW_RATE_RPS):
+        return f'yaw rate {rate:g} rad/s non-finite or beyond {MAX_DR_YAW_RATE_RPS:g} rad/s'
     if not all(_within(v, MAX_DR_VARIANCE) and v >= 0.0 for v in var):
         return f'variances must be finite and in [0, {MAX_DR_VARIANCE:g}]: {var}'
     return None
