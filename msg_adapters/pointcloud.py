@@ -248,7 +248,8 @@ def _check_satellites(what: str, sv: np.ndarray, pr: np.ndarray, var: np.ndarray
     check_abs(what, 'satellite coordinate', sv[rows], MAX_MESSAGE_SATELLITE_RADIUS_M, ' m')
     check_range(what, 'satellite radius', np.linalg.norm(sv[rows], axis=1),
                 MIN_MESSAGE_SATELLITE_RADIUS_M, MAX_MESSAGE_SATELLITE_RADIUS_M, ' m')
-    check_range(what, 'pseudorange', pr[rows], MIN_MESSAGE_PSEUDORANGE_M, MAX_MESSAGE_PSEUDORANGE_M, ' m')
+    check_range(what, 'pseudorange', pr[rows], MIN_MESSAGE_PSEUDORANGE_M,
+                MAX_MESSAGE_PSEUDORANGE_M, ' m')
     check_range(what, 'variance', var[rows], 0.0, MAX_VARIANCE, ' m^2')
 
 

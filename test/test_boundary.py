@@ -104,7 +104,8 @@ def test_every_input_parser_refuses_an_invalid_stamp(make, parse, sec, nanosec):
     # At the edges (a hair inside: the direction vectors are rounded to unit length).
     (lim.MIN_MESSAGE_SATELLITE_RADIUS_M * (1 + 1e-12), None),
     (lim.MAX_MESSAGE_SATELLITE_RADIUS_M * (1 - 1e-12), None),
-    (lim.MIN_MESSAGE_SATELLITE_RADIUS_M * 0.999, 'range'), (lim.MAX_MESSAGE_SATELLITE_RADIUS_M * 1.001, 'range')])
+    (lim.MIN_MESSAGE_SATELLITE_RADIUS_M * 0.999, 'range'),
+    (lim.MAX_MESSAGE_SATELLITE_RADIUS_M * 1.001, 'range')])
 def test_satellite_radius_limits(radius, reason):
     msg = ma.gnss_epoch_to_pointcloud2(_epoch(radius=radius))
     _accepted_or_refused(reason, ma.pointcloud2_to_gnss_epoch, msg)

@@ -271,7 +271,8 @@ class GnssConfig(_Part):
 
     min_satellites: int = parameter(
         4, 'Fewest satellites for an update (position and clock need 4); at most the '
-        'satellites an epoch uses (``gnss.MAX_EPOCH_SATELLITES``).', low=4, high=MAX_EPOCH_SATELLITES)
+        'satellites an epoch uses (``gnss.MAX_EPOCH_SATELLITES``).', low=4,
+        high=MAX_EPOCH_SATELLITES)
     elevation_mask_deg: float = parameter(
         0.0, 'Satellites below this elevation are dropped.', 'deg', low=-90.0, high=90.0)
     cn0_mask_dbhz: float = parameter(

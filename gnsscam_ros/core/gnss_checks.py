@@ -71,7 +71,8 @@ class GnssCheck:
 
 
 def check_epoch(epoch: GnssEpoch, min_satellites: int = 4, elevation_mask_deg: float = 0.0,
-                cn0_mask_dbhz: float = 0.0, max_satellites: int = MAX_EPOCH_SATELLITES) -> GnssCheck:
+                cn0_mask_dbhz: float = 0.0,
+                max_satellites: int = MAX_EPOCH_SATELLITES) -> GnssCheck:
     """Validate an epoch: non-finite or implausible values, duplicates, masks, satellite
     count.
 
