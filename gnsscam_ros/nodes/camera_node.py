@@ -37,7 +37,7 @@ from collections import deque
 
 import cv2
 import numpy as np
-from sensor_msgs.msg import Image, PointCloud2
+from sensor_msgs.msg import Image
 
 from gnsscam_ros.core.frames import LocalFrame
 from gnsscam_ros.vision.database import MapDatabase
@@ -45,8 +45,9 @@ from gnsscam_ros.vision.errors import MapDatabaseError, VisionError
 from msg_adapters import (OK, WARN, CameraMatches, MessageError, check_image,
                           check_serialized_image, image_to_array, matches_to_pointcloud2,
                           stamp_to_ns)
+from msg_adapters.wire import IMAGE, MATCHES, RELIABLE, TOPICS
 
-from .node_base import GnssCamNode, InputFileError, reliable_qos, sensor_qos
+from .node_base import GnssCamNode, InputFileError
 from .runtime import run_node
 
 # Code defaults; config/camera_node.yaml documents the same values (a test checks).
@@ -56,9 +57,9 @@ DEFAULTS = {
     'queue_size': 2,
     'use_map_origin': False,
     'map_origin_llh': [0.0, 0.0, 0.0],
-    'map_frame_id': 'map',
+    'map_frame_id': TOPICS[MATCHES].frame_id,
     'opencv_threads': 1,
-    'input_queue_depth': 5,
+    'input_queue_depth': TOPICS[IMAGE].depth,
     'input_reliable': False,
     'stale_timeout_s': 2.0,
     'diagnostics_period_s': 1.0,
@@ -143,12 +144,11 @@ class CameraNode(GnssCamNode):
         self._last_stamp_ns: int | None = None
         self._last_receipt: float | None = None
         self._started = time.monotonic()
-        self.pub = self.create_publisher(PointCloud2, 'camera/matches', reliable_qos())
-        depth = self.param('input_queue_depth')
+        self.pub = self.publisher(MATCHES)
         self.sub = self.subscribe_input(
-            Image, 'camera/image_raw', self.on_image,
-            reliable_qos(depth) if self.param('input_reliable') else sensor_qos(depth),
-            'received_images', check_serialized_image).subscription
+            IMAGE, self.on_image, 'received_images', check_serialized_image,
+            depth=self.param('input_queue_depth'),
+            reliability=RELIABLE if self.param('input_reliable') else None).subscription
         self._worker = threading.Thread(target=self._work, name=f'{node_name}_matcher',
                                         daemon=True)
         self._worker.start()
@@ -177,14 +177,14 @@ class CameraNode(GnssCamNode):
             refused = None
         except MessageError as err:
             if err.reason == 'stamp':
-                self.warn_rejected('camera/image_raw', err.reason, str(err))
+                self.warn_rejected(IMAGE, err.reason, str(err))
                 return
             refused = err
         stamp_ns = stamp_to_ns(msg.header.stamp)
-        if self.admit_stamp('camera/image_raw', stamp_ns) is None:
+        if self.admit_stamp(IMAGE, stamp_ns) is None:
             return
         if refused is not None:
-            self.warn_rejected('camera/image_raw', refused.reason, str(refused))
+            self.warn_rejected(IMAGE, refused.reason, str(refused))
         with self._cond:
             if len(self._queue) >= self.param('queue_size'):
                 self._queue.popleft()
@@ -231,7 +231,7 @@ class CameraNode(GnssCamNode):
             except Exception as err:     # keep matching: one bad frame must not stop it
                 if not self.context.ok():
                     return               # the context went down while publishing
-                self.warn_rejected('camera/image_raw', 'error', repr(err))
+                self.warn_rejected(IMAGE, 'error', repr(err))
                 self._answer_unmatched(stamp_to_ns(item.header.stamp))
 
     def process(self, msg: Image) -> CameraMatches | None:
@@ -246,11 +246,11 @@ class CameraNode(GnssCamNode):
         with self.stats.timed():
             stamp_ns = stamp_to_ns(msg.header.stamp)
             if self._last_stamp_ns is not None and stamp_ns < self._last_stamp_ns:
-                self.warn_rejected('camera/image_raw', 'out_of_order',
+                self.warn_rejected(IMAGE, 'out_of_order',
                                    f'stamp {stamp_ns} ns before {self._last_stamp_ns}')
                 return None
             if self.database is None:
-                self.warn_rejected('camera/image_raw', 'no_database',
+                self.warn_rejected(IMAGE, 'no_database',
                                    'no map database loaded (database_path)')
                 return self._answer_unmatched(stamp_ns)
             try:
@@ -258,10 +258,10 @@ class CameraNode(GnssCamNode):
                 found = self.database.query(image, top_k=int(self.param('top_k')),
                                             encoding='rgb8' if encoding == 'rgb8' else 'bgr8')
             except MessageError as err:
-                self.warn_rejected('camera/image_raw', err.reason, str(err))
+                self.warn_rejected(IMAGE, err.reason, str(err))
                 return self._answer_unmatched(stamp_ns)
             except VisionError as err:
-                self.warn_rejected('camera/image_raw', 'vision', str(err))
+                self.warn_rejected(IMAGE, 'vision', str(err))
                 return self._answer_unmatched(stamp_ns)
             self._last_stamp_ns = stamp_ns
             idx = np.array([m.index for m in found], dtype=np.int64)

@@ -58,10 +58,8 @@ import time
 from dataclasses import replace
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
-from sensor_msgs.msg import NavSatFix, NavSatStatus, PointCloud2
+from sensor_msgs.msg import NavSatStatus, PointCloud2
 
 from gnsscam_ros.core.engine import (CAMERA, DEAD_RECKONING, DROPPED_OLDEST, ERROR as V_ERROR,
                                      ESTIMATE_STATUSES, MAX_BUFFER_S, MAX_GNSS_QUEUE,
@@ -82,9 +80,11 @@ from msg_adapters import (ERROR, OK, STALE, WARN, GeodeticFix, GlobalOdometry,
                           pointcloud2_to_gnss_epoch, pointcloud2_to_matches, pose_covariance,
                           pose_to_msg, service_bits)
 from msg_adapters.geometry import UNESTIMATED_VAR
-from msg_adapters.wire import EARTH_FRAME
+from msg_adapters.wire import (BASE_FRAME, DEAD_RECKONING as DEAD_RECKONING_TOPIC, EARTH_FRAME,
+                               FIX, GNSS_MEASUREMENTS, INTEGRITY, MATCHES, ODOMETRY_GLOBAL,
+                               ORIGIN, PARTICLES, POSE, TOPICS)
 
-from .node_base import BIG, GnssCamNode, ParameterError, latched_qos, reliable_qos
+from .node_base import BIG, GnssCamNode, ParameterError
 from .memory import keep_epoch_memory
 from .runtime import run_node
 
@@ -122,10 +122,10 @@ DEFAULTS = {
     'seed': -1,
     'use_map_origin': False,
     'map_origin_llh': [0.0, 0.0, 0.0],
-    'map_frame_id': 'map',
-    'fix_frame_id': 'gnss',
-    'base_frame_id': 'base_link',
-    'odom_frame_id': 'odom',
+    'map_frame_id': TOPICS[POSE].frame_id,
+    'fix_frame_id': TOPICS[FIX].frame_id,
+    'base_frame_id': BASE_FRAME,
+    'odom_frame_id': TOPICS[DEAD_RECKONING_TOPIC].frame_id,
     'gnss_timeout_s': 2.0,
     'stale_report_period_s': 1.0,
     'odometry_wait_s': 0.2,
@@ -137,7 +137,7 @@ DEFAULTS = {
     'max_published_particles': 1000,
     'gnss_queue_size': 10,
     'odometry_queue_depth': 1000,
-    'input_queue_depth': 10,
+    'input_queue_depth': TOPICS[GNSS_MEASUREMENTS].depth,
     'diagnostics_period_s': 1.0,
 }
 
@@ -258,26 +258,24 @@ class FusionNode(GnssCamNode):
         self.last_risk: IntegrityRisk | None = None
         self.origin_published = False
 
-        self.pub_integrity = self.create_publisher(DiagnosticArray, 'integrity_risk',
-                                                   reliable_qos())
-        self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'pose', reliable_qos())
-        self.pub_odometry = self.create_publisher(Odometry, 'odometry/global', reliable_qos())
-        self.pub_origin = self.create_publisher(NavSatFix, 'map/origin', latched_qos())
-        self.pub_fix = self.create_publisher(NavSatFix, 'fix', reliable_qos())
-        self.pub_particles = self.create_publisher(PoseArray, 'particles', reliable_qos(2))
+        self.pub_integrity = self.publisher(INTEGRITY)
+        self.pub_pose = self.publisher(POSE)
+        self.pub_odometry = self.publisher(ODOMETRY_GLOBAL)
+        self.pub_origin = self.publisher(ORIGIN)
+        self.pub_fix = self.publisher(FIX)
+        self.pub_particles = self.publisher(PARTICLES)
         depth = self.param('input_queue_depth')
         # Through InputTopic: decoded and size-checked there, losses (queue overwrites
         # while an epoch runs) and undecodable messages counted on diagnostics.
         self.sub_gnss = self.subscribe_input(
-            PointCloud2, 'gnss/measurements', self.on_gnss, reliable_qos(depth),
-            'received_measurements', check_serialized_gnss).subscription
+            GNSS_MEASUREMENTS, self.on_gnss, 'received_measurements', check_serialized_gnss,
+            depth).subscription
         self.sub_dr = self.subscribe_input(
-            Odometry, 'odometry/dead_reckoning', self.on_dead_reckoning,
-            reliable_qos(self.param('odometry_queue_depth')),
-            'received_dead_reckoning', check_serialized_size).subscription
+            DEAD_RECKONING_TOPIC, self.on_dead_reckoning, 'received_dead_reckoning',
+            check_serialized_size, self.param('odometry_queue_depth')).subscription
         self.sub_camera = self.subscribe_input(
-            PointCloud2, 'camera/matches', self.on_matches, reliable_qos(depth),
-            'received_matches', check_serialized_matches).subscription
+            MATCHES, self.on_matches, 'received_matches', check_serialized_matches,
+            depth).subscription
         self._timer = self.create_timer(0.02, self.on_timer)
         if self.filter.frame is not None:
             self.publish_origin(self.now_ns())
@@ -335,18 +333,18 @@ class FusionNode(GnssCamNode):
         try:
             # gnss_node publishes checked satellites only (no NaN, non-positive variance,
             # duplicate or unknown system), in the ECEF frame whatever its input's name.
-            epoch = pointcloud2_to_gnss_epoch(msg, EARTH_FRAME, 'gnss/measurements',
+            epoch = pointcloud2_to_gnss_epoch(msg, EARTH_FRAME, GNSS_MEASUREMENTS,
                                               checked=True)
         except MessageError as err:
-            self.warn_rejected('gnss/measurements', err.reason, str(err))
+            self.warn_rejected(GNSS_MEASUREMENTS, err.reason, str(err))
             return
-        if self.admit_stamp('gnss/measurements', epoch.stamp_ns) is None:
+        if self.admit_stamp(GNSS_MEASUREMENTS, epoch.stamp_ns) is None:
             return
         now = time.monotonic()
         self._last_gnss_receipt = now
         outcome = self.engine.add_gnss(epoch, now)
         if outcome == OUT_OF_ORDER:
-            self.warn_rejected('gnss/measurements', 'out_of_order',
+            self.warn_rejected(GNSS_MEASUREMENTS, 'out_of_order',
                                f'stamp {epoch.stamp_ns} ns not after the queued epoch')
             return
         if outcome == DROPPED_OLDEST:
@@ -359,14 +357,14 @@ class FusionNode(GnssCamNode):
             state = odometry_to_dead_reckoning(msg, frame_id=self.param('odom_frame_id'),
                                                child_frame_id=self.param('base_frame_id'))
         except MessageError as err:
-            self.warn_rejected('odometry/dead_reckoning', err.reason, str(err))
+            self.warn_rejected(DEAD_RECKONING_TOPIC, err.reason, str(err))
             return
-        if self.admit_stamp('odometry/dead_reckoning', state.stamp_ns) is None:
+        if self.admit_stamp(DEAD_RECKONING_TOPIC, state.stamp_ns) is None:
             return
         now = time.monotonic()
         outcome = self.engine.add_dead_reckoning(state, now)
         if outcome == OUT_OF_ORDER:
-            self.warn_rejected('odometry/dead_reckoning', 'out_of_order',
+            self.warn_rejected(DEAD_RECKONING_TOPIC, 'out_of_order',
                                f'stamp {state.stamp_ns} ns not after the previous state')
             return
         if outcome == RESET:
@@ -386,15 +384,15 @@ class FusionNode(GnssCamNode):
         try:
             matches = pointcloud2_to_matches(msg, self.param('map_frame_id'))
         except MessageError as err:
-            self.warn_rejected('camera/matches', err.reason, str(err))
+            self.warn_rejected(MATCHES, err.reason, str(err))
             return
-        if self.admit_stamp('camera/matches', matches.stamp_ns) is None:
+        if self.admit_stamp(MATCHES, matches.stamp_ns) is None:
             return
         measurement = best_match(matches.stamp_ns, matches.position_m, matches.score,
                                  self._camera_count)
         outcome = self.engine.add_camera(matches.stamp_ns, measurement, time.monotonic())
         if outcome == OUT_OF_ORDER:
-            self.warn_rejected('camera/matches', 'out_of_order',
+            self.warn_rejected(MATCHES, 'out_of_order',
                                f'stamp {matches.stamp_ns} ns before the previous image')
             return
         self._camera_count += 1
@@ -457,7 +455,7 @@ class FusionNode(GnssCamNode):
         if CAMERA in report.late:
             self.stats.count('camera_late')
         if result.status == REJECTED:
-            self.warn_rejected('gnss/measurements', 'filter_rejected', result.reason)
+            self.warn_rejected(GNSS_MEASUREMENTS, 'filter_rejected', result.reason)
             self.stats.add_time(time.perf_counter() - start)
             return
         if result.status == INVALID:

@@ -32,9 +32,9 @@ from gnsscam_ros.core.types import GnssEpoch
 from msg_adapters import (OK, WARN, GeodeticFix, MessageError, check_serialized_gnss,
                           fix_to_navsatfix, gnss_epoch_to_pointcloud2,
                           pointcloud2_to_gnss_epoch, service_bits)
-from msg_adapters.wire import KNOWN_SYSTEMS
+from msg_adapters.wire import GNSS, GNSS_FIX, GNSS_MEASUREMENTS, KNOWN_SYSTEMS, TOPICS
 
-from .node_base import BIG, GnssCamNode, reliable_qos, sensor_qos
+from .node_base import BIG, GnssCamNode
 from .runtime import run_node
 
 # Code defaults; config/gnss_node.yaml documents the same values (a test checks).
@@ -43,9 +43,9 @@ DEFAULTS = {
     'cn0_mask_dbhz': 0.0,
     'min_satellites': 4,
     'measurement_var_m2': 10.0,
-    'input_frame_id': 'earth',
-    'fix_frame_id': 'gnss',
-    'input_queue_depth': 10,
+    'input_frame_id': TOPICS[GNSS].frame_id,
+    'fix_frame_id': TOPICS[GNSS_FIX].frame_id,
+    'input_queue_depth': TOPICS[GNSS].depth,
     'stale_timeout_s': 2.0,
     'diagnostics_period_s': 1.0,
 }
@@ -109,13 +109,11 @@ class GnssNode(GnssCamNode):
         self._last_receipt: float | None = None
         self._last_fix_ecef: np.ndarray | None = None
         self._started = time.monotonic()
-        self.pub_measurements = self.create_publisher(PointCloud2, 'gnss/measurements',
-                                                      reliable_qos())
-        self.pub_fix = self.create_publisher(NavSatFix, 'gnss/fix', reliable_qos())
+        self.pub_measurements = self.publisher(GNSS_MEASUREMENTS)
+        self.pub_fix = self.publisher(GNSS_FIX)
         self.sub = self.subscribe_input(
-            PointCloud2, 'gnss/pseudoranges', self.on_epoch,
-            sensor_qos(self.param('input_queue_depth')), 'received_pseudoranges',
-            check_serialized_gnss).subscription
+            GNSS, self.on_epoch, 'received_pseudoranges', check_serialized_gnss,
+            depth=self.param('input_queue_depth')).subscription
         self.parameters_declared()
 
     def ready_settings(self) -> dict:
@@ -129,12 +127,12 @@ class GnssNode(GnssCamNode):
             try:
                 epoch = pointcloud2_to_gnss_epoch(msg, self.param('input_frame_id'))
             except MessageError as err:
-                self.warn_rejected('gnss/pseudoranges', err.reason, str(err))
+                self.warn_rejected(GNSS, err.reason, str(err))
                 return
-            if self.admit_stamp('gnss/pseudoranges', epoch.stamp_ns) is None:
+            if self.admit_stamp(GNSS, epoch.stamp_ns) is None:
                 return
             if self._last_stamp_ns is not None and epoch.stamp_ns <= self._last_stamp_ns:
-                self.warn_rejected('gnss/pseudoranges', 'out_of_order',
+                self.warn_rejected(GNSS, 'out_of_order',
                                    f'stamp {epoch.stamp_ns} ns not after {self._last_stamp_ns}')
                 return
             self._last_stamp_ns = epoch.stamp_ns

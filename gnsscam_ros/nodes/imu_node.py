@@ -28,14 +28,14 @@ import time
 from dataclasses import fields
 
 from geometry_msgs.msg import TwistWithCovarianceStamped
-from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu
 
 from gnsscam_ros.core.motion import IMU, ODOMETRY, DeadReckoner, DeadReckoningConfig
 from msg_adapters import (OK, WARN, MessageError, check_serialized_size,
                           dead_reckoning_to_odometry, imu_to_sample, twist_to_sample)
+from msg_adapters.wire import BASE_FRAME, DEAD_RECKONING, IMU as IMU_TOPIC, TOPICS, TWIST
 
-from .node_base import BIG, GnssCamNode, ParameterError, reliable_qos, sensor_qos
+from .node_base import BIG, GnssCamNode, ParameterError
 from .runtime import run_node
 
 _DR = DeadReckoningConfig()
@@ -44,10 +44,10 @@ _DR = DeadReckoningConfig()
 DEFAULTS = {
     **{f.name: getattr(_DR, f.name) for f in fields(DeadReckoningConfig)},
     'source_timeout_s': 0.5,
-    'odom_frame_id': 'odom',
-    'base_frame_id': 'base_link',
-    'input_queue_depth': 100,
-    'output_queue_depth': 100,
+    'odom_frame_id': TOPICS[DEAD_RECKONING].frame_id,
+    'base_frame_id': BASE_FRAME,
+    'input_queue_depth': TOPICS[IMU_TOPIC].depth,
+    'output_queue_depth': TOPICS[DEAD_RECKONING].depth,
     'diagnostics_period_s': 1.0,
 }
 
@@ -101,15 +101,12 @@ class ImuNode(GnssCamNode):
         self.dead_reckoner = DeadReckoner(config)
         self._receipt: dict[str, float] = {}
         self._started = time.monotonic()
-        self.pub = self.create_publisher(Odometry, 'odometry/dead_reckoning',
-                                         reliable_qos(self.param('output_queue_depth')))
+        self.pub = self.publisher(DEAD_RECKONING, self.param('output_queue_depth'))
         depth = self.param('input_queue_depth')
-        self.sub_imu = self.subscribe_input(Imu, 'imu/data', self.on_imu, sensor_qos(depth),
-                                            'received_imu', check_serialized_size).subscription
-        self.sub_twist = self.subscribe_input(TwistWithCovarianceStamped, 'odom/twist',
-                                              self.on_twist, sensor_qos(depth),
-                                              'received_odom_twist',
-                                              check_serialized_size).subscription
+        self.sub_imu = self.subscribe_input(IMU_TOPIC, self.on_imu, 'received_imu',
+                                            check_serialized_size, depth).subscription
+        self.sub_twist = self.subscribe_input(TWIST, self.on_twist, 'received_odom_twist',
+                                              check_serialized_size, depth).subscription
         self.parameters_declared()
 
     def ready_settings(self) -> dict:
@@ -126,15 +123,15 @@ class ImuNode(GnssCamNode):
             try:
                 sample = imu_to_sample(msg)
             except MessageError as err:
-                self.warn_rejected('imu/data', err.reason, str(err))
+                self.warn_rejected(IMU_TOPIC, err.reason, str(err))
                 return
-            if self.admit_stamp('imu/data', sample.stamp_ns) is None:
+            if self.admit_stamp(IMU_TOPIC, sample.stamp_ns) is None:
                 return
             try:
                 self.dead_reckoner.add_imu(sample.stamp_ns, sample.accel_mps2[0],
                                            sample.gyro_rps[2])
             except ValueError as err:       # stamp not after the previous one
-                self.warn_rejected('imu/data', 'out_of_order', str(err))
+                self.warn_rejected(IMU_TOPIC, 'out_of_order', str(err))
                 return
             self._receipt[IMU] = time.monotonic()
             self._advance()
@@ -145,15 +142,15 @@ class ImuNode(GnssCamNode):
             try:
                 s = twist_to_sample(msg)
             except MessageError as err:
-                self.warn_rejected('odom/twist', err.reason, str(err))
+                self.warn_rejected(TWIST, err.reason, str(err))
                 return
-            if self.admit_stamp('odom/twist', s.stamp_ns) is None:
+            if self.admit_stamp(TWIST, s.stamp_ns) is None:
                 return
             try:
                 self.dead_reckoner.add_odometry(s.stamp_ns, s.speed_mps, s.yaw_rate_rps,
                                                 s.speed_var, s.yaw_rate_var)
             except ValueError as err:       # stamp not after the previous one
-                self.warn_rejected('odom/twist', 'out_of_order', str(err))
+                self.warn_rejected(TWIST, 'out_of_order', str(err))
                 return
             self._receipt[ODOMETRY] = time.monotonic()
             self._advance()
