@@ -258,7 +258,7 @@ def test_input_timing_has_upper_bounds():
     InputTiming(odometry_wait_s=10.0, odometry_timeout_s=60.0, camera_buffer_s=600.0)
     for name, value in (('odometry_wait_s', 1e12), ('camera_wait_s', 10.5),
                         ('odometry_timeout_s', 61.0), ('camera_timeout_s', math.inf),
-                        ('dead_reckoning_buffer_s', 1e6), ('camera_buffer_s', -1.0),
+                        ('odometry_buffer_s', 1e6), ('camera_buffer_s', -1.0),
                         ('odometry_wait_s', math.nan), ('gnss_queue_size', 0)):
         with pytest.raises(ValueError, match=f'invalid input timing: {name} must be in'):
             InputTiming(**{name: value})

@@ -45,25 +45,15 @@ from gnsscam_ros.vision.errors import MapDatabaseError, VisionError
 from msg_adapters import (OK, WARN, CameraMatches, MessageError, check_image,
                           check_serialized_image, image_to_array, matches_to_pointcloud2,
                           stamp_to_ns)
-from msg_adapters.wire import IMAGE, MATCHES, RELIABLE, TOPICS
+from msg_adapters.wire import IMAGE, MATCHES, RELIABLE
 
 from .node_base import GnssCamNode, InputFileError
+from .parameters import CAMERA_NODE, defaults_of
 from .runtime import run_node
 
-# Code defaults; config/camera_node.yaml documents the same values (a test checks).
-DEFAULTS = {
-    'database_path': '',
-    'top_k': 5,
-    'queue_size': 2,
-    'use_map_origin': False,
-    'map_origin_llh': [0.0, 0.0, 0.0],
-    'map_frame_id': TOPICS[MATCHES].frame_id,
-    'opencv_threads': 1,
-    'input_queue_depth': TOPICS[IMAGE].depth,
-    'input_reliable': False,
-    'stale_timeout_s': 2.0,
-    'diagnostics_period_s': 1.0,
-}
+# Code defaults (nodes.parameters); config/camera_node.yaml documents the same values (a
+# test checks).
+DEFAULTS = defaults_of(CAMERA_NODE)
 
 
 def _origin_ok(value) -> str | None:
@@ -91,35 +81,7 @@ class CameraNode(GnssCamNode):
     def __init__(self, node_name: str = 'camera_node', database: MapDatabase | None = None,
                  **kwargs):
         super().__init__(node_name, **kwargs)
-        d = DEFAULTS
-        self.declare('database_path', d['database_path'],
-                     "Map database file (.npz from gnsscam_mapdb build); '' = none (every "
-                     'frame is refused as no_database).', read_only=True)
-        self.declare('top_k', d['top_k'], 'Matches published per image.', (1, 1000))
-        self.declare('queue_size', d['queue_size'],
-                     'Frames waiting for the matcher; when full the oldest is dropped.',
-                     (1, 1000), read_only=True)
-        self.declare('use_map_origin', d['use_map_origin'],
-                     'Convert WGS84 database positions to the map frame at map_origin_llh '
-                     '(set the same origin as fusion_node); false = database frame.',
-                     read_only=True)
-        self.declare('map_origin_llh', d['map_origin_llh'],
-                     'Map frame origin [lat deg, lon deg, alt m].', read_only=True,
-                     validator=_origin_ok)
-        self.declare('map_frame_id', d['map_frame_id'], 'Frame of camera/matches.')
-        self.declare('opencv_threads', d['opencv_threads'],
-                     'OpenCV worker threads (1 = match on one core).', (0, 256),
-                     read_only=True)
-        self.declare('input_queue_depth', d['input_queue_depth'],
-                     'Subscription queue depth of camera/image_raw [messages].', (1, 100000),
-                     read_only=True)
-        self.declare('input_reliable', d['input_reliable'],
-                     'Subscribe camera/image_raw reliably instead of best effort (sensor '
-                     'QoS): a VGA frame is ~0.9 MB, split into many UDP fragments; best '
-                     'effort loses the frame with any fragment.', read_only=True)
-        self.declare('stale_timeout_s', d['stale_timeout_s'],
-                     'No image for this long is reported as a stale input [s].',
-                     (0.01, 1e12))
+        self.declare_node_parameters(CAMERA_NODE, {'map_origin_llh': _origin_ok})
         cv2.setNumThreads(int(self.param('opencv_threads')))
         self.database = database
         if self.database is None and self.param('database_path'):

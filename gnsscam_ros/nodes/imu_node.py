@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import fields
 
 from geometry_msgs.msg import TwistWithCovarianceStamped
 from sensor_msgs.msg import Imu
@@ -33,40 +32,17 @@ from sensor_msgs.msg import Imu
 from gnsscam_ros.core.motion import IMU, ODOMETRY, DeadReckoner, DeadReckoningConfig
 from msg_adapters import (OK, WARN, MessageError, check_serialized_size,
                           dead_reckoning_to_odometry, imu_to_sample, twist_to_sample)
-from msg_adapters.wire import BASE_FRAME, DEAD_RECKONING, IMU as IMU_TOPIC, TOPICS, TWIST
+from msg_adapters.wire import DEAD_RECKONING, IMU as IMU_TOPIC, TWIST
 
-from .node_base import BIG, GnssCamNode, ParameterError
+from .node_base import GnssCamNode, ParameterError
+from .parameters import IMU_NODE, defaults_of
 from .runtime import run_node
 
-_DR = DeadReckoningConfig()
-# Code defaults; config/imu_node.yaml documents the same values (a test checks). The
-# dead-reckoning ones are DeadReckoningConfig's.
-DEFAULTS = {
-    **{f.name: getattr(_DR, f.name) for f in fields(DeadReckoningConfig)},
-    'source_timeout_s': 0.5,
-    'odom_frame_id': TOPICS[DEAD_RECKONING].frame_id,
-    'base_frame_id': BASE_FRAME,
-    'input_queue_depth': TOPICS[IMU_TOPIC].depth,
-    'output_queue_depth': TOPICS[DEAD_RECKONING].depth,
-    'diagnostics_period_s': 1.0,
-}
-
-_DR_DESCRIPTIONS = {
-    'yaw_rate_source': ("Yaw-rate source while both are received: 'odometry' (vehicle yaw "
-                        "rate) or 'imu' (gyro z).", None),
-    'gyro_yaw_rate_var': ('Variance of one gyro yaw-rate sample [(rad/s)^2].', (0.0, BIG)),
-    'accel_var': ('Variance of one forward-acceleration sample [(m/s^2)^2].', (0.0, BIG)),
-    'default_speed_var': ('Speed variance used when odom/twist reports none [(m/s)^2].',
-                          (0.0, BIG)),
-    'default_yaw_rate_var': ('Yaw-rate variance used when odom/twist reports none '
-                             '[(rad/s)^2].', (0.0, BIG)),
-    'speed_error_correlation_s': ('Without odometry, how long an error of the integrated '
-                                  'speed persists, for the distance variance [s].',
-                                  (0.0, BIG)),
-    'output_period_s': ('Publish one dead-reckoning state per this much stamp time (the first '
-                        'at or after each multiple of it); 0 = one per input sample stamp '
-                        '[s].', (0.0, BIG)),
-}
+# Code defaults (nodes.parameters; the dead-reckoning ones are DeadReckoningConfig's);
+# config/imu_node.yaml documents the same values (a test checks).
+DEFAULTS = defaults_of(IMU_NODE)
+#: Node parameters that are DeadReckoningConfig fields (same names).
+_DR_PARAMETERS = tuple(spec.name for spec in DeadReckoningConfig.parameter_specs())
 
 
 class ImuNode(GnssCamNode):
@@ -79,21 +55,7 @@ class ImuNode(GnssCamNode):
 
     def __init__(self, node_name: str = 'imu_node', **kwargs):
         super().__init__(node_name, **kwargs)
-        for name, (text, value_range) in _DR_DESCRIPTIONS.items():
-            self.declare(name, DEFAULTS[name], text, value_range)
-        self.declare('source_timeout_s', DEFAULTS['source_timeout_s'],
-                     'A source without messages for this long is inactive [s] (wall time).',
-                     (0.001, BIG))
-        self.declare('odom_frame_id', DEFAULTS['odom_frame_id'],
-                     'Frame of odometry/dead_reckoning.')
-        self.declare('base_frame_id', DEFAULTS['base_frame_id'],
-                     'Child frame of odometry/dead_reckoning.')
-        self.declare('input_queue_depth', DEFAULTS['input_queue_depth'],
-                     'Subscription queue depth of imu/data and odom/twist [messages].',
-                     (1, 100000), read_only=True)
-        self.declare('output_queue_depth', DEFAULTS['output_queue_depth'],
-                     'Publisher queue depth of odometry/dead_reckoning [messages].',
-                     (1, 100000), read_only=True)
+        self.declare_node_parameters(IMU_NODE)
         try:
             config = self._dr_config({})
         except ValueError as err:        # DeadReckoningConfig's own checks
@@ -114,7 +76,7 @@ class ImuNode(GnssCamNode):
                                                     'source_timeout_s')}
 
     def _dr_config(self, changes: dict) -> DeadReckoningConfig:
-        values = {name: changes.get(name, self.param(name)) for name in _DR_DESCRIPTIONS}
+        values = {name: changes.get(name, self.param(name)) for name in _DR_PARAMETERS}
         return DeadReckoningConfig(**values)
 
     def on_imu(self, msg: Imu) -> None:
@@ -186,7 +148,7 @@ class ImuNode(GnssCamNode):
             self.stats.count('published_dead_reckoning')
 
     def validate_parameters(self, changes: dict) -> str | None:
-        if any(name in _DR_DESCRIPTIONS for name in changes):
+        if any(name in _DR_PARAMETERS for name in changes):
             try:
                 self._dr_config(changes)
             except ValueError as err:
@@ -194,7 +156,7 @@ class ImuNode(GnssCamNode):
         return None
 
     def apply_parameters(self, changes: dict) -> None:
-        if any(name in _DR_DESCRIPTIONS for name in changes):
+        if any(name in _DR_PARAMETERS for name in changes):
             self.dead_reckoner.config = self._dr_config({})
 
     def diagnostic_summary(self):

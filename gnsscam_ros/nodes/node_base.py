@@ -43,8 +43,9 @@ from msg_adapters.message_classes import message_class
 from msg_adapters.wire import (BEST_EFFORT, DIAGNOSTICS, RELIABLE, TOPICS, TRANSIENT_LOCAL,
                                Topic)
 
-# Float ranges need finite ends; this stands for "no upper limit".
-BIG = 1e12
+from ..core.parameters import ParameterSpec
+from .parameters import BIG, EVERY_NODE, Groups
+
 
 EXIT_OK, EXIT_FAILED, EXIT_PARAMETER, EXIT_INPUT = 0, 1, 2, 3
 
@@ -309,8 +310,8 @@ class GnssCamNode(Node):
         self.add_pre_set_parameters_callback(self._coerce_types)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._post_set_parameters)
-        self.declare('diagnostics_period_s', 1.0, 'Period of the diagnostics report [s].',
-                     (0.05, 3600.0), read_only=True)
+        for spec in EVERY_NODE:
+            self.declare_spec(spec, 'every node')
         self._diag_timer = self.create_timer(self.param('diagnostics_period_s'),
                                              self.publish_diagnostics)
         self._reset_service = self.create_service(Trigger, '~/reset', self._on_reset)
@@ -375,6 +376,31 @@ class GnssCamNode(Node):
                 raise ParameterError(f'{self.get_name()}: parameter {name} = '
                                      f'{self.param(name)!r} refused: {reason}')
         return self.param(name)
+
+    def declare_spec(self, spec: ParameterSpec, where: str,
+                     validator: Callable | None = None):
+        """Declare the parameter of ``spec`` (``core.parameters``): its default, its
+        description (meaning, unit, admissible values, ``where`` it is declared), its range
+        (open bounds are checked by the configuration it belongs to) and read-only flag.
+
+        Returns:
+            The value in force (:meth:`declare`).
+        """
+        about = f' Admissible: {spec.constraint}.' if spec.constraint else ''
+        default = list(spec.default) if isinstance(spec.default, tuple) else spec.default
+        return self.declare(spec.name, default, f'{spec.description}{about} ({where})',
+                            None if spec.range is None else spec.range.closed(BIG),
+                            read_only=spec.read_only, validator=validator)
+
+    def declare_node_parameters(self, groups: Groups, validators: dict | None = None) -> None:
+        """Declare every parameter of a node's ``groups`` (``nodes.parameters``) but the
+        ones every node has (declared by this base); ``validators`` maps names to further
+        checks (``f(value) -> reason or None``)."""
+        validators = validators or {}
+        for where, specs in groups:
+            for spec in specs:
+                if spec not in EVERY_NODE:
+                    self.declare_spec(spec, where, validators.get(spec.name))
 
     def _coerce_types(self, params: list) -> list:
         out = []
