@@ -7,9 +7,9 @@ from ros_harness import ros_domain_id  # skips this module without rclpy
 import rclpy
 from rclpy.context import Context
 
+from test_parameter_docs import table_rows
+
 from gnsscam_ros.core.engine import InputTiming
-from gnsscam_ros.core.parameters import PARAMETER_SECTION
-from gnsscam_ros.io.marked import marked_section
 from gnsscam_ros.nodes import parameter_reference
 from gnsscam_ros.nodes.camera_node import CameraNode
 from gnsscam_ros.nodes.fusion_node import FusionNode
@@ -20,20 +20,6 @@ from gnsscam_ros.nodes.parameters import specs_of
 pytestmark = pytest.mark.ros
 #: Parameters rclpy declares on every node by itself.
 _RCLPY_PARAMETERS = {'use_sim_time', 'start_type_description_service'}
-
-
-def table_rows() -> dict[tuple[str, str], list[str]]:
-    """``{(node, parameter): cells}`` of the rendered reference."""
-    text = parameter_reference.render_parameter_reference()
-    body = marked_section(text, PARAMETER_SECTION).splitlines()
-    rows = {}
-    for line in body[2:]:
-        cells = [c.strip() for c in line.strip('|').split(' | ')]
-        node = cells[-1].split(':', 1)[0]
-        key = (node, cells[0].strip('`'))
-        assert key not in rows, f'{key} twice in the reference'
-        rows[key] = cells
-    return rows
 
 
 @pytest.fixture(scope='module')
@@ -66,29 +52,7 @@ def test_the_reference_lists_every_parameter_a_node_declares(nodes, name):
         assert spec.doc.split('.')[0] in descriptor.description, spec.name
 
 
-def test_the_reference_shows_units_ranges_and_provenance():
-    rows = table_rows()
-    name, default, unit, admissible, meaning, provenance, where = rows[
-        ('fusion_node', 'error_correlation_time_s')]
-    assert (default, unit, admissible) == ('`10.0`', 's', '>= 0')
-    assert 'smartLoc' in provenance and 'Correlation time' in meaning
-    assert where == 'fusion_node: FilterConfig.gnss'
-    assert rows[('fusion_node', 'odometry_wait_s')][3] == 'in [0, 10]'
-    assert rows[('fusion_node', 'odometry_wait_s')][-1] == 'fusion_node: InputTiming'
-    assert rows[('imu_node', 'yaw_rate_source')][3] == 'one of odometry, imu'
-
-
 def test_timing_parameters_are_input_timing_fields_under_their_own_names(nodes):
     fusion = nodes['fusion_node']
     for spec in InputTiming.parameter_specs():
         assert getattr(fusion.engine.timing, spec.name) == fusion.param(spec.name)
-
-
-def test_the_command_rewrites_the_marked_section(tmp_path):
-    doc = tmp_path / 'params.md'
-    doc.write_text('# Parameters\n<!-- parameters:begin -->\n<!-- parameters:end -->\n')
-    assert parameter_reference.main([str(doc)]) == 0
-    assert doc.read_text() == '# Parameters\n' + parameter_reference.render_parameter_reference()
-    assert parameter_reference.main([str(tmp_path / 'missing.md')]) == 4
-    (tmp_path / 'plain.md').write_text('no markers\n')
-    assert parameter_reference.main([str(tmp_path / 'plain.md')]) == 2

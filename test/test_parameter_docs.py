@@ -1,0 +1,52 @@
+"""The parameter reference (``nodes.parameter_reference``) rendered from the metadata:
+its columns, its command, and docs/parameters.md kept current. No rclpy needed."""
+from pathlib import Path
+
+from gnsscam_ros.core.parameters import PARAMETER_SECTION
+from gnsscam_ros.io.marked import marked_section
+from gnsscam_ros.nodes import parameter_reference
+
+
+def table_rows() -> dict[tuple[str, str], list[str]]:
+    """``{(node, parameter): cells}`` of the rendered reference."""
+    text = parameter_reference.render_parameter_reference()
+    body = marked_section(text, PARAMETER_SECTION).splitlines()
+    rows = {}
+    for line in body[2:]:
+        cells = [c.strip() for c in line.strip('|').split(' | ')]
+        node = cells[-1].split(':', 1)[0]
+        key = (node, cells[0].strip('`'))
+        assert key not in rows, f'{key} twice in the reference'
+        rows[key] = cells
+    return rows
+
+
+def test_the_reference_shows_units_ranges_and_provenance():
+    rows = table_rows()
+    name, default, unit, admissible, meaning, provenance, where = rows[
+        ('fusion_node', 'error_correlation_time_s')]
+    assert (default, unit, admissible) == ('`10.0`', 's', '>= 0')
+    assert 'smartLoc' in provenance and 'Correlation time' in meaning
+    assert where == 'fusion_node: FilterConfig.gnss'
+    assert rows[('fusion_node', 'odometry_wait_s')][3] == 'in [0, 10]'
+    assert rows[('fusion_node', 'odometry_wait_s')][-1] == 'fusion_node: InputTiming'
+    assert rows[('imu_node', 'yaw_rate_source')][3] == 'one of odometry, imu'
+
+
+def test_the_command_rewrites_the_marked_section(tmp_path):
+    doc = tmp_path / 'params.md'
+    doc.write_text('# Parameters\n<!-- parameters:begin -->\n<!-- parameters:end -->\n')
+    assert parameter_reference.main([str(doc)]) == 0
+    assert doc.read_text() == '# Parameters\n' + parameter_reference.render_parameter_reference()
+    assert parameter_reference.main([str(tmp_path / 'missing.md')]) == 4
+    (tmp_path / 'plain.md').write_text('no markers\n')
+    assert parameter_reference.main([str(tmp_path / 'plain.md')]) == 2
+
+
+def test_docs_parameters_md_is_the_reference_rendered():
+    path = Path(__file__).resolve().parents[1] / 'docs' / 'parameters.md'
+    expected = marked_section(parameter_reference.render_parameter_reference(),
+                              PARAMETER_SECTION)
+    assert marked_section(path.read_text(encoding='utf-8'), PARAMETER_SECTION) == expected, (
+        'docs/parameters.md is out of date: python -m gnsscam_ros.nodes.parameter_reference '
+        'docs/parameters.md')
