@@ -50,3 +50,24 @@ def test_docs_parameters_md_is_the_reference_rendered():
     assert marked_section(path.read_text(encoding='utf-8'), PARAMETER_SECTION) == expected, (
         'docs/parameters.md is out of date: python -m gnsscam_ros.nodes.parameter_reference '
         'docs/parameters.md')
+
+
+def test_every_node_yaml_is_its_parameters_rendered():
+    config = Path(__file__).resolve().parents[1] / 'config'
+    for node in parameter_reference.NODE_PARAMETERS:
+        text = (config / f'{node}.yaml').read_text(encoding='utf-8')
+        assert parameter_reference.update_node_yaml(text, node) == text, (
+            f'config/{node}.yaml is out of date: python -m '
+            f'gnsscam_ros.nodes.parameter_reference config/{node}.yaml')
+
+
+def test_a_yaml_file_of_no_node_is_refused(tmp_path, capsys):
+    other = tmp_path / 'other_node.yaml'
+    other.write_text('other_node:\n  ros__parameters:\n    x: 1\n')
+    assert parameter_reference.main([str(other)]) == 2
+    assert 'not the YAML file of a node' in capsys.readouterr().err
+    stale = tmp_path / 'gnss_node.yaml'
+    stale.write_text('# head\ngnss_node:\n  ros__parameters:\n    min_satellites: 9\n')
+    assert parameter_reference.main([str(stale)]) == 0
+    text = stale.read_text()
+    assert text.startswith('# head\n') and '    min_satellites: 4\n' in text

@@ -477,7 +477,7 @@ def yaml_value(value) -> str:
     return str(value)
 
 
-def _comment(text: str, keep: str = '') -> list[str]:
+def comment_lines(text: str, keep: str = '') -> list[str]:
     """``text`` as wrapped comment lines; ``keep`` (a part of it) is not broken."""
     glued = keep.replace(' ', '\0')
     lines = textwrap.wrap(text.replace(keep, glued) if keep else text, _WIDTH,
@@ -493,11 +493,11 @@ def render_yaml_block() -> str:
     for part, cls in PARTS:
         specs = [s for s in _field_specs(cls, part) if s.node_parameter]
         title = (cls.__doc__ or '').strip().splitlines()[0].rstrip('.')
-        lines += [''] + _comment(f'== {title} (FilterConfig.{part})')
+        lines += [''] + comment_lines(f'== {title} (FilterConfig.{part})')
         for spec in specs:
             text = f'{spec.description} Default: {yaml_value(spec.default)}'
             text += f'; {spec.constraint}.' if spec.constraint else '.'
-            lines += _comment(text, spec.constraint)
+            lines += comment_lines(text, spec.constraint)
             lines.append(f'{_INDENT}{spec.name}: {yaml_value(spec.default)}')
     return '\n'.join(lines) + '\n\n'
 
