@@ -3,16 +3,16 @@
 Every converter raises :class:`MessageError` (with a short ``reason``) on malformed input;
 time stamps are integer nanoseconds. The parsers of input messages check them against the
 documented physical limits of :mod:`.limits` (sizes from the header fields, before any
-array is decoded); :class:`StampGate` (:mod:`.gate`) keeps each input topic's stamps
+array is decoded); :class:`StampGate` (:mod:`.stamp_gate`) keeps each input topic's stamps
 within a window of its recent stream. Topic and frame names, point layouts, system codes and
 the equal-stamp order are in :mod:`.wire`; the writers the bag converter shares build with
-a :class:`MessageKit` (:mod:`.kit`). See each module for the message layouts
+a :class:`MessageKit` (:mod:`.message_classes`). See each module for the message layouts
 (:mod:`.wire`).
 """
 from . import limits, wire
 from .checks import check_serialized_size
 from .errors import MessageError
-from .gate import ADVANCE, BEHIND, NEW_BASE, StampGate
+from .stamp_gate import ADVANCE, BEHIND, NEW_BASE, StampGate
 from .geometry import (GeodeticFix, PoseEstimate, fix_to_navsatfix, msg_to_pose,
                        navsatfix_to_fix, particles_to_posearray,
                        particles_to_posearray_cdr, pose_covariance, pose_stamped,
@@ -23,7 +23,7 @@ from .image import (ENCODINGS, array_to_image, check_image, check_image_size,
 from .integrity import (ERROR, OK, STALE, WARN, IntegrityRisk, integrity_risk_to_msg,
                         level_to_int, make_diagnostic_array, make_status, parse_integrity_risk,
                         status_values)
-from .kit import RCLPY, MessageKit, message_class, numpy_kit
+from .message_classes import RCLPY, MessageKit, message_class, numpy_kit
 from .motion import (GlobalOdometry, ImuSample, TwistSample, dead_reckoning_to_odometry,
                      global_odometry_to_msg, imu_to_sample, odometry_to_dead_reckoning,
                      odometry_to_global, sample_to_imu, sample_to_twist, twist_to_sample)

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .errors import MessageError
-from .kit import RCLPY, MessageKit
+from .message_classes import RCLPY, MessageKit
 from .stamps import make_header, ns_to_stamp, stamp_to_ns
 from .wire import (ANTENNA_FRAME, COVARIANCE_TYPE_KNOWN, COVARIANCE_TYPE_UNKNOWN, FIX,
                    MAP_FRAME, POSE, SERVICE_GPS, STATUS_FIX, split_ns)
@@ -201,7 +201,7 @@ class GeodeticFix:
 
 
 def fix_to_navsatfix(fix: GeodeticFix, kit: MessageKit = RCLPY):
-    """:class:`GeodeticFix` -> NavSatFix (of ``kit``, :mod:`.kit`).
+    """:class:`GeodeticFix` -> NavSatFix (of ``kit``, :mod:`.message_classes`).
 
     Raises:
         MessageError: Non-finite coordinates or covariance.
@@ -248,7 +248,7 @@ def navsatfix_to_fix(msg, what: str = FIX) -> GeodeticFix:
 # ---------------------------------------------------------------------- PoseStamped
 def pose_stamped(stamp_ns: int, position_m, quaternion_xyzw, frame_id: str,
                  kit: MessageKit = RCLPY):
-    """A ``geometry_msgs/PoseStamped`` (of ``kit``, :mod:`.kit`).
+    """A ``geometry_msgs/PoseStamped`` (of ``kit``, :mod:`.message_classes`).
 
     Args:
         stamp_ns: Header stamp [ns].

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import MessageError
-from .kit import RCLPY, MessageKit
+from .message_classes import RCLPY, MessageKit
 from .limits import (MAX_IMAGE_HEIGHT_PX, MAX_IMAGE_STEP_BYTES, MAX_IMAGE_WIDTH_PX,
                      MAX_MESSAGE_BYTES, MIN_IMAGE_SIDE_PX)
 from .stamps import make_header, stamp_to_ns
@@ -98,7 +98,7 @@ def array_to_image(array: np.ndarray, stamp_ns: int, encoding: str | None = None
         stamp_ns: Header stamp [ns].
         encoding: ``mono8``, ``bgr8`` or ``rgb8`` (default: mono8 for 2-D, bgr8 for 3-D).
         frame_id: Camera frame.
-        kit: Message classes to build with (:mod:`.kit`).
+        kit: Message classes to build with (:mod:`.message_classes`).
 
     Raises:
         MessageError: Not uint8, empty, or a shape that does not fit the encoding.

@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 from gnsscam_ros.core import verdict as core_verdict
 
 from .errors import MessageError
-from .kit import RCLPY
+from .message_classes import RCLPY
 from .stamps import ns_to_stamp, stamp_to_ns
 from .wire import INTEGRITY
 

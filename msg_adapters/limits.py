@@ -59,20 +59,31 @@ NEW_TIME_BASE_MESSAGES = 5
 NEW_TIME_BASE_SPAN_S = 1.0
 
 # -------------------------------------------------------------------------------- GNSS
-#: Satellites per epoch. All constellations together have ~130 satellites, about half
+# The ``MESSAGE`` limits bound what one message may carry; the core's own checks behind
+# them (``core.gnss_checks``: ``MAX_EPOCH_SATELLITES``, ``MAX_SATELLITE_RADIUS_M``,
+# ``MAX_PSEUDORANGE_M``) are wider or smaller for reasons of their own, said there and
+# here. A test keeps every message limit within the core's (what a node accepts, the
+# core never refuses as corrupt).
+#: Satellites per message. All constellations together have ~130 satellites, about half
 #: of them above the horizon at once; 128 leaves room for dual-frequency receivers that
-#: report a satellite twice. The filter's cost grows with particles x satellites.
-MAX_SATELLITES = 128
+#: report a satellite twice. An epoch *uses* fewer (``core.gnss_checks.
+#: MAX_EPOCH_SATELLITES``, 64: the strongest), since the filter's cost grows with
+#: particles x satellites; a message may carry more so that the filter, not the parser,
+#: chooses which.
+MAX_MESSAGE_SATELLITES = 128
 #: Satellite distance from the Earth's centre [m]: above the Earth's surface (equatorial
 #: radius 6.378e6 m) and within the geostationary orbit (4.216e7 m: BeiDou GEO/IGSO,
-#: QZSS, SBAS) with margin; GPS, GLONASS and Galileo orbit at 2.55e7-2.99e7 m.
-MIN_SATELLITE_RADIUS_M = 6.4e6
-MAX_SATELLITE_RADIUS_M = 5.0e7
+#: QZSS, SBAS) with margin; GPS, GLONASS and Galileo orbit at 2.55e7-2.99e7 m. (The core
+#: drops only radii beyond 1e8 m, ``core.gnss_checks.MAX_SATELLITE_RADIUS_M``: its bound is
+#: for arithmetic every caller's data must pass, offline loaders included.)
+MIN_MESSAGE_SATELLITE_RADIUS_M = 6.4e6
+MAX_MESSAGE_SATELLITE_RADIUS_M = 5.0e7
 #: Pseudorange [m]: geometric range from the ground (2.0e7 m to a GPS satellite at the
 #: zenith, 4.2e7 m to a geostationary one at the horizon) plus the receiver clock
 #: offset, which receivers steer to within +-1 ms (+-3e5 m); the margins allow +-16 ms.
-MIN_PSEUDORANGE_M = 1.5e7
-MAX_PSEUDORANGE_M = 5.0e7
+#: (The core's arithmetic bound is 1e8 m, ``core.gnss_checks.MAX_PSEUDORANGE_M``.)
+MIN_MESSAGE_PSEUDORANGE_M = 1.5e7
+MAX_MESSAGE_PSEUDORANGE_M = 5.0e7
 #: C/N0 [dB-Hz]: receivers report 0-60 dB-Hz; gnss_node's mask goes up to 100.
 MIN_CN0_DBHZ = 0.0
 MAX_CN0_DBHZ = 100.0
@@ -88,9 +99,12 @@ MAX_VARIANCE = 1.0e14
 # ------------------------------------------------------------------- vehicle motion
 #: Forward speed [m/s] (360 km/h), of the odometry, the dead reckoning and its twist.
 MAX_SPEED_MPS = 100.0
-#: Yaw rate of the vehicle [rad/s] (odometry, dead reckoning, IMU gyro z): a car
-#: spinning out turns at 2-3 rad/s, a tight parking turn at under 1 rad/s.
-MAX_YAW_RATE_RPS = 5.0
+#: Yaw rate of the vehicle in a message [rad/s] (odometry, dead reckoning, IMU gyro z): a
+#: car spinning out turns at 2-3 rad/s, a tight parking turn at under 1 rad/s. The epoch
+#: engine's backstop for dead-reckoning states from any caller is twice this
+#: (``core.engine.MAX_DR_YAW_RATE_RPS``, 10 rad/s): a state integrated from messages within
+#: this limit is never refused there.
+MAX_MESSAGE_YAW_RATE_RPS = 5.0
 #: IMU angular rate about any axis [rad/s]: the full scale of automotive MEMS gyros
 #: (2000 deg/s); beyond it a value is not a measurement.
 MAX_GYRO_RPS = 35.0

@@ -32,9 +32,9 @@ from .checks import (check_abs, check_covariance, check_finite, check_frame,
                      check_unit_quaternion)
 from .errors import MessageError
 from .geometry import UNESTIMATED_VAR, quaternion_to_yaw, yaw_to_quaternion
-from .kit import RCLPY, MessageKit
+from .message_classes import RCLPY, MessageKit
 from .limits import (MAX_ACCEL_MPS2, MAX_GYRO_RPS, MAX_POSITION_M, MAX_SPEED_MPS,
-                     MAX_YAW_RATE_RPS)
+                     MAX_MESSAGE_YAW_RATE_RPS)
 from .stamps import make_header, ns_to_stamp, stamp_to_ns
 from .wire import (BASE_FRAME, DEAD_RECKONING, IMU, IMU_FRAME, MAP_FRAME, ODOM_FRAME,
                    ODOMETRY_GLOBAL, TWIST)
@@ -93,7 +93,7 @@ def imu_to_sample(msg: Imu, what: str = IMU) -> ImuSample:
             non-finite rates or accelerations, or ones beyond the sensor and vehicle
             limits of :mod:`.limits` (``'range'``: any axis beyond
             :data:`.limits.MAX_ACCEL_MPS2` or :data:`.limits.MAX_GYRO_RPS`, the yaw rate
-            beyond :data:`.limits.MAX_YAW_RATE_RPS`), a covariance that is none or a
+            beyond :data:`.limits.MAX_MESSAGE_YAW_RATE_RPS`), a covariance that is none or a
             reported orientation that is no rotation (``'range'``, ``'non_finite'``).
     """
     if msg.angular_velocity_covariance[0] == -1.0:
@@ -109,7 +109,7 @@ def imu_to_sample(msg: Imu, what: str = IMU) -> ImuSample:
                            'non_finite')
     check_abs(what, 'acceleration', accel, MAX_ACCEL_MPS2, ' m/s^2')
     check_abs(what, 'angular velocity', gyro, MAX_GYRO_RPS, ' rad/s')
-    check_abs(what, 'yaw rate', gyro[2], MAX_YAW_RATE_RPS, ' rad/s')
+    check_abs(what, 'yaw rate', gyro[2], MAX_MESSAGE_YAW_RATE_RPS, ' rad/s')
     check_covariance(what, 'angular velocity covariance', msg.angular_velocity_covariance)
     check_covariance(what, 'linear acceleration covariance',
                      msg.linear_acceleration_covariance)
@@ -121,8 +121,9 @@ def imu_to_sample(msg: Imu, what: str = IMU) -> ImuSample:
 
 
 def sample_to_imu(sample: ImuSample, frame_id: str = IMU_FRAME, kit: MessageKit = RCLPY):
-    """:class:`ImuSample` -> Imu (of ``kit``, :mod:`.kit`): orientation marked unavailable
-    (``orientation_covariance[0] = -1``, REP 145), the other covariances zero (unknown)."""
+    """:class:`ImuSample` -> Imu (of ``kit``, :mod:`.message_classes`): orientation marked
+    unavailable (``orientation_covariance[0] = -1``, REP 145), the other covariances zero
+    (unknown)."""
     a = np.asarray(sample.accel_mps2, dtype=float)
     g = np.asarray(sample.gyro_rps, dtype=float)
     vector = kit['geometry_msgs/msg/Vector3']
@@ -166,13 +167,13 @@ def _check_twist(what: str, t) -> None:
                                                     ang.z]})
     check_abs(what, 'speed', lin.x, MAX_SPEED_MPS, ' m/s')
     check_abs(what, 'lateral or vertical speed', [lin.y, lin.z], MAX_SPEED_MPS, ' m/s')
-    check_abs(what, 'yaw rate', ang.z, MAX_YAW_RATE_RPS, ' rad/s')
+    check_abs(what, 'yaw rate', ang.z, MAX_MESSAGE_YAW_RATE_RPS, ' rad/s')
     check_abs(what, 'roll or pitch rate', [ang.x, ang.y], MAX_GYRO_RPS, ' rad/s')
 
 
 def sample_to_twist(sample: TwistSample, frame_id: str = BASE_FRAME,
                     kit: MessageKit = RCLPY):
-    """:class:`TwistSample` -> TwistWithCovarianceStamped (of ``kit``, :mod:`.kit`)."""
+    """:class:`TwistSample` -> TwistWithCovarianceStamped (of ``kit``, :mod:`.message_classes`)."""
     vector = kit['geometry_msgs/msg/Vector3']
     cov = np.zeros(36)
     cov[0], cov[35] = sample.speed_var, sample.yaw_rate_var

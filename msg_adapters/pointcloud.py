@@ -17,12 +17,12 @@ from gnsscam_ros.core.types import GnssEpoch
 
 from .checks import check_abs, check_count, check_range
 from .errors import MessageError
-from .kit import RCLPY, MessageKit
+from .message_classes import RCLPY, MessageKit
 from .limits import (MAX_ABS_ELEVATION_DEG, MAX_CN0_DBHZ, MAX_MATCH_SCORE, MAX_MATCHES,
                      MAX_MESSAGE_BYTES, MAX_POINT_STEP_BYTES, MAX_POSITION_M,
-                     MAX_PSEUDORANGE_M, MAX_SATELLITE_RADIUS_M,
-                     MAX_SATELLITES, MAX_VARIANCE, MIN_CN0_DBHZ, MIN_MATCH_SCORE,
-                     MIN_PSEUDORANGE_M, MIN_SATELLITE_RADIUS_M)
+                     MAX_MESSAGE_PSEUDORANGE_M, MAX_MESSAGE_SATELLITE_RADIUS_M,
+                     MAX_MESSAGE_SATELLITES, MAX_VARIANCE, MIN_CN0_DBHZ, MIN_MATCH_SCORE,
+                     MIN_MESSAGE_PSEUDORANGE_M, MIN_MESSAGE_SATELLITE_RADIUS_M)
 from .stamps import make_header, stamp_to_ns
 from .wire import (EARTH_FRAME, GNSS, GNSS_DTYPE, KNOWN_SYSTEMS, MAP_FRAME, MATCH_DTYPE,
                    MATCHES, POINTFIELD_CODE, POINTFIELD_NAMES, POINTFIELD_TYPES, header_dims)
@@ -37,7 +37,7 @@ def structured_to_pointcloud2(points: np.ndarray, stamp_ns: int, frame_id: str,
         stamp_ns: Header stamp [ns].
         frame_id: Header frame.
         is_dense: The cloud has no invalid (non-finite) points.
-        kit: Message classes to build with (:mod:`.kit`).
+        kit: Message classes to build with (:mod:`.message_classes`).
 
     Raises:
         MessageError: A field is not a scalar of a PointField type.
@@ -142,8 +142,8 @@ def check_serialized_cloud(raw: bytes, max_points: int, what: str = 'cloud',
 
 
 def check_serialized_gnss(raw: bytes, what: str = GNSS) -> None:
-    """:func:`check_serialized_cloud` with :data:`.limits.MAX_SATELLITES`."""
-    check_serialized_cloud(raw, MAX_SATELLITES, what, 'satellites')
+    """:func:`check_serialized_cloud` with :data:`.limits.MAX_MESSAGE_SATELLITES`."""
+    check_serialized_cloud(raw, MAX_MESSAGE_SATELLITES, what, 'satellites')
 
 
 def check_serialized_matches(raw: bytes, what: str = MATCHES) -> None:
@@ -204,14 +204,14 @@ def pointcloud2_to_gnss_epoch(msg, frame_id: str | None = EARTH_FRAME,
             Elevation and C/N0 may still be NaN (unknown) in both cases.
 
     Raises:
-        MessageError: Wrong frame, more than :data:`.limits.MAX_SATELLITES` satellites
+        MessageError: Wrong frame, more than :data:`.limits.MAX_MESSAGE_SATELLITES` satellites
             (``'size'``, before decoding), missing or mistyped fields, inconsistent sizes,
             an invalid stamp, or an implausible value (``'range'``, ``'non_finite'``).
     """
     if frame_id is not None and msg.header.frame_id != frame_id:
         raise MessageError(f'{what}: frame {msg.header.frame_id!r}, expected {frame_id!r} '
                            '(ECEF)', 'frame')
-    check_count(int(msg.width) * int(msg.height), MAX_SATELLITES, what, 'satellites')
+    check_count(int(msg.width) * int(msg.height), MAX_MESSAGE_SATELLITES, what, 'satellites')
     stamp_ns = stamp_to_ns(msg.header.stamp, what)
     pts = pointcloud2_to_structured(msg, GNSS_DTYPE, what)
     sv = np.column_stack([pts['x'], pts['y'], pts['z']]).astype(float)
@@ -245,10 +245,11 @@ def _check_satellites(what: str, sv: np.ndarray, pr: np.ndarray, var: np.ndarray
     if not rows.any():
         return
     # Coordinates first: the norm of a 1e160 coordinate overflows to infinity.
-    check_abs(what, 'satellite coordinate', sv[rows], MAX_SATELLITE_RADIUS_M, ' m')
+    check_abs(what, 'satellite coordinate', sv[rows], MAX_MESSAGE_SATELLITE_RADIUS_M, ' m')
     check_range(what, 'satellite radius', np.linalg.norm(sv[rows], axis=1),
-                MIN_SATELLITE_RADIUS_M, MAX_SATELLITE_RADIUS_M, ' m')
-    check_range(what, 'pseudorange', pr[rows], MIN_PSEUDORANGE_M, MAX_PSEUDORANGE_M, ' m')
+                MIN_MESSAGE_SATELLITE_RADIUS_M, MAX_MESSAGE_SATELLITE_RADIUS_M, ' m')
+    check_range(what, 'pseudorange', pr[rows], MIN_MESSAGE_PSEUDORANGE_M,
+                MAX_MESSAGE_PSEUDORANGE_M, ' m')
     check_range(what, 'variance', var[rows], 0.0, MAX_VARIANCE, ' m^2')
 
 

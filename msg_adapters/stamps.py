@@ -6,7 +6,7 @@ messages.
 from __future__ import annotations
 
 from .errors import MessageError
-from .kit import RCLPY, MessageKit
+from .message_classes import RCLPY, MessageKit
 from .limits import MAX_NANOSEC, MAX_STAMP_SEC, MIN_STAMP_SEC
 from .wire import NS_PER_S, join_ns, split_ns
 

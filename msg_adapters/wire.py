@@ -1,16 +1,24 @@
 """The wire contract of gnsscam_ros, in one place.
 
-Topic and frame names, the point layouts of the GNSS and camera-match clouds, the GNSS
-``system`` codes and their ``NavSatStatus`` service bits, time stamps (integer ns <->
-``builtin_interfaces/Time``), and the order of messages that share a stamp. The message
-adapters, the bag converter and reader, the nodes and the replay take them from here.
+The topic registry (:data:`TOPICS`: each topic's name, message type, frame, QoS, depth,
+producer and consumers, :class:`Topic`), frame names, the point layouts of the GNSS and
+camera-match clouds, the GNSS ``system`` codes and their ``NavSatStatus`` service bits,
+time stamps (integer ns <-> ``builtin_interfaces/Time``), and the order of messages that
+share a stamp. The message adapters, the bag converter and reader, the nodes and the
+replay take them from here.
 
 Plain Python and numpy, no ROS import: the storage layer (rosbags) and the rclpy layer
-read the same definitions.
+read the same definitions. The nodes build their publishers and subscriptions from
+:data:`TOPICS` (``nodes.node_base``), the bag converter and reader take their topic layout
+from it (``bags.schema``), the recorder its types, latching and queue depths
+(``live.record``), and the README's topic table is rendered from it: run
+``python -m msg_adapters.topic_table README.md`` after changing a topic here (a
+test fails while the README differs; :mod:`.topic_table`).
 """
 from __future__ import annotations
 
 import struct
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -47,6 +55,165 @@ BASE_FRAME = 'base_link'       # the vehicle: IMU, wheel odometry, child of odom
 CAMERA_FRAME = 'camera'
 ANTENNA_FRAME = 'gnss'         # the GNSS antenna: gnss/fix and fix
 IMU_FRAME = 'imu'              # default frame of an IMU sample written alone
+
+# --------------------------------------------------------------------- message types
+STRING = 'std_msgs/msg/String'
+NAVSATFIX = 'sensor_msgs/msg/NavSatFix'
+POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
+IMAGE_TYPE = 'sensor_msgs/msg/Image'
+IMU_TYPE = 'sensor_msgs/msg/Imu'
+TWIST_TYPE = 'geometry_msgs/msg/TwistWithCovarianceStamped'
+POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
+POSE_COV_STAMPED = 'geometry_msgs/msg/PoseWithCovarianceStamped'
+POSE_ARRAY = 'geometry_msgs/msg/PoseArray'
+DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
+ODOMETRY = 'nav_msgs/msg/Odometry'
+
+# ------------------------------------------------------------------- topic registry
+#: QoS policies of :class:`Topic` (the names of ``rclpy.qos`` policies, lower case).
+RELIABLE, BEST_EFFORT = 'reliable', 'best_effort'
+VOLATILE, TRANSIENT_LOCAL = 'volatile', 'transient_local'
+KEEP_LAST = 'keep_last'
+#: Producer of the input topics: the robot's drivers, or the replay of a dataset bag.
+DATASET = 'dataset'
+#: Producer of ``diagnostics``: every node of the package.
+EVERY_NODE = 'every node'
+#: Queue depth of a recorder's subscription [messages]: it must lose nothing while it
+#: writes, and small messages cost little.
+RECORD_DEPTH = 2000
+
+
+@dataclass(frozen=True)
+class Topic:
+    """One topic of the gnsscam_ros graph: what travels on it and who sends and takes it.
+
+    Attributes:
+        name: Topic name relative to the nodes' namespace.
+        msgtype: Message type, ``pkg/msg/Type`` (the rosbags and rclpy name).
+        frame_id: Header frame (None: the message has no frame of its own).
+        frame_parameter: The node parameter that sets another frame ('' for none).
+        producers: Who publishes it: node names, :data:`DATASET` or :data:`EVERY_NODE`.
+        consumers: The package's nodes that subscribe to it (none: an output for ROS
+            consumers, the recorder and the evaluation).
+        reliability: :data:`RELIABLE` or :data:`BEST_EFFORT`, of the nodes' endpoints (a
+            sensor input: what the subscription asks; publishers may offer reliable).
+        durability: :data:`VOLATILE`, or :data:`TRANSIENT_LOCAL` for the once-only
+            (latched) topics, kept for late subscribers.
+        depth: ``KEEP_LAST`` depth of the nodes' endpoints [messages] (a node's queue
+            depth parameter may set another; its default is this one).
+        record_depth: Depth of a recorder's subscription [messages].
+        description: What it carries (the README's topic table).
+        history: ``KEEP_LAST`` (the only history the graph uses).
+    """
+
+    name: str
+    msgtype: str
+    frame_id: str | None
+    frame_parameter: str
+    producers: tuple[str, ...]
+    consumers: tuple[str, ...]
+    reliability: str
+    durability: str
+    depth: int
+    record_depth: int
+    description: str
+    history: str = KEEP_LAST
+
+    @property
+    def latched(self) -> bool:
+        """Offered ``transient_local``: sent once, kept for late subscribers."""
+        return self.durability == TRANSIENT_LOCAL
+
+    @property
+    def interface(self) -> str:
+        """The type as ``ros2 interface`` shows it: ``sensor_msgs/PointCloud2``."""
+        pkg, _, name = self.msgtype.split('/')
+        return f'{pkg}/{name}'
+
+
+def _input(name, msgtype, frame_id, frame_parameter, consumer, depth, description):
+    """A sensor input: best effort, from the drivers or a replayed bag."""
+    return Topic(name, msgtype, frame_id, frame_parameter, (DATASET,), (consumer,),
+                 BEST_EFFORT, VOLATILE, depth, RECORD_DEPTH, description)
+
+
+def _stream(name, msgtype, frame_id, frame_parameter, producer, consumers, description,
+            depth=10, record_depth=RECORD_DEPTH):
+    """A node output: reliable, volatile."""
+    return Topic(name, msgtype, frame_id, frame_parameter, (producer,), tuple(consumers),
+                 RELIABLE, VOLATILE, depth, record_depth, description)
+
+
+#: Every topic of the gnsscam_ros graph, inputs first, then in the order of the graph.
+TOPICS: dict[str, Topic] = {t.name: t for t in (
+    _input(GNSS, POINTCLOUD2, EARTH_FRAME, 'input_frame_id', 'gnss_node', 10,
+           'one point per satellite: `x y z` FLOAT64 ECEF [m], `pseudorange` FLOAT64 [m], '
+           '`variance` FLOAT32 [m²], `cn0` FLOAT32 [dB-Hz], `elevation` FLOAT32 [deg], '
+           '`sv_id` UINT16, `system` UINT8 (1 GPS, 2 SBAS, 4 GLONASS, 8 Galileo, 16 QZSS, '
+           '32 BeiDou)'),
+    _input(IMAGE, IMAGE_TYPE, CAMERA_FRAME, '', 'camera_node', 5,
+           'mono8, bgr8 or rgb8 (camera_node `input_reliable`: reliable instead)'),
+    _input(IMU, IMU_TYPE, BASE_FRAME, '', 'imu_node', 100,
+           'body x forward, z up: forward acceleration and gyro z are used'),
+    _input(TWIST, TWIST_TYPE, BASE_FRAME, '', 'imu_node', 100,
+           'optional: `linear.x` speed [m/s], `angular.z` yaw rate [rad/s], variances at '
+           'covariance 0 and 35'),
+    Topic(INFO, STRING, None, '', (DATASET,), (), RELIABLE, TRANSIENT_LOCAL, 1, 1,
+          'dataset description (JSON), bags only: format, name, origin, provenance, topics'),
+    Topic(ORIGIN, NAVSATFIX, MAP_FRAME, 'map_frame_id', (DATASET, 'fusion_node'), (),
+          RELIABLE, TRANSIENT_LOCAL, 1, 1,
+          'geodetic origin of the `map` frame (`map_origin_llh`, else the first robust '
+          'fix), published once it exists; a late subscriber still gets it. Status FIX, '
+          'covariance unknown, as the bag converter writes it'),
+    Topic(TRUTH, POSE_STAMPED, EARTH_FRAME, '', (DATASET,), (), RELIABLE, VOLATILE, 10,
+          RECORD_DEPTH, 'ground truth in ECEF, bags only (evaluation; no node subscribes)'),
+    _stream(GNSS_MEASUREMENTS, POINTCLOUD2, EARTH_FRAME, '', 'gnss_node', ['fusion_node'],
+            'the satellites that passed the checks (every epoch, even when too few are '
+            'left)'),
+    _stream(GNSS_FIX, NAVSATFIX, ANTENNA_FRAME, 'fix_frame_id', 'gnss_node', [],
+            'robust snapshot fix of usable epochs, approximated covariance (ENU)'),
+    _stream(MATCHES, POINTCLOUD2, MAP_FRAME, 'map_frame_id', 'camera_node', ['fusion_node'],
+            'top-k database images, best first: `x y z` FLOAT64, `score` FLOAT32, '
+            '`image_id` UINT32; stamp = image stamp'),
+    _stream(DEAD_RECKONING, ODOMETRY, ODOM_FRAME, 'odom_frame_id', 'imu_node',
+            ['fusion_node'],
+            'child `base_link` (`base_frame_id`): planar dead-reckoned pose, integrated at '
+            'every input sample, published one per `output_period_s` (0.1 s); pose '
+            'covariance x/y: accumulated distance variance, yaw: heading variance; twist: '
+            'speed and yaw rate', depth=100),
+    _stream(INTEGRITY, DIAGNOSTIC_ARRAY, None, '', 'fusion_node', [],
+            'one status: the integrity verdict, see below'),
+    _stream(POSE, POSE_COV_STAMPED, MAP_FRAME, 'map_frame_id', 'fusion_node', [],
+            'estimate (the weighted mean of the chosen motion sample), 3×3 position '
+            'covariance, heading variance'),
+    _stream(ODOMETRY_GLOBAL, ODOMETRY, MAP_FRAME, 'map_frame_id', 'fusion_node', [],
+            'child `base_link` (`base_frame_id`), for robot_localization / Nav2: the pose '
+            'and covariance of `pose` (roll, pitch variance 1e6), twist in `base_link`: '
+            'forward speed and yaw rate of the newest dead-reckoning state at or before the '
+            'epoch, variances at covariance 0 and 35 (others 1e6; speed 0 with variance 1e6 '
+            'when none within 1 s); every epoch `pose` is published'),
+    _stream(FIX, NAVSATFIX, ANTENNA_FRAME, 'fix_frame_id', 'fusion_node', [],
+            'the same estimate in WGS84 (epochs with a GNSS update)'),
+    # Clouds are large (~56 kB): a shallow history, and a recorder keeps fewer waiting.
+    _stream(PARTICLES, POSE_ARRAY, MAP_FRAME, 'map_frame_id', 'fusion_node', [],
+            'the particle cloud after resampling (at most `max_published_particles`, '
+            'weighted deterministic subsample)', depth=2, record_depth=100),
+    _stream(DIAGNOSTICS, DIAGNOSTIC_ARRAY, None, '', EVERY_NODE, [],
+            'node status, counters, rejections by reason, processing times'),
+)}
+
+#: Topics of a dataset bag (``gnsscam_convert``), in the order they are registered.
+DATASET_BAG_TOPICS = (INFO, ORIGIN, GNSS, IMAGE, IMU, TWIST, TRUTH)
+#: The nodes' outputs that a result bag holds and the bag evaluation reads.
+RESULT_BAG_TOPICS = (POSE, FIX, PARTICLES, INTEGRITY)
+
+
+def topics_of(node: str) -> tuple[list[Topic], list[Topic]]:
+    """``(published, subscribed)`` topics of a node of the package, by its name."""
+    published = [t for t in TOPICS.values() if node in t.producers
+                 or t.producers == (EVERY_NODE,)]
+    return published, [t for t in TOPICS.values() if node in t.consumers]
+
 
 # ---------------------------------------------------------------------- point layouts
 #: ``gnss/pseudoranges``, ``gnss/measurements`` (frame ``earth``), one point per

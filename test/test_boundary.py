@@ -16,9 +16,9 @@ from sensor_msgs.msg import Image, PointCloud2
 import msg_adapters as ma
 from gnsscam_ros.core.motion import DeadReckoningState
 from gnsscam_ros.core.types import GnssEpoch
-from gnsscam_ros.nodes.common import SequenceGaps
+from gnsscam_ros.nodes.node_base import SequenceGaps
 from msg_adapters import limits as lim
-from msg_adapters.gate import ADVANCE, BEHIND, NEW_BASE, StampGate
+from msg_adapters.stamp_gate import ADVANCE, BEHIND, NEW_BASE, StampGate
 
 S = 1_000_000_000
 T0 = 1_718_204_613 * S
@@ -102,9 +102,10 @@ def test_every_input_parser_refuses_an_invalid_stamp(make, parse, sec, nanosec):
 # ============================================================================== GNSS
 @pytest.mark.parametrize('radius, reason', [
     # At the edges (a hair inside: the direction vectors are rounded to unit length).
-    (lim.MIN_SATELLITE_RADIUS_M * (1 + 1e-12), None),
-    (lim.MAX_SATELLITE_RADIUS_M * (1 - 1e-12), None),
-    (lim.MIN_SATELLITE_RADIUS_M * 0.999, 'range'), (lim.MAX_SATELLITE_RADIUS_M * 1.001, 'range')])
+    (lim.MIN_MESSAGE_SATELLITE_RADIUS_M * (1 + 1e-12), None),
+    (lim.MAX_MESSAGE_SATELLITE_RADIUS_M * (1 - 1e-12), None),
+    (lim.MIN_MESSAGE_SATELLITE_RADIUS_M * 0.999, 'range'),
+    (lim.MAX_MESSAGE_SATELLITE_RADIUS_M * 1.001, 'range')])
 def test_satellite_radius_limits(radius, reason):
     msg = ma.gnss_epoch_to_pointcloud2(_epoch(radius=radius))
     _accepted_or_refused(reason, ma.pointcloud2_to_gnss_epoch, msg)
@@ -121,8 +122,8 @@ def test_one_satellite_coordinate_of_1e160_or_a_flipped_exponent_is_refused():
 
 
 @pytest.mark.parametrize('pr, reason', [
-    (lim.MIN_PSEUDORANGE_M, None), (lim.MAX_PSEUDORANGE_M, None),
-    (lim.MIN_PSEUDORANGE_M - 1.0, 'range'), (lim.MAX_PSEUDORANGE_M + 1.0, 'range'),
+    (lim.MIN_MESSAGE_PSEUDORANGE_M, None), (lim.MAX_MESSAGE_PSEUDORANGE_M, None),
+    (lim.MIN_MESSAGE_PSEUDORANGE_M - 1.0, 'range'), (lim.MAX_MESSAGE_PSEUDORANGE_M + 1.0, 'range'),
     (1e300, 'range')])
 def test_pseudorange_limits(pr, reason):
     msg = ma.gnss_epoch_to_pointcloud2(_epoch(pr=pr))
@@ -176,8 +177,8 @@ def test_checked_epochs_refuse_duplicates_and_unknown_systems_the_receiver_gets_
 
 
 def test_satellite_count_is_refused_before_anything_is_decoded():
-    ok = ma.gnss_epoch_to_pointcloud2(_epoch(k=lim.MAX_SATELLITES))
-    assert ma.pointcloud2_to_gnss_epoch(ok).n_sv == lim.MAX_SATELLITES
+    ok = ma.gnss_epoch_to_pointcloud2(_epoch(k=lim.MAX_MESSAGE_SATELLITES))
+    assert ma.pointcloud2_to_gnss_epoch(ok).n_sv == lim.MAX_MESSAGE_SATELLITES
     ma.check_serialized_gnss(serialize_message(ok))
     huge = _Untouchable(header=ok.header, width=1000, height=1, point_step=48, row_step=48000,
                         is_bigendian=False)
@@ -186,17 +187,17 @@ def test_satellite_count_is_refused_before_anything_is_decoded():
     # the sizes are written (the data the header promises is not even there).
     raw = serialize_message(PointCloud2(header=ok.header, height=100, width=100))
     _refused('size', ma.check_serialized_gnss, raw)
-    assert ma.wire.header_dims(serialize_message(ok)) == (1, lim.MAX_SATELLITES)
+    assert ma.wire.header_dims(serialize_message(ok)) == (1, lim.MAX_MESSAGE_SATELLITES)
     assert ma.wire.header_dims(b'\x00\x07\x00\x00' + bytes(40)) is None     # not plain CDR
 
 
 # ============================================================================ motion
 @pytest.mark.parametrize('accel, gyro, reason', [
-    ([lim.MAX_ACCEL_MPS2, -9.8, 0], [0, 0, lim.MAX_YAW_RATE_RPS], None),
+    ([lim.MAX_ACCEL_MPS2, -9.8, 0], [0, 0, lim.MAX_MESSAGE_YAW_RATE_RPS], None),
     ([0, 0, -lim.MAX_ACCEL_MPS2], [lim.MAX_GYRO_RPS, -lim.MAX_GYRO_RPS, 0], None),
     ([lim.MAX_ACCEL_MPS2 + 0.1, 0, 0], [0, 0, 0], 'range'),
     ([0, 0, 0], [lim.MAX_GYRO_RPS + 0.1, 0, 0], 'range'),
-    ([0, 0, 0], [0, 0, lim.MAX_YAW_RATE_RPS + 0.01], 'range'),
+    ([0, 0, 0], [0, 0, lim.MAX_MESSAGE_YAW_RATE_RPS + 0.01], 'range'),
     ([1.7e308, 0, 0], [0, 0, 0], 'range'),
     ([0, np.nan, 0], [0, 0, 0], 'non_finite')])
 def test_imu_limits(accel, gyro, reason):
@@ -205,12 +206,12 @@ def test_imu_limits(accel, gyro, reason):
 
 
 @pytest.mark.parametrize('speed, yaw_rate, var, reason', [
-    (lim.MAX_SPEED_MPS, -lim.MAX_YAW_RATE_RPS, lim.MAX_VARIANCE, None),
+    (lim.MAX_SPEED_MPS, -lim.MAX_MESSAGE_YAW_RATE_RPS, lim.MAX_VARIANCE, None),
     (-lim.MAX_SPEED_MPS, 0.0, 0.0, None),                 # variance 0: not reported
     (1.0, 0.0, -1.0, 'range'),                             # a negative variance is none
     (1.0, 0.0, -1e-12, None),                              # a rounded zero is one
     (1.7e308, 0.0, 0.0, 'range'), (lim.MAX_SPEED_MPS + 0.01, 0.0, 0.0, 'range'),
-    (0.0, lim.MAX_YAW_RATE_RPS + 0.01, 0.0, 'range'), (0.0, 0.0, 1e300, 'range'),
+    (0.0, lim.MAX_MESSAGE_YAW_RATE_RPS + 0.01, 0.0, 'range'), (0.0, 0.0, 1e300, 'range'),
     (math.inf, 0.0, 0.0, 'non_finite')])
 def test_odometry_twist_limits(speed, yaw_rate, var, reason):
     msg = ma.sample_to_twist(ma.TwistSample(T0, speed, yaw_rate, var, var))

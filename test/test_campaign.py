@@ -90,7 +90,7 @@ def test_campaign_interrupted_by_ctrl_c_resumes_without_recomputing(tmp_path, se
     cases = tmp_path / 'cases'
     cmd = [sys.executable, '-m', 'gnsscam_ros.evaluation', 'campaign', '--seeds', '1-2',
            '--faults', '0', '4', '--bias-m', '200', '--methods', 'gnss_robust',
-           '--particles', '200', '--duration-s', '15', '--workers', '1', '--quiet',
+           '--n-particles', '200', '--duration-s', '15', '--workers', '1', '--quiet',
            '--out', str(tmp_path)]
     # SIGINT as a terminal's process has it, whatever the test runner inherited (a runner
     # started in the background of a non-interactive shell ignores it, and so would the
@@ -221,7 +221,7 @@ def test_campaign_on_a_separately_started_scheduler_and_two_workers(tmp_path):
 def test_cli_seed_ranges_summary_and_exit_codes(tmp_path, capsys):
     out = tmp_path / 'out'
     args = ['campaign', '--seeds', '1', '--faults', '0', '--methods', 'gnss_robust',
-            '--particles', '200', '--duration-s', '12', '--sequential', '--quiet',
+            '--n-particles', '200', '--duration-s', '12', '--sequential', '--quiet',
             '--out', str(out)]
     assert eval_main(args + ['--json', str(tmp_path / 'c.json')]) == 0
     text = capsys.readouterr().out
@@ -230,7 +230,7 @@ def test_cli_seed_ranges_summary_and_exit_codes(tmp_path, capsys):
     assert summary['campaign']['seeds'] == '1'
     assert eval_main(args) == 0                               # resumed, nothing to do
     assert '0 runs computed, 1 resumed' in capsys.readouterr().out
-    assert eval_main(args[:-2] + ['--particles', '300', '--out', str(out)]) == 4
+    assert eval_main(args[:-2] + ['--n-particles', '300', '--out', str(out)]) == 4
     assert 'another campaign configuration' in capsys.readouterr().err
     assert eval_main(['campaign', '--seeds', '3-1', '--out', str(out)]) == 2
     assert eval_main(['campaign', '--sequential', '--scheduler', 'tcp://127.0.0.1:1']) == 2

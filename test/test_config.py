@@ -221,7 +221,7 @@ def test_large_sizes_use_fewer_satellites_instead_of_more_memory():
     strongest that fit (the largest sizes this repository benchmarks and documents), so
     that no epoch can exceed it whatever a message holds."""
     default = FilterConfig()
-    assert default.satellite_limit == 64 == cfgmod.MAX_SATELLITES
+    assert default.satellite_limit == 64 == cfgmod.MAX_EPOCH_SATELLITES
     for values, limit in (({'n_particles': 100_000, 'acquisition_particles': 0}, 50),
                           ({'bias_model': 'none'}, 23),
                           ({'bias_model': 'none', 'n_posteriors': 30}, 64)):

@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def demo_command(out: Path, *extra: str) -> list:
     return [sys.executable, '-m', 'gnsscam_ros.evaluation.demo', '--out', str(out),
-            '--no-camera', '--no-smartloc', '--particles', '200', *extra]
+            '--no-camera', '--no-smartloc', '--n-particles', '200', *extra]
 
 
 def test_ctrl_c_in_any_stage_exits_130_and_marks_the_folder_incomplete(tmp_path, monkeypatch,

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 from conftest import SMARTLOC_EXCERPT
 
-from gnsscam_ros.evaluation import cli
+from gnsscam_ros.core.config import FilterConfig
+from gnsscam_ros.evaluation import cli, filter_options
 from gnsscam_ros.evaluation.metrics import integrity_metrics, rmse
 
 
@@ -25,7 +26,7 @@ def test_metrics_known_answer():
 def test_eval_smartloc_excerpt_end_to_end(tmp_path, capsys):
     out = tmp_path / 'out.json'
     code = cli.main(['smartloc', str(SMARTLOC_EXCERPT), '--json', str(out), '--quiet',
-                     '--particles', '300', '--seed', '1'])
+                     '--n-particles', '300', '--seed', '1'])
     assert code == 0
     result = json.loads(out.read_text())
     assert result['epochs'] == 284
@@ -56,7 +57,7 @@ def test_eval_reports_bad_input(tmp_path, capsys):
 def test_eval_emulated_short(tmp_path):
     out = tmp_path / 'emu.json'
     assert cli.main(['emulated', '--faults', '4', '--bias-m', '100', '--seed', '2',
-                     '--duration-s', '120', '--particles', '300', '--quiet',
+                     '--duration-s', '120', '--n-particles', '300', '--quiet',
                      '--json', str(out)]) == 0
     result = json.loads(out.read_text())
     assert result['rmse_2d_m'] < result['baseline_wls']['rmse_2d_m']
@@ -64,16 +65,42 @@ def test_eval_emulated_short(tmp_path):
 
 
 def test_eval_help_explains_every_filter_option(capsys):
-    """--target-risk had no help and --posteriors said "odometry perturbations M"."""
+    """--target-risk had no help and --posteriors said "odometry perturbations M": every
+    option now says what its FilterConfig parameter's metadata says."""
     with pytest.raises(SystemExit):
         cli.main(['emulated', '--help'])
     text = ' '.join(capsys.readouterr().out.split())
     text = text[text.index('filter:'):]          # the option list, not the usage line
-    assert 'posteriors M of the risk bound' in text
     assert 'odometry perturbations' not in text
-    for option in ('--target-risk', '--alert-limits', '--seed'):
+    for spec in filter_options.filter_option_specs():
+        option = filter_options.option_name(spec.name)
+        if isinstance(spec.default, bool):          # --use-camera, --no-use-camera
+            option = '--no-' + option[2:]
+        described = text.split(f'{option} ', 1)[1].split(' --', 1)[0]
+        assert ' '.join(spec.doc.split()[:4]) in described, option
+        assert 'default' in described, (option, described)
+    for option in ('--alert-limits', '--seed'):
         described = text.split(option, 1)[1].split(' --', 1)[0]
         assert 'default' in described, (option, described)
+    # The earlier spellings still work but are not offered.
+    for old in ('--particles', '--posteriors', '--correlation-time-s'):
+        assert old not in text
+
+
+def test_eval_options_are_the_filter_parameters_under_their_names():
+    values = {'n_particles': 300, 'n_posteriors': 10, 'likelihood': 'particle_raim',
+              'use_camera': False, 'outlier_range_m': 150.0}
+    argv = ['emulated', '--n-particles', '300', '--n-posteriors', '10', '--likelihood',
+            'particle_raim', '--no-use-camera', '--outlier-range-m', '150']
+    config = cli.config_from_args(cli.build_parser().parse_args(argv))
+    assert config == FilterConfig(**values, alert_limit_m=8.0, extra_alert_limits_m=(16.0,))
+    old = ['emulated', '--particles', '300', '--posteriors', '10', '--correlation-time-s', '2.5']
+    config = cli.config_from_args(cli.build_parser().parse_args(old))
+    assert (config.n_particles, config.n_posteriors, config.error_correlation_time_s) == (
+        300, 10, 2.5)
+    # Defaults are FilterConfig's own.
+    default = cli.config_from_args(cli.build_parser().parse_args(['emulated']))
+    assert default == FilterConfig(alert_limit_m=8.0, extra_alert_limits_m=(16.0,))
 
 
 @pytest.mark.ros                 # the demo module runs nodes: imports rclpy
@@ -96,7 +123,7 @@ def test_eval_alert_limits_option(capsys):
 @pytest.mark.slow
 def test_eval_reports_the_alert_limits_asked_for(tmp_path):
     out = tmp_path / 'emu.json'
-    assert cli.main(['emulated', '--duration-s', '20', '--particles', '100', '--quiet',
+    assert cli.main(['emulated', '--duration-s', '20', '--n-particles', '100', '--quiet',
                      '--alert-limits', '12', '30', '--json', str(out)]) == 0
     result = json.loads(out.read_text())
     assert set(result['integrity']) == {'12', '30'}

@@ -114,7 +114,7 @@ def _read_csv(path):
 @pytest.mark.slow
 def test_cli_emulated_epochs_csv_and_plots(tmp_path, capsys):
     csv_path, plots, out = tmp_path / 'e.csv', tmp_path / 'plots', tmp_path / 'e.json'
-    args = ['emulated', '--seed', '2', '--faults', '2', '--duration-s', '25', '--particles',
+    args = ['emulated', '--seed', '2', '--faults', '2', '--duration-s', '25', '--n-particles',
             '200', '--quiet', '--epochs-csv', str(csv_path), '--plots', str(plots),
             '--json', str(out)]
     assert cli.main(args) == 0
@@ -146,7 +146,7 @@ def test_cli_emulated_epochs_csv_and_plots(tmp_path, capsys):
 @pytest.mark.slow
 def test_cli_smartloc_excerpt_csv_stamps_are_the_files_seconds(tmp_path, smartloc_excerpt):
     csv_path = tmp_path / 's.csv'
-    assert cli.main(['smartloc', str(SMARTLOC_EXCERPT), '--quiet', '--particles', '200',
+    assert cli.main(['smartloc', str(SMARTLOC_EXCERPT), '--quiet', '--n-particles', '200',
                      '--epochs-csv', str(csv_path)]) == 0
     rows = _read_csv(csv_path)
     assert len(rows) == len(smartloc_excerpt.gnss)

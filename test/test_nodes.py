@@ -28,7 +28,7 @@ from gnsscam_ros.core.types import GnssEpoch
 from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
 from gnsscam_ros.nodes import camera_node, fusion_node, gnss_node, imu_node
 from gnsscam_ros.nodes.camera_node import CameraNode
-from gnsscam_ros.nodes.common import InputFileError, ParameterError
+from gnsscam_ros.nodes.node_base import InputFileError, ParameterError
 from gnsscam_ros.nodes.fusion_node import FusionNode
 from gnsscam_ros.nodes.gnss_node import GnssNode
 from gnsscam_ros.nodes.imu_node import ImuNode

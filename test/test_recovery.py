@@ -258,7 +258,7 @@ def test_input_timing_has_upper_bounds():
     InputTiming(odometry_wait_s=10.0, odometry_timeout_s=60.0, camera_buffer_s=600.0)
     for name, value in (('odometry_wait_s', 1e12), ('camera_wait_s', 10.5),
                         ('odometry_timeout_s', 61.0), ('camera_timeout_s', math.inf),
-                        ('dead_reckoning_buffer_s', 1e6), ('camera_buffer_s', -1.0),
+                        ('odometry_buffer_s', 1e6), ('camera_buffer_s', -1.0),
                         ('odometry_wait_s', math.nan), ('gnss_queue_size', 0)):
         with pytest.raises(ValueError, match=f'invalid input timing: {name} must be in'):
             InputTiming(**{name: value})
@@ -325,8 +325,8 @@ def test_satellite_checks_drop_implausible_values_and_keep_the_strongest():
     cn0[7] = np.nan                                  # unknown: last
     many = replace(many, cn0_dbhz=cn0)
     check = gnss.check_epoch(many)
-    assert check.rejected == {'satellite_limit': n - gnss.MAX_SATELLITES}
-    assert check.keep.sum() == gnss.MAX_SATELLITES == 64
+    assert check.rejected == {'satellite_limit': n - gnss.MAX_EPOCH_SATELLITES}
+    assert check.keep.sum() == gnss.MAX_EPOCH_SATELLITES == 64
     assert cn0[check.keep].min() >= np.nanmax(cn0[~check.keep]) and not check.keep[7]
     assert gnss.check_epoch(many, max_satellites=20).keep.sum() == 20
 

@@ -27,7 +27,7 @@ from sensor_msgs.msg import Imu
 from gnsscam_ros.bags.convert import convert_drive
 from gnsscam_ros.bags.errors import BagExistsError, BagReadError
 from gnsscam_ros.bags.read import bag_topics, read_drive, read_results
-from gnsscam_ros.live.chain import replay_through_nodes
+from gnsscam_ros.live.replay_through_nodes import replay_through_nodes
 from gnsscam_ros.live.player import BagReplayer
 from gnsscam_ros.live.record import BagRecorder
 from gnsscam_ros.live.replay import main as replay_main

@@ -174,7 +174,7 @@ def test_summary_text_never_prints_unknowns():
 
 
 def test_gate_takes_a_new_publisher_going_back_at_once():
-    from msg_adapters.gate import ADVANCE, NEW_BASE, StampGate
+    from msg_adapters.stamp_gate import ADVANCE, NEW_BASE, StampGate
     import msg_adapters as ma
     s = 10 ** 9
     gate = StampGate()

@@ -15,7 +15,7 @@ from gnsscam_ros.datasets.rinex_drive import load_rinex
 from gnsscam_ros.evaluation.bag_eval import evaluate_result_bag
 from gnsscam_ros.evaluation.demo import node_series, offline_run
 from gnsscam_ros.evaluation.runner import summarize
-from gnsscam_ros.live.chain import replay_through_nodes
+from gnsscam_ros.live.replay_through_nodes import replay_through_nodes
 
 pytestmark = pytest.mark.ros
 

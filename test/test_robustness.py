@@ -132,7 +132,7 @@ def test_recoveries_are_read_from_the_evaluation(smartloc_excerpt, monkeypatch):
 @pytest.mark.slow
 def test_command_end_to_end_on_a_one_worker_cluster(tmp_path, capsys):
     out_json, figure = tmp_path / 'rob.json', tmp_path / 'rob.png'
-    common = ['--seeds', '2', '--duration-s', '15', '--particles', '300', '--quiet']
+    common = ['--seeds', '2', '--duration-s', '15', '--n-particles', '300', '--quiet']
     args = ['robustness', str(SMARTLOC_EXCERPT), '--cells', 'baseline', 'var_x4',
             'glonass_only', 'start_0s', *common]
     assert eval_main(args + ['--workers', '1', '--json', str(out_json),
@@ -199,7 +199,7 @@ def test_bad_input_and_arguments_get_the_documented_exit_codes(tmp_path, capsys)
     for flag in ('--first-seed', '--fault-seed'):
         assert eval_main(['robustness', str(SMARTLOC_EXCERPT), flag, '-1']) == 2
         assert f'{flag} must be >= 0' in capsys.readouterr().err
-    assert eval_main(['robustness', str(SMARTLOC_EXCERPT), '--particles', '0']) == 2
+    assert eval_main(['robustness', str(SMARTLOC_EXCERPT), '--n-particles', '0']) == 2
     assert eval_main(['robustness', str(SMARTLOC_EXCERPT), '--sequential',
                       '--scheduler', 'tcp://127.0.0.1:1']) == 2
     assert eval_main(['robustness', '--list-cells']) == 0
@@ -223,7 +223,7 @@ def test_the_default_matrix_runs_on_the_excerpt(tmp_path, capsys):
     such (exit 1), every other cell is measured."""
     out_json = tmp_path / 'matrix.json'
     code = eval_main(['robustness', str(SMARTLOC_EXCERPT), '--seeds', '2', '--duration-s',
-                      '10', '--particles', '200', '--sequential', '--quiet', '--json',
+                      '10', '--n-particles', '200', '--sequential', '--quiet', '--json',
                       str(out_json)])
     assert code == 1
     assert 'runs or cells failed' in capsys.readouterr().err

@@ -41,9 +41,8 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from msg_adapters import (GeodeticFix, ImuSample, MessageError, TwistSample, array_to_image,
                           fix_to_navsatfix, gnss_epoch_to_pointcloud2, pose_stamped,
                           sample_to_imu, sample_to_twist)
-from msg_adapters.wire import (BASE_FRAME, CAMERA_FRAME, EARTH_FRAME, GNSS, IMAGE, IMU, INFO,
-                               MAP_FRAME, MAX_STAMP_SEC, NS_PER_S, ORIGIN, STATUS_FIX,
-                               TIE_ORDER, TRUTH, TWIST, service_bits)
+from msg_adapters.wire import (GNSS, IMAGE, IMU, INFO, MAX_STAMP_SEC, NS_PER_S, ORIGIN,
+                               STATUS_FIX, TIE_ORDER, TOPICS, TRUTH, TWIST, service_bits)
 
 from ..core.frames import LocalFrame
 from ..core.types import Drive
@@ -272,17 +271,19 @@ class _Messages:
         systems = {int(s) for ep in self.drive.gnss for s in np.unique(ep.system)}
         return fix_to_navsatfix(GeodeticFix(
             stamp_ns=stamp_ns, lat_deg=lat, lon_deg=lon, alt_m=alt, status=STATUS_FIX,
-            service=service_bits(systems), frame_id=MAP_FRAME), self.kit)
+            service=service_bits(systems), frame_id=TOPICS[ORIGIN].frame_id), self.kit)
 
     def gnss(self, i: int):
         try:
-            return gnss_epoch_to_pointcloud2(self.drive.gnss[i], EARTH_FRAME, self.kit)
+            return gnss_epoch_to_pointcloud2(self.drive.gnss[i], TOPICS[GNSS].frame_id,
+                                             self.kit)
         except MessageError as err:
             raise BagContentError(f'{GNSS}: epoch {i}: {err}', topic=GNSS) from err
 
     def image(self, i: int, img: np.ndarray):
         try:
-            return array_to_image(img, int(self.camera.stamp_ns[i]), frame_id=CAMERA_FRAME,
+            return array_to_image(img, int(self.camera.stamp_ns[i]),
+                                  frame_id=TOPICS[IMAGE].frame_id,
                                   kit=self.kit)
         except MessageError as err:
             img = np.asarray(img)
@@ -293,18 +294,20 @@ class _Messages:
     def imu(self, i: int):
         imu = self.drive.imu
         return sample_to_imu(ImuSample(int(imu.stamp_ns[i]), imu.accel_mps2[i],
-                                       imu.gyro_rps[i]), BASE_FRAME, self.kit)
+                                       imu.gyro_rps[i]), TOPICS[IMU].frame_id, self.kit)
 
     def twist(self, i: int):
         od = self.drive.odometry
         return sample_to_twist(TwistSample(int(od.stamp_ns[i]), od.speed_mps[i],
                                            od.yaw_rate_rps[i], od.speed_var[i],
-                                           od.yaw_rate_var[i]), BASE_FRAME, self.kit)
+                                           od.yaw_rate_var[i]), TOPICS[TWIST].frame_id,
+                               self.kit)
 
     def truth(self, i: int):
         tr = self.drive.truth
         q = (0.0, 0.0, 0.0, 0.0) if self.q_truth is None else self.q_truth[i]
-        return pose_stamped(int(tr.stamp_ns[i]), tr.ecef_m[i], q, EARTH_FRAME, self.kit)
+        return pose_stamped(int(tr.stamp_ns[i]), tr.ecef_m[i], q, TOPICS[TRUTH].frame_id,
+                            self.kit)
 
 
 def _keyed(stamps: np.ndarray, rank: int) -> Iterator[tuple[int, int, int]]:

@@ -1,16 +1,12 @@
-"""What is specific to bags: which topics a bag holds, with which types and QoS, the bag format
-tag and the typestore. Topic and frame names and the point layouts are the wire contract's
-(:mod:`msg_adapters.wire`).
+"""What is specific to bags: which topics a bag holds, the QoS recorded for them, the bag
+format tag and the typestore. Topic names, types, frames and latching are the topic
+registry's, point layouts the wire contract's (:mod:`msg_adapters.wire`).
 
-A converted dataset bag holds (``msg_adapters.wire`` for the input topics), by topic, type, frame:
-
-* ``dataset/info``: ``std_msgs/msg/String``, JSON (below); once.
-* ``map/origin``: ``sensor_msgs/msg/NavSatFix``, frame ``map``; once (when known).
-* ``gnss/pseudoranges``: ``sensor_msgs/msg/PointCloud2``, frame ``earth``; 1-5 Hz.
-* ``camera/image_raw``: ``sensor_msgs/msg/Image`` (bgr8, 640x480), frame ``camera``; 10 Hz.
-* ``imu/data``: ``sensor_msgs/msg/Imu``, frame ``base_link``; 100 Hz.
-* ``odom/twist``: ``geometry_msgs/msg/TwistWithCovarianceStamped``, frame ``base_link``.
-* ``ground_truth/pose``: ``geometry_msgs/msg/PoseStamped``, frame ``earth``; truth rate.
+A converted dataset bag holds the topics of ``msg_adapters.wire.DATASET_BAG_TOPICS``, each
+with the type and frame of its registry entry (``msg_adapters.wire.TOPICS``; the README's
+topic table is rendered from it): ``dataset/info`` (JSON, below) and ``map/origin`` (when
+known) once, ``gnss/pseudoranges`` at 1-5 Hz, ``camera/image_raw`` (bgr8, 640x480) at
+10 Hz, ``imu/data`` at 100 Hz, ``odom/twist``, and ``ground_truth/pose`` at the truth rate.
 
 Conventions:
 
@@ -21,10 +17,11 @@ Conventions:
   are offered ``transient_local`` so that ``ros2 bag play`` hands them to late subscribers.
   ``dataset/info`` is a JSON object: ``format`` (:data:`FORMAT`), ``name``,
   ``origin_llh`` (or null), ``info`` (the dataset's provenance, JSON-able parts), ``topics``
-  (the table above) and ``converter``. ``map/origin`` is written only when the dataset
-  fixes the ``map`` frame origin (the emulated drive); without it (smartLoc) the nodes
-  anchor ``map`` at the first robust fix. Its latitude/longitude/altitude are the origin
-  of the local ENU ``map`` frame (``Drive.origin_llh``), status FIX, covariance unknown.
+  (qualified name -> type of the topics above) and ``converter``. ``map/origin`` is
+  written only when the dataset fixes the ``map`` frame origin (the emulated drive);
+  without it (smartLoc) the nodes anchor ``map`` at the first robust fix. Its
+  latitude/longitude/altitude are the origin of the local ENU ``map`` frame
+  (``Drive.origin_llh``), status FIX, covariance unknown.
 * ``ground_truth/pose`` is for evaluation only (no node subscribes to it): position = truth
   ECEF [m]; orientation = the vehicle attitude in ECEF, level with heading ``yaw`` about
   the up axis of the ENU frame at the map origin (the first truth point when the dataset
@@ -44,7 +41,6 @@ A result bag (recorded from the nodes) holds ``pose``, ``integrity_risk`` and op
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
@@ -52,77 +48,33 @@ from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
                                 QosReliability, QosTime)
 from rosbags.typesys import Stores, get_typestore
 
-from msg_adapters.kit import MessageKit, numpy_kit
-from msg_adapters.wire import (BASE_FRAME, CAMERA_FRAME, DEAD_RECKONING, DIAGNOSTICS,
-                               EARTH_FRAME, FIX, GNSS, GNSS_FIX, GNSS_MEASUREMENTS, IMAGE, IMU,
-                               INFO, INTEGRITY, MAP_FRAME, MATCHES, ODOMETRY_GLOBAL, ORIGIN,
-                               PARTICLES, POSE, TRUTH, TWIST)
+from msg_adapters.message_classes import MessageKit, numpy_kit
+from msg_adapters.wire import (  # noqa: F401 - the topic names and types, for bag code
+    BASE_FRAME, CAMERA_FRAME, DATASET_BAG_TOPICS, DEAD_RECKONING, DIAGNOSTIC_ARRAY,
+    DIAGNOSTICS, EARTH_FRAME, FIX, GNSS, GNSS_FIX, GNSS_MEASUREMENTS, IMAGE, IMAGE_TYPE, IMU,
+    IMU_TYPE, INFO, INTEGRITY, MAP_FRAME, MATCHES, NAVSATFIX, ODOMETRY, ODOMETRY_GLOBAL,
+    ORIGIN, PARTICLES, POINTCLOUD2, POSE, POSE_ARRAY, POSE_COV_STAMPED, POSE_STAMPED,
+    RESULT_BAG_TOPICS, STRING, TOPICS, TRUTH, TWIST, TWIST_TYPE, Topic)
 
 #: The typestore every bag of this package is written and read with.
 STORE = Stores.ROS2_JAZZY
 #: ``dataset/info`` format tag; bump when the layout changes incompatibly.
 FORMAT = 'gnsscam_ros.dataset_bag/1'
 
-STRING = 'std_msgs/msg/String'
-NAVSATFIX = 'sensor_msgs/msg/NavSatFix'
-POINTCLOUD2 = 'sensor_msgs/msg/PointCloud2'
-IMAGE_TYPE = 'sensor_msgs/msg/Image'
-IMU_TYPE = 'sensor_msgs/msg/Imu'
-TWIST_TYPE = 'geometry_msgs/msg/TwistWithCovarianceStamped'
-POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
-POSE_COV_STAMPED = 'geometry_msgs/msg/PoseWithCovarianceStamped'
-POSE_ARRAY = 'geometry_msgs/msg/PoseArray'
-DIAGNOSTIC_ARRAY = 'diagnostic_msgs/msg/DiagnosticArray'
-ODOMETRY = 'nav_msgs/msg/Odometry'
-
-
-@dataclass(frozen=True)
-class TopicSpec:
-    """One topic of the layout.
-
-    Attributes:
-        name: Relative topic name.
-        msgtype: rosbags message type name (``pkg/msg/Type``).
-        frame_id: Header frame (None: no header or not fixed).
-        latched: Offered ``transient_local`` (sent once, kept for late subscribers).
-        description: What the topic carries.
-    """
-
-    name: str
-    msgtype: str
-    frame_id: str | None
-    latched: bool
-    description: str
-
+#: One topic of a bag: the registry's entry (``msg_adapters.wire.Topic``: name, type,
+#: frame, latching, description).
+TopicSpec = Topic
 
 #: Topics of a dataset bag, in the order they are registered.
-DATASET_TOPICS: dict[str, TopicSpec] = {t.name: t for t in (
-    TopicSpec(INFO, STRING, None, True, 'dataset description (JSON)'),
-    TopicSpec(ORIGIN, NAVSATFIX, MAP_FRAME, True, 'origin of the local ENU map frame'),
-    TopicSpec(GNSS, POINTCLOUD2, EARTH_FRAME, False, 'pseudoranges, one point per satellite'),
-    TopicSpec(IMAGE, IMAGE_TYPE, CAMERA_FRAME, False, 'forward camera'),
-    TopicSpec(IMU, IMU_TYPE, BASE_FRAME, False, 'angular rate, specific force'),
-    TopicSpec(TWIST, TWIST_TYPE, BASE_FRAME, False, 'wheel speed and yaw rate'),
-    TopicSpec(TRUTH, POSE_STAMPED, EARTH_FRAME, False, 'ground truth (evaluation only)'),
-)}
+DATASET_TOPICS: dict[str, Topic] = {name: TOPICS[name] for name in DATASET_BAG_TOPICS}
 
 #: Output topics of the nodes that the bag evaluation reads.
-RESULT_TOPICS: dict[str, TopicSpec] = {t.name: t for t in (
-    TopicSpec(POSE, POSE_COV_STAMPED, MAP_FRAME, False, 'estimate and covariance'),
-    TopicSpec(FIX, NAVSATFIX, None, False, 'the estimate in WGS84'),
-    TopicSpec(PARTICLES, POSE_ARRAY, MAP_FRAME, False, 'particle cloud after resampling'),
-    TopicSpec(INTEGRITY, DIAGNOSTIC_ARRAY, None, False, 'integrity verdict and risk bound'),
-)}
+RESULT_TOPICS: dict[str, Topic] = {name: TOPICS[name] for name in RESULT_BAG_TOPICS}
 
 #: Every topic of the gnsscam_ros graph (relative name) with its one message type: a bag
 #: that holds one of them with another type is refused by the replay (the nodes would
 #: receive messages they cannot read, and the replay would end as if all went well).
-TOPIC_TYPES: dict[str, str] = {
-    **{t.name: t.msgtype for t in DATASET_TOPICS.values()},
-    **{t.name: t.msgtype for t in RESULT_TOPICS.values()},
-    GNSS_MEASUREMENTS: POINTCLOUD2, GNSS_FIX: NAVSATFIX, MATCHES: POINTCLOUD2,
-    DEAD_RECKONING: ODOMETRY, ODOMETRY_GLOBAL: ODOMETRY, DIAGNOSTICS: DIAGNOSTIC_ARRAY,
-}
+TOPIC_TYPES: dict[str, str] = {t.name: t.msgtype for t in TOPICS.values()}
 
 
 @lru_cache(maxsize=1)
@@ -140,7 +92,7 @@ def rosbags_kit() -> MessageKit:
 
 def qos(latched: bool) -> Qos:
     """Offered QoS recorded for a topic: reliable (a replay must not drop data), volatile,
-    or transient_local for the once-only topics."""
+    or transient_local for the once-only topics (the registry's ``Topic.latched``)."""
     zero = QosTime(sec=0, nsec=0)
     return Qos(history=QosHistory.KEEP_LAST, depth=1 if latched else 100,
                reliability=QosReliability.RELIABLE,

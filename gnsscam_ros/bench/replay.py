@@ -35,7 +35,7 @@ from ..datasets.emulated.scenario import scenario_of
 from ..datasets.emulated.views import route_range_of
 from ..io.atomic import write_json_atomic
 from ..io.tables import format_table
-from ..live.chain import replay_through_nodes
+from ..live.replay_through_nodes import replay_through_nodes
 from ..live.launch import LAYOUTS
 
 

@@ -41,7 +41,7 @@ COV_FLOOR_M2 = 1e-4
 #: A satellite unseen for this many correlation times has forgotten its bias.
 FORGET_AFTER_TAU = 5.0
 #: Most satellites whose biases are remembered (each holds M values): four times the
-#: satellites one epoch may use (``gnss.MAX_SATELLITES``), so that the sky turning over
+#: satellites one epoch may use (``gnss.MAX_EPOCH_SATELLITES``), so that the sky turning over
 #: keeps its history while a stream of made-up satellite numbers cannot grow the table.
 MAX_TRACKED_SATELLITES = 256
 

@@ -1,6 +1,7 @@
 """Filter parameters: one source for each parameter's default, meaning, unit and range.
 
-The parameters come in parts, small frozen dataclasses: the particle set
+The parameters come in parts, small frozen dataclasses (their metadata machinery:
+:mod:`.parameters`): the particle set
 (:class:`ParticleSetConfig`), the motion model (:class:`MotionConfig`), GNSS and its
 likelihood (:class:`GnssConfig`), the bias hypotheses (:class:`BiasConfig`), the camera
 (:class:`CameraConfig`) and integrity (:class:`IntegrityConfig`). Each field carries its
@@ -17,7 +18,7 @@ parameters, ``FilterConfig(alert_limit_m=25.0)``, ``config.n_particles`` and
 Besides each parameter's own range, :class:`FilterConfig` checks what the sizes cost
 together: the estimated peak memory of one epoch (:func:`epoch_memory_bytes`) must be
 within ``EPOCH_MEMORY_BUDGET_BYTES``. The satellites an epoch uses are part of that cost:
-a configuration uses up to ``gnss.MAX_SATELLITES`` of them, fewer (the strongest) when its
+a configuration uses up to ``gnss.MAX_EPOCH_SATELLITES`` of them, fewer (the strongest) when its
 sizes would exceed the budget with that many (``FilterConfig.satellite_limit``), and is
 refused when not even ``MIN_SATELLITE_LIMIT`` fit. So a node refuses such a configuration
 at start-up (or a change to it while running) instead of dying in the middle of an epoch,
@@ -29,7 +30,6 @@ generated block of that file after changing a parameter here.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import operator
 import sys
 import textwrap
@@ -39,141 +39,17 @@ from pathlib import Path
 import numpy as np
 
 from .bias import BIAS_LEARNED, BIAS_MODELS, BIAS_NONE, BiasModel
-from .gnss import LIKELIHOODS, MAX_SATELLITES, ROBUST
+from .gnss import LIKELIHOODS, MAX_EPOCH_SATELLITES, ROBUST
 from .integrity import EXACT, INVERSE_METHODS
 from .memory_budget import (EPOCH_MEMORY_BUDGET_BYTES, MIN_SATELLITE_LIMIT,  # noqa: F401
                             epoch_memory_bytes)
+from .parameters import (ParameterSpec, Range, field_specs as _field_specs,  # noqa: F401
+                         invalid as _invalid, parameter, problems as _problems)
 
 #: Values of the ``error_model`` parameter.
 ERROR_ADAPTIVE = 'adaptive'
 ERROR_STATED = 'stated'
 ERROR_MODELS = (ERROR_ADAPTIVE, ERROR_STATED)
-
-#: Key of the field metadata that holds a parameter's description.
-_META = 'gnsscam_parameter'
-
-
-@dataclass(frozen=True)
-class Range:
-    """Admissible values of a numeric parameter; a bound of None is no bound.
-
-    ROS parameter ranges are closed, so an open bound (``low_open``) is enforced by the
-    configuration's own validation only.
-    """
-
-    low: float | None = None
-    high: float | None = None
-    low_open: bool = False
-    high_open: bool = False
-
-    def contains(self, value) -> bool:
-        """Whether ``value`` lies in the range (NaN never does)."""
-        if self.low is not None and not (value > self.low if self.low_open
-                                         else value >= self.low):
-            return False
-        return self.high is None or bool(value < self.high if self.high_open
-                                         else value <= self.high)
-
-    def closed(self, unbounded: float) -> tuple[float, float]:
-        """``(low, high)`` with a missing bound replaced by ``-unbounded`` / ``unbounded``
-        (the form of a ROS parameter range)."""
-        return (-unbounded if self.low is None else self.low,
-                unbounded if self.high is None else self.high)
-
-    def __str__(self) -> str:
-        low, high = _number(self.low), _number(self.high)
-        if self.low is not None and self.high is not None:
-            return (f'in {"(" if self.low_open else "["}{low}, {high}'
-                    f'{")" if self.high_open else "]"}')
-        if self.low is not None:
-            return f'{">" if self.low_open else ">="} {low}'
-        if self.high is not None:
-            return f'{"<" if self.high_open else "<="} {high}'
-        return 'any value'
-
-
-def _number(value) -> str:
-    return f'{value:g}' if isinstance(value, float) else str(value)
-
-
-@dataclass(frozen=True)
-class ParameterSpec:
-    """One filter parameter as the node, the YAML file and the validation see it.
-
-    Attributes:
-        name: Flat parameter name (unique across the parts).
-        default: Default value.
-        doc: Meaning, without the unit.
-        unit: Unit ('' for none), e.g. 'm^2/s'.
-        range: Admissible numeric values (None: not numeric or unchecked).
-        choices: Admissible string values (empty: any).
-        part: Attribute of :class:`FilterConfig` holding the parameter's part.
-        node_parameter: Declared as a fusion_node parameter (False: evaluation only).
-    """
-
-    name: str
-    default: object
-    doc: str
-    unit: str = ''
-    range: Range | None = None
-    choices: tuple = ()
-    part: str = ''
-    node_parameter: bool = True
-
-    @property
-    def description(self) -> str:
-        """Meaning and unit, one paragraph."""
-        return f'{self.doc} Unit: {self.unit}.' if self.unit else self.doc
-
-    @property
-    def constraint(self) -> str:
-        """The admissible values in words ('' when any value of the type is)."""
-        if self.choices:
-            return 'one of ' + ', '.join(self.choices)
-        return '' if self.range is None else str(self.range)
-
-    def problem(self, value) -> str | None:
-        """Why ``value`` is refused (None when it is admissible)."""
-        if self.choices and value not in self.choices:
-            return f'{self.name} must be one of {self.choices}'
-        if self.range is not None and not self.range.contains(value):
-            return f'{self.name} must be {self.range}'
-        return None
-
-
-def parameter(default, doc: str, unit: str = '', *, low=None, high=None,
-              low_open: bool = False, high_open: bool = False, choices: tuple = (),
-              node: bool = True):
-    """A part's field with its parameter metadata.
-
-    Args:
-        default: Default value (immutable).
-        doc: Meaning, without the unit; sentences ending with a full stop.
-        unit: Unit ('' for none).
-        low, high: Bounds of the admissible values (None: unbounded).
-        low_open, high_open: The bound itself is excluded.
-        choices: Admissible string values.
-        node: Declared as a fusion_node parameter.
-    """
-    value_range = (None if low is None and high is None
-                   else Range(low, high, low_open, high_open))
-    spec = ParameterSpec(name='', default=default, doc=doc, unit=unit, range=value_range,
-                         choices=tuple(choices), node_parameter=node)
-    return field(default=default, metadata={_META: spec})
-
-
-@functools.lru_cache(maxsize=None)
-def _field_specs(cls, part: str = '') -> tuple[ParameterSpec, ...]:
-    return tuple(dataclasses.replace(f.metadata[_META], name=f.name, part=part)
-                 for f in dataclasses.fields(cls))
-
-
-def _problems(specs, values: dict) -> list[str]:
-    return [p for p in (s.problem(values[s.name]) for s in specs) if p]
-
-
-def _invalid(problems: list[str]) -> ValueError:
-    return ValueError('invalid filter configuration: ' + '; '.join(problems))
 
 
 class _Part:
@@ -271,7 +147,8 @@ class GnssConfig(_Part):
 
     min_satellites: int = parameter(
         4, 'Fewest satellites for an update (position and clock need 4); at most the '
-        'satellites an epoch uses (``gnss.MAX_SATELLITES``).', low=4, high=MAX_SATELLITES)
+        'satellites an epoch uses (``gnss.MAX_EPOCH_SATELLITES``).', low=4,
+        high=MAX_EPOCH_SATELLITES)
     elevation_mask_deg: float = parameter(
         0.0, 'Satellites below this elevation are dropped.', 'deg', low=-90.0, high=90.0)
     cn0_mask_dbhz: float = parameter(
@@ -301,9 +178,9 @@ class GnssConfig(_Part):
         "the likelihood, whatever the GNSS rate (and the 'learned' bias hypotheses' memory "
         'until the error model has measured its own); 0 = every epoch independent. A '
         'measured correlation would make the likelihood bolder where errors decorrelate '
-        'fast, and a wrong lock likelier; this fixed value keeps it. Chosen among 2.5, 10 '
-        'and 30 s on the first half of the smartLoc Berlin drive (filter seeds 1-3); '
-        'reported on its second half and the robustness variants.', 's', low=0.0)
+        'fast, and a wrong lock likelier; this fixed value keeps it.', 's', low=0.0,
+        provenance='Chosen among 2.5, 10 and 30 s on the first half of the smartLoc Berlin '
+        'drive (filter seeds 1-3); reported on its second half and the robustness variants.')
     likelihood: str = parameter(
         ROBUST, "'particle_raim' (the paper's mixture) or 'robust' (Gaussian with an "
         'outlier floor).', choices=LIKELIHOODS)
@@ -333,7 +210,8 @@ class BiasConfig(_Part):
         2.0, 'Smallest bias standard deviation at high C/N0.', 'm', low=0.0)
     bias_residual_scale: float = parameter(
         0.23, 'Bias standard deviation at high C/N0 per metre of smoothed residual RMS at '
-        'the estimate (calibrated on smartLoc, see docs/integrity.md).', low=0.0)
+        'the estimate.', low=0.0,
+        provenance='Calibrated on smartLoc (filter seed 2): see docs/integrity.md.')
     bias_cn0_knee_dbhz: float = parameter(
         41.6, 'Below this C/N0 the bias grows 10 dB per decade.', 'dB-Hz', low=0.0)
     bias_correlation_time_s: float = parameter(
@@ -482,10 +360,10 @@ class FilterConfig:
                 f'than the {_gib(EPOCH_MEMORY_BUDGET_BYTES)} budget'])
 
     def _fitting_satellites(self) -> int | None:
-        """The most satellites (up to MAX_SATELLITES) whose epoch fits the budget, or None
+        """The most satellites (up to MAX_EPOCH_SATELLITES) whose epoch fits the budget, or None
         when not even the fewest this configuration needs do."""
         fewest = max(MIN_SATELLITE_LIMIT, self.min_satellites)
-        for k in range(MAX_SATELLITES, fewest - 1, -1):
+        for k in range(MAX_EPOCH_SATELLITES, fewest - 1, -1):
             if self.epoch_memory_bytes(k) <= EPOCH_MEMORY_BUDGET_BYTES:
                 return k
         return None
@@ -523,7 +401,7 @@ class FilterConfig:
 
     @property
     def satellite_limit(self) -> int:
-        """Most satellites an epoch uses (the strongest by C/N0): ``gnss.MAX_SATELLITES``,
+        """Most satellites an epoch uses (the strongest by C/N0): ``gnss.MAX_EPOCH_SATELLITES``,
         or fewer when these sizes would need more than ``EPOCH_MEMORY_BUDGET_BYTES`` with
         that many (never fewer than ``MIN_SATELLITE_LIMIT``: such sizes are refused)."""
         return self._satellite_limit
@@ -600,7 +478,7 @@ def yaml_value(value) -> str:
     return str(value)
 
 
-def _comment(text: str, keep: str = '') -> list[str]:
+def comment_lines(text: str, keep: str = '') -> list[str]:
     """``text`` as wrapped comment lines; ``keep`` (a part of it) is not broken."""
     glued = keep.replace(' ', '\0')
     lines = textwrap.wrap(text.replace(keep, glued) if keep else text, _WIDTH,
@@ -616,11 +494,11 @@ def render_yaml_block() -> str:
     for part, cls in PARTS:
         specs = [s for s in _field_specs(cls, part) if s.node_parameter]
         title = (cls.__doc__ or '').strip().splitlines()[0].rstrip('.')
-        lines += [''] + _comment(f'== {title} (FilterConfig.{part})')
+        lines += [''] + comment_lines(f'== {title} (FilterConfig.{part})')
         for spec in specs:
             text = f'{spec.description} Default: {yaml_value(spec.default)}'
             text += f'; {spec.constraint}.' if spec.constraint else '.'
-            lines += _comment(text, spec.constraint)
+            lines += comment_lines(text, spec.constraint)
             lines.append(f'{_INDENT}{spec.name}: {yaml_value(spec.default)}')
     return '\n'.join(lines) + '\n\n'
 

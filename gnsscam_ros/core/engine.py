@@ -55,6 +55,7 @@ from .fusion import MAX_CAMERA_MATCHES, CameraMeasurement, measurements_at_epoch
 from .gnss import epoch_problem
 from .integrity import PosteriorSet
 from .motion import OUT_OF_ORDER, DeadReckoningState, MotionAccumulator
+from .parameters import ParameterSpec, field_specs, invalid, parameter
 from .particles import MotionIncrement
 from .types import GnssEpoch
 from .verdict import ERROR, OK, STALE, IntegrityVerdict, integrity_verdict, stale_verdict
@@ -62,8 +63,8 @@ from .verdict import ERROR, OK, STALE, IntegrityVerdict, integrity_verdict, stal
 # Importable from here as before: the verdict's levels and type (``core.verdict``).
 __all__ = ['CAMERA', 'DEAD_RECKONING', 'DROPPED_OLDEST', 'ERROR', 'ESTIMATE_STATUSES',
            'MAX_BUFFER_S', 'MAX_CAMERA_BUFFER', 'MAX_DR_VARIANCE', 'MAX_GNSS_QUEUE',
-           'MAX_ODOM_COORDINATE', 'MAX_SPEED_MPS', 'MAX_TIMEOUT_S', 'MAX_WAIT_S',
-           'MAX_YAW_RATE_RPS', 'NO_MATCH', 'OK', 'QUEUED', 'REFUSED', 'STALE', 'EpochEngine',
+           'MAX_ODOM_COORDINATE', 'MAX_DR_SPEED_MPS', 'MAX_TIMEOUT_S', 'MAX_WAIT_S',
+           'MAX_DR_YAW_RATE_RPS', 'NO_MATCH', 'OK', 'QUEUED', 'REFUSED', 'STALE', 'EpochEngine',
            'EpochReport', 'InputTiming', 'IntegrityVerdict', 'ParticleCloud', 'best_match',
            'camera_problem', 'dead_reckoning_problem']
 
@@ -76,23 +77,28 @@ QUEUED, DROPPED_OLDEST, NO_MATCH, REFUSED = 'queued', 'dropped_oldest', 'no_matc
 DEAD_RECKONING, CAMERA = 'dead_reckoning', 'camera'
 
 # Limits of the inputs the engine takes (beyond them a value comes from a fault, and
-# its arithmetic would overflow or swamp the filter's).
+# its arithmetic would overflow or swamp the filter's). ``DR``: of a dead-reckoning state.
+# They are the backstop behind the nodes' message limits (``msg_adapters.limits``), for
+# every caller, offline ones included, so speed and yaw rate are at least as wide as the
+# messages': motion a node accepted is never refused here (a test checks the order).
 #: Largest odom-frame coordinate of a dead-reckoning state [m] and unwrapped heading
 #: [rad]: the frame starts where the dead reckoner started, so it grows with the distance
 #: driven; 1e9 m is 290 days at 40 m/s and still resolves 0.1 um.
 MAX_ODOM_COORDINATE = 1e9
 #: Fastest forward speed of a dead-reckoning state [m/s] (either direction; 360 km/h).
-MAX_SPEED_MPS = 100.0
-#: Fastest yaw rate [rad/s] (a road vehicle stays below ~1.5; a spin, 10).
-MAX_YAW_RATE_RPS = 10.0
+MAX_DR_SPEED_MPS = 100.0
+#: Fastest yaw rate of a dead-reckoning state [rad/s] (a road vehicle stays below ~1.5; a
+#: spin, 10). The message limit is 5 rad/s (``msg_adapters.limits.
+#: MAX_MESSAGE_YAW_RATE_RPS``: what a car does); this one only keeps the arithmetic sane.
+MAX_DR_YAW_RATE_RPS = 10.0
 #: Largest variance of a dead-reckoning state (rates and accumulated) [SI units squared].
 MAX_DR_VARIANCE = 1e12
 #: Most camera matches buffered (the oldest dropped first, counted ``camera_dropped``):
 #: the buffer's age limit is stamp time, and a 30 Hz camera fills 1,024 in 34 s.
 MAX_CAMERA_BUFFER = 1024
 
-#: Upper bounds of the waits and buffers of :class:`InputTiming` (and of fusion_node's
-#: parameters that set them): a wait delays every verdict, so longer than 10 s is no
+#: Upper bounds of the waits and buffers of :class:`InputTiming` (fusion_node's
+#: parameters of the same names): a wait delays every verdict, so longer than 10 s is no
 #: longer a wait for a late message; a silence of 60 s is a stopped stream; 10 minutes of
 #: history is more than any epoch uses.
 MAX_WAIT_S = 10.0
@@ -112,7 +118,7 @@ def _within(value: float, bound: float) -> bool:
 def dead_reckoning_problem(state: DeadReckoningState) -> str | None:
     """Why the engine refuses a dead-reckoning state (None: it takes it): a non-integer
     stamp, or values non-finite or beyond the limits (``MAX_ODOM_COORDINATE``,
-    ``MAX_SPEED_MPS``, ``MAX_YAW_RATE_RPS``, variances in [0, ``MAX_DR_VARIANCE``])."""
+    ``MAX_DR_SPEED_MPS``, ``MAX_DR_YAW_RATE_RPS``, variances in [0, ``MAX_DR_VARIANCE``])."""
     if not isinstance(state.stamp_ns, (int, np.integer)) or isinstance(state.stamp_ns, bool):
         return f'stamp must be an integer number of nanoseconds, got {state.stamp_ns!r}'
     try:
@@ -126,10 +132,10 @@ def dead_reckoning_problem(state: DeadReckoningState) -> str | None:
     if not all(_within(v, MAX_ODOM_COORDINATE) for v in (x, y, yaw)):
         return (f'position or heading non-finite or beyond {MAX_ODOM_COORDINATE:g}: '
                 f'({x:g}, {y:g}, {yaw:g})')
-    if not _within(speed, MAX_SPEED_MPS):
-        return f'speed {speed:g} m/s non-finite or beyond {MAX_SPEED_MPS:g} m/s'
-    if not _within(rate, MAX_YAW_RATE_RPS):
-        return f'yaw rate {rate:g} rad/s non-finite or beyond {MAX_YAW_RATE_RPS:g} rad/s'
+    if not _within(speed, MAX_DR_SPEED_MPS):
+        return f'speed {speed:g} m/s non-finite or beyond {MAX_DR_SPEED_MPS:g} m/s'
+    if not _within(rate, MAX_DR_YAW_RATE_RPS):
+        return f'yaw rate {rate:g} rad/s non-finite or beyond {MAX_DR_YAW_RATE_RPS:g} rad/s'
     if not all(_within(v, MAX_DR_VARIANCE) and v >= 0.0 for v in var):
         return f'variances must be finite and in [0, {MAX_DR_VARIANCE:g}]: {var}'
     return None
@@ -159,54 +165,54 @@ class InputTiming:
 
     Stamp times are the inputs' own; wall times only count when the caller passes a clock
     (``now_s``; a node passes ``time.monotonic()``, an offline run passes none and feeds
-    its inputs in stamp order).
-
-    Attributes:
-        dead_reckoning_buffer_s: Dead-reckoning history kept behind the newest state [s]
-            (stamp time).
-        camera_buffer_s: Camera matches kept behind the newest image [s] (stamp time), a
-            memory bound for a camera running ahead of GNSS; matches at or before a
-            processed epoch are dropped anyway (only the current interval's are used).
-        gnss_queue_size: GNSS epochs waiting at most; when full the oldest is dropped
-            (None: unbounded, offline).
-        odometry_wait_s: Longest wait for the dead reckoning to reach an epoch [s] (wall).
-        odometry_timeout_s: Dead reckoning silent this long is not waited for; before any
-            has arrived, GNSS flowing this long without it means GNSS-only operation [s]
-            (wall).
-        camera_wait_s: Longest wait for the camera images due before an epoch [s] (wall).
-        camera_timeout_s: A camera whose newest image is this far behind the newest
-            input of any stream has stopped and is not waited for [s] (stamp time, so
-            that offline runs decide alike).
+    its inputs in stamp order). Each field's default, meaning, unit and range is its
+    parameter metadata (``core.parameters``): fusion_node declares every field as a node
+    parameter of the same name from it. The upper bounds keep every wait and timeout a
+    wait (``MAX_WAIT_S``, ``MAX_TIMEOUT_S``) and the buffers bounded (``MAX_BUFFER_S``).
     """
 
-    dead_reckoning_buffer_s: float = 60.0
-    camera_buffer_s: float = 60.0
-    gnss_queue_size: int | None = 10
-    odometry_wait_s: float = 0.2
-    odometry_timeout_s: float = 1.0
-    camera_wait_s: float = 0.2
-    camera_timeout_s: float = 2.0
-
-    #: Admissible values of each field (closed ranges): the bounds keep every wait and
-    #: timeout a wait (MAX_WAIT_S, MAX_TIMEOUT_S) and the buffers bounded (MAX_BUFFER_S).
-    LIMITS = {'dead_reckoning_buffer_s': (0.0, MAX_BUFFER_S),
-              'camera_buffer_s': (0.0, MAX_BUFFER_S),
-              'gnss_queue_size': (1, MAX_GNSS_QUEUE),
-              'odometry_wait_s': (0.0, MAX_WAIT_S),
-              'odometry_timeout_s': (0.0, MAX_TIMEOUT_S),
-              'camera_wait_s': (0.0, MAX_WAIT_S),
-              'camera_timeout_s': (0.0, MAX_TIMEOUT_S)}
+    odometry_buffer_s: float = parameter(
+        60.0, 'Dead-reckoning history kept behind the newest state (stamp time).', 's',
+        low=1.0, high=MAX_BUFFER_S, read_only=True)
+    camera_buffer_s: float = parameter(
+        60.0, 'Camera matches kept behind the newest image (stamp time): a memory bound for '
+        'a camera running ahead of GNSS; matches at or before a processed epoch are dropped '
+        "anyway (only the current interval's are used).", 's', low=0.0, high=MAX_BUFFER_S)
+    gnss_queue_size: int | None = parameter(
+        10, 'GNSS epochs waiting for their inputs at most; when full the oldest is dropped '
+        '(None: unbounded, offline).', low=1, high=MAX_GNSS_QUEUE, read_only=True)
+    odometry_wait_s: float = parameter(
+        0.2, 'Longest wait for the dead reckoning to reach a GNSS epoch (wall time).', 's',
+        low=0.0, high=MAX_WAIT_S)
+    odometry_timeout_s: float = parameter(
+        1.0, 'Dead reckoning silent this long is not waited for; before any has arrived, '
+        'GNSS flowing this long without it means GNSS-only operation (wall time).', 's',
+        low=0.0, high=MAX_TIMEOUT_S)
+    camera_wait_s: float = parameter(
+        0.2, 'Longest wait for the camera images due before a GNSS epoch (wall time).', 's',
+        low=0.0, high=MAX_WAIT_S)
+    camera_timeout_s: float = parameter(
+        2.0, 'A camera whose newest image is this far behind the newest input of any '
+        'stream has stopped and is not waited for (stamp time, so that offline runs decide '
+        'alike).', 's', low=0.0, high=MAX_TIMEOUT_S)
 
     def __post_init__(self):
-        problems = []
-        for name, (low, high) in self.LIMITS.items():
-            value = getattr(self, name)
-            if name == 'gnss_queue_size' and value is None:
+        reasons = []
+        for spec in self.parameter_specs():
+            value = getattr(self, spec.name)
+            if spec.name == 'gnss_queue_size' and value is None:
                 continue                    # unbounded: an offline run feeds every epoch
-            if not (isinstance(value, (int, float)) and low <= value <= high):
-                problems.append(f'{name} must be in [{low:g}, {high:g}], got {value!r}')
-        if problems:
-            raise ValueError('invalid input timing: ' + '; '.join(problems))
+            if not isinstance(value, (int, float)) or isinstance(value, bool):
+                reasons.append(f'{spec.name} must be a number, got {value!r}')
+            elif spec.problem(value):
+                reasons.append(f'{spec.problem(value)}, got {value!r}')
+        if reasons:
+            raise invalid(reasons, 'input timing')
+
+    @classmethod
+    def parameter_specs(cls) -> tuple[ParameterSpec, ...]:
+        """Every field's parameter metadata, in field order."""
+        return field_specs(cls, cls.__name__)
 
 
 @dataclass(frozen=True)
@@ -276,7 +282,7 @@ class EpochEngine:
                  rng: np.random.Generator | None = None, timing: InputTiming | None = None):
         self.timing = timing or InputTiming()
         self.filter = ParticleFilter(config, frame=frame, rng=rng)
-        self.motion = MotionAccumulator(self.timing.dead_reckoning_buffer_s,
+        self.motion = MotionAccumulator(self.timing.odometry_buffer_s,
                                         config.max_speed_mps)
         self.camera: list[CameraMeasurement] = []
         self.queue: deque = deque()          # (epoch, queued at [wall s] or None)

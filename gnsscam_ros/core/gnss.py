@@ -26,7 +26,7 @@ from .error_model import AdaptiveErrorModel
 from .frames import LocalFrame, sagnac_corrected
 # The checks need no kernel: gnss_node imports them alone (no numba).
 from .gnss_checks import (MAX_PSEUDORANGE_M, MAX_SATELLITE_RADIUS_M,  # noqa: F401
-                          MAX_SATELLITES, MAX_VARIANCE_M2, GnssCheck, check_epoch,
+                          MAX_EPOCH_SATELLITES, MAX_VARIANCE_M2, GnssCheck, check_epoch,
                           epoch_problem, satellite_key)
 from .kernels import gnss as gnss_kernels
 from .types import GnssEpoch

@@ -21,7 +21,7 @@ from .types import GnssEpoch
 #: A receiver tracking GPS, GLONASS, Galileo, BeiDou and QZSS sees 40-60 satellites under
 #: open sky (one row each: rows of the same satellite are duplicates), so 64 drops nothing
 #: real, and 64 well-spread satellites fix the position as well as more would.
-MAX_SATELLITES = 64
+MAX_EPOCH_SATELLITES = 64
 #: Farthest a satellite may be from the Earth's centre [m]: GNSS orbits reach 42,164 km
 #: (geostationary); beyond twice that a position is corrupt, and its square (in the range
 #: arithmetic) must stay far from overflow.
@@ -71,7 +71,8 @@ class GnssCheck:
 
 
 def check_epoch(epoch: GnssEpoch, min_satellites: int = 4, elevation_mask_deg: float = 0.0,
-                cn0_mask_dbhz: float = 0.0, max_satellites: int = MAX_SATELLITES) -> GnssCheck:
+                cn0_mask_dbhz: float = 0.0,
+                max_satellites: int = MAX_EPOCH_SATELLITES) -> GnssCheck:
     """Validate an epoch: non-finite or implausible values, duplicates, masks, satellite
     count.
 
@@ -79,7 +80,7 @@ def check_epoch(epoch: GnssEpoch, min_satellites: int = 4, elevation_mask_deg: f
     Duplicated (system, sv_id) pairs are all dropped: there is no telling which is right.
     Positions, pseudoranges and variances beyond ``MAX_SATELLITE_RADIUS_M``,
     ``MAX_PSEUDORANGE_M`` and ``MAX_VARIANCE_M2`` are dropped ('out_of_range'); of more
-    than ``max_satellites`` (at most ``MAX_SATELLITES``) remaining, the strongest by C/N0
+    than ``max_satellites`` (at most ``MAX_EPOCH_SATELLITES``) remaining, the strongest by C/N0
     are kept ('satellite_limit').
     """
     k = epoch.n_sv
@@ -98,7 +99,7 @@ def check_epoch(epoch: GnssEpoch, min_satellites: int = 4, elevation_mask_deg: f
             keep &= ~hit
 
     n_keep = int(keep.sum())
-    limit = min(int(max_satellites), MAX_SATELLITES)
+    limit = min(int(max_satellites), MAX_EPOCH_SATELLITES)
     if n_keep > limit:
         # Strongest first; unknown (NaN) or absurd (infinite) C/N0 sorts last, equal ones
         # keep their order.

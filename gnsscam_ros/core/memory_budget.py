@@ -10,7 +10,7 @@ import math
 
 from .bias import MAX_TRACKED_SATELLITES
 from .fusion import MAX_CAMERA_MATCHES
-from .gnss_checks import MAX_SATELLITES
+from .gnss_checks import MAX_EPOCH_SATELLITES
 
 #: Largest estimated peak memory of one epoch (:func:`epoch_memory_bytes`) a
 #: configuration may need [bytes]: a quarter of an 8 GB vehicle computer, which leaves
@@ -44,13 +44,13 @@ _BYTES_CAMERA = 40
 #: and sort (41-64 B measured; 72 when the tail widens to the whole set).
 _BYTES_POSTERIOR_PARTICLE = 72
 #: Per posterior: the remembered bias of each tracked satellite and of the epoch's.
-_BYTES_POSTERIOR = 8 * (MAX_TRACKED_SATELLITES + MAX_SATELLITES)
+_BYTES_POSTERIOR = 8 * (MAX_TRACKED_SATELLITES + MAX_EPOCH_SATELLITES)
 #: Fixed part (interpreter and small arrays).
 _BYTES_FIXED = 16 * 2 ** 20
 
 
 def epoch_memory_bytes(n_particles: int, acquisition_particles: int, n_posteriors: int,
-                       motion_samples: int, satellites: int = MAX_SATELLITES,
+                       motion_samples: int, satellites: int = MAX_EPOCH_SATELLITES,
                        camera_images: int = MAX_CAMERA_MATCHES) -> int:
     """Estimated peak memory of one filter epoch [bytes], an upper bound of the measured
     peaks (docs/nodes.md "Memory per epoch").

@@ -2,10 +2,11 @@
 epochs (one implementation for the nodes and every offline run)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
+from .parameters import ParameterSpec, field_specs, invalid, parameter, problems
 from .types import ImuSeries, OdometrySeries
 
 # Online dead reckoning shared by imu_node (which publishes the states) and the epoch engine
@@ -61,49 +62,53 @@ def wrap_angle(angle_rad: float) -> float:
 
 @dataclass(frozen=True)
 class DeadReckoningConfig:
-    """Parameters of :class:`DeadReckoner` (``config/imu_node.yaml`` maps onto these).
+    """Parameters of :class:`DeadReckoner`; each field's default, meaning, unit and range
+    is its parameter metadata (``core.parameters``), from which imu_node declares its node
+    parameters of the same names (``config/imu_node.yaml`` documents them).
 
-    Attributes:
-        yaw_rate_source: Yaw-rate source while both are active: 'odometry' (the vehicle's
-            yaw rate, what the offline evaluation integrates) or 'imu' (gyro z). The other
-            source is used while the preferred one is inactive.
-        gyro_yaw_rate_var: Variance of one gyro yaw-rate sample [(rad/s)^2].
-        accel_var: Variance of one forward-acceleration sample [(m/s^2)^2].
-        default_speed_var: Variance used for an odometry speed sample that reports none
-            (covariance <= 0) [(m/s)^2].
-        default_yaw_rate_var: The same for an odometry yaw-rate sample [(rad/s)^2].
-        speed_error_correlation_s: Without odometry the speed is the integral of the
-            forward acceleration; its error is then not white but persists, and is taken
-            to persist this long when it adds to the distance variance [s].
-        output_period_s: Emit one state per this much stamp time, the first at or after
-            each multiple of the period (a grid in absolute stamp time, so that stamps on
-            a common grid, such as whole-second GNSS epochs and 100 Hz IMU samples, get a
-            state exactly); 0 = one per sample stamp [s]. The integration runs at every
-            sample stamp either way. The fusion needs the motion between its epochs, not
-            every IMU sample, and each published state costs each Python subscriber about
-            a millisecond: at 100 Hz that is most of what a replay at 10x real time spends.
+    The speed comes from the odometry while it is received, else from the integrated
+    forward acceleration; the yaw rate from ``yaw_rate_source`` while it is received, else
+    the other source.
     """
 
-    yaw_rate_source: str = ODOMETRY
-    gyro_yaw_rate_var: float = 1e-4
-    accel_var: float = 0.01
-    default_speed_var: float = 0.0025
-    default_yaw_rate_var: float = 1e-4
-    speed_error_correlation_s: float = 1.0
-    output_period_s: float = 0.1
+    yaw_rate_source: str = parameter(
+        ODOMETRY, "Yaw-rate source while both are received: 'odometry' (the vehicle's yaw "
+        "rate, what the offline evaluation integrates) or 'imu' (gyro z); the other source "
+        'is used while the preferred one is inactive.', choices=YAW_RATE_SOURCES)
+    gyro_yaw_rate_var: float = parameter(
+        1e-4, 'Variance of one gyro yaw-rate sample.', '(rad/s)^2', low=0.0)
+    accel_var: float = parameter(
+        0.01, 'Variance of one forward-acceleration sample.', '(m/s^2)^2', low=0.0)
+    default_speed_var: float = parameter(
+        0.0025, 'Speed variance used for an odometry sample (odom/twist) that reports none '
+        '(covariance <= 0).', '(m/s)^2', low=0.0)
+    default_yaw_rate_var: float = parameter(
+        1e-4, 'Yaw-rate variance used for an odometry sample (odom/twist) that reports '
+        'none.', '(rad/s)^2', low=0.0)
+    speed_error_correlation_s: float = parameter(
+        1.0, 'Without odometry the speed is the integral of the forward acceleration; its '
+        'error is then not white but persists, and is taken to persist this long when it '
+        'adds to the distance variance.', 's', low=0.0)
+    output_period_s: float = parameter(
+        0.1, 'Emit one state per this much stamp time, the first at or after each multiple '
+        'of the period (a grid in absolute stamp time, so that stamps on a common grid, such '
+        'as whole-second GNSS epochs and 100 Hz IMU samples, get a state exactly); 0 = one '
+        'per sample stamp. The integration runs at every sample stamp either way: the fusion '
+        'needs the motion between its epochs, and each published state costs each Python '
+        'subscriber about a millisecond.', 's', low=0.0)
 
     def __post_init__(self):
-        problems = []
-        if self.yaw_rate_source not in YAW_RATE_SOURCES:
-            problems.append(f'yaw_rate_source must be one of {YAW_RATE_SOURCES}')
-        for name in ('gyro_yaw_rate_var', 'accel_var', 'default_speed_var',
-                     'default_yaw_rate_var', 'speed_error_correlation_s',
-                     'output_period_s'):
-            value = getattr(self, name)
-            if not (np.isfinite(value) and value >= 0.0):
-                problems.append(f'{name} must be finite and >= 0, got {value}')
-        if problems:
-            raise ValueError('invalid dead-reckoning configuration: ' + '; '.join(problems))
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        reasons = problems(field_specs(DeadReckoningConfig), values)
+        reasons += [f'{name} must be finite, got {value}' for name, value in values.items()
+                    if isinstance(value, float) and not np.isfinite(value)]
+        if reasons:
+            raise invalid(reasons, 'dead-reckoning configuration')
+
+    @classmethod
+    def parameter_specs(cls) -> tuple[ParameterSpec, ...]:
+        """Every field's parameter metadata, in field order."""
+        return field_specs(cls, cls.__name__)
 
 
 @dataclass(frozen=True)

@@ -21,9 +21,7 @@ import sys
 from pathlib import Path
 
 from ..bags.errors import BagError
-from ..core import integrity
-from ..core.filter import BIAS_MODELS, LIKELIHOODS, FilterConfig
-from ..core.config import ERROR_MODELS
+from ..core.filter import FilterConfig
 from ..datasets.emulated.drive import make_emulated_drive
 from ..datasets.errors import DatasetError
 from ..datasets.faults import FaultEpisodes, inject_pseudorange_faults
@@ -42,6 +40,8 @@ from .campaign_run import run_campaign
 from .campaign_store import CampaignStoreError
 from .campaign_summary import campaign_tables
 from .evaluate import evaluate_drive_record
+from .filter_options import (DEFAULT_ALERT_LIMITS_M, add_filter_arguments, add_n_particles,
+                             config_from_args)
 from .report import (INTEGRITY_HEADERS, integrity_rows, protection_level_headers,
                      protection_level_rows, stanford_line)
 from .robustness_cli import add_robustness_parser, run_robustness_command
@@ -50,71 +50,8 @@ EXIT_OK, EXIT_USAGE, EXIT_INPUT, EXIT_OUTPUT = 0, 2, 3, 4
 #: Some campaign cases failed (the others are written; a rerun retries them).
 EXIT_CASES_FAILED = 1
 EXIT_INTERRUPTED = 130
-DEFAULT_ALERT_LIMITS_M = (8.0, 16.0)
 #: Filter seed of gnsscam_eval and of the demo (the same runs give the same figures).
 DEFAULT_SEED = 1
-
-
-def add_filter_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options shared by every command that runs the filter."""
-    defaults = FilterConfig()
-    group = parser.add_argument_group('filter')
-    group.add_argument('--particles', type=int, default=defaults.n_particles,
-                       help='particles per posterior N (default %(default)s)')
-    group.add_argument('--posteriors', type=int, default=defaults.n_posteriors,
-                       help='posteriors M of the risk bound: the motion samples, each '
-                            'displaced by a bias hypothesis of --bias-model (FilterConfig.'
-                            'n_posteriors; default %(default)s)')
-    group.add_argument('--likelihood', choices=LIKELIHOODS, default=defaults.likelihood,
-                       help='GNSS likelihood (default %(default)s)')
-    group.add_argument('--correlation-time-s', type=float,
-                       default=defaults.error_correlation_time_s,
-                       help='GNSS error correlation time: an epoch dt after the last '
-                            'counts tanh(dt / 2 tau) of an independent one, 0 = every '
-                            'epoch independent (default %(default)s)')
-    group.add_argument('--error-model', choices=ERROR_MODELS, default=defaults.error_model,
-                       help="'adaptive': the error mixture learned online from the "
-                            "residuals; 'stated': the receiver's variances (default "
-                            '%(default)s)')
-    group.add_argument('--inverse-bernoulli', choices=integrity.INVERSE_METHODS,
-                       default=defaults.inverse_bernoulli,
-                       help='inverse Bernoulli divergence (default %(default)s)')
-    group.add_argument('--bias-model', choices=BIAS_MODELS, default=defaults.bias_model,
-                       help="posteriors of the bound: 'learned' bias hypotheses sized by "
-                            "the learned error model, 'cn0' by constants calibrated on "
-                            "smartLoc, 'none' motion samples only, as in the paper "
-                            '(default %(default)s)')
-    group.add_argument('--target-risk', type=float, default=defaults.target_risk,
-                       help='integrity risk allowed at the alert limit: the protection '
-                            'level is the radius whose risk bound is this (default '
-                            '%(default)s)')
-    group.add_argument('--alert-limits', type=float, nargs='+', metavar='M',
-                       default=list(DEFAULT_ALERT_LIMITS_M),
-                       help='horizontal alert limits evaluated [m]; the first one sets '
-                            'the OK/ERROR flag and the figures (default: %(default)s)')
-    group.add_argument('--seed', type=int, default=DEFAULT_SEED,
-                       help='random seed (default %(default)s, as the demo)')
-
-
-def config_from_args(args: argparse.Namespace) -> FilterConfig:
-    """FilterConfig from the shared options (``--alert-limits``: the first is the filter's
-    alert limit, the others are evaluated beside it).
-
-    Raises:
-        ValueError: An alert limit that is not a positive number of metres.
-    """
-    bad = [a for a in args.alert_limits if not 0.0 < a < float('inf')]
-    if bad:
-        raise ValueError(f'--alert-limits: {bad[0]:g} is not a positive number of metres')
-    return FilterConfig(n_particles=args.particles, n_posteriors=args.posteriors,
-                        likelihood=args.likelihood,
-                        error_correlation_time_s=args.correlation_time_s,
-                        error_model=args.error_model,
-                        inverse_bernoulli=args.inverse_bernoulli,
-                        bias_model=args.bias_model,
-                        target_risk=args.target_risk,
-                        alert_limit_m=args.alert_limits[0],
-                        extra_alert_limits_m=tuple(args.alert_limits[1:]))
 
 
 def print_result(label: str, result: dict, out=None) -> None:
@@ -157,7 +94,7 @@ def add_campaign_arguments(camp: argparse.ArgumentParser) -> None:
                       default=sorted({b for f, b in GNSS_CASES if f}),
                       help='fault biases [m] of the cases with faults (default %(default)s)')
     grid.add_argument('--methods', nargs='+', default=list(METHODS), choices=list(METHODS))
-    grid.add_argument('--particles', type=int, default=FilterConfig().n_particles)
+    add_n_particles(grid, FilterConfig().n_particles, 'default %(default)s')
     grid.add_argument('--duration-s', type=float, default=None,
                       help='cut every drive short (quick looks; default: whole drives)')
     where = camp.add_argument_group('cluster (Dask)')
@@ -213,7 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
                            'station with published coordinates')
     add_rinex_arguments(rinex, station_required=True)
     for p in (smart, emu, rinex):
-        add_filter_arguments(p)
+        add_filter_arguments(p, DEFAULT_SEED)
     camp = sub.add_parser('campaign', help="the paper's campaign on the emulated drive "
                           '(Tables 2-4, Figures 4-11) with confidence intervals, on Dask')
     add_campaign_arguments(camp)
@@ -311,7 +248,7 @@ def run_campaign_command(args: argparse.Namespace) -> int:
             raise ValueError(f'--workers must be at least 1, got {args.workers}')
         seeds = parse_seeds(args.seeds)
         cases = gnss_cases(args.faults, args.bias_m)
-        base = campaign_config(n_particles=args.particles)
+        base = campaign_config(n_particles=args.n_particles)
     except ValueError as err:
         print(f'gnsscam_eval: {err}', file=sys.stderr)
         return EXIT_USAGE

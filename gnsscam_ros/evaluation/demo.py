@@ -68,6 +68,7 @@ from ..live.replay import replay_through_nodes, use_dds_profile
 from ..nodes.camera_node import DEFAULTS as CAMERA_DEFAULTS
 from .bag_eval import evaluate_result_bag_epochs
 from .cli import DEFAULT_SEED
+from .filter_options import add_n_particles
 from .plots import dataset_title, integrity_plots, risk_plot, trajectory_plot
 from .report import protection_level_headers, protection_level_rows, stanford_line
 from .runner import (RunRecord, accuracy, offline_camera_matches, run_epochs,
@@ -321,8 +322,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help='results root; each run writes a new sub-folder')
     parser.add_argument('--seed', type=int, default=DEFAULT_SEED,
                         help='filter seed (default %(default)s, as gnsscam_eval)')
-    parser.add_argument('--particles', type=int, default=FilterConfig().n_particles,
-                        help='particles per posterior N (default %(default)s)')
+    add_n_particles(parser, FilterConfig().n_particles, 'default %(default)s')
     parser.add_argument('--duration-s', type=float, default=150.0,
                         help='emulated drive length [s] (default %(default)s; the whole '
                         'drive is ~424 s: --full)')
@@ -401,7 +401,7 @@ def _map_database(args: argparse.Namespace, drive: Drive, stages: Stages):
 
 def run_demo(args: argparse.Namespace, out_dir: Path, stages: Stages) -> None:
     """Both datasets into ``out_dir``, the summary printed and written."""
-    config = FilterConfig(n_particles=args.particles, alert_limit_m=ALERT_LIMIT_M)
+    config = FilterConfig(n_particles=args.n_particles, alert_limit_m=ALERT_LIMIT_M)
     use_dds_profile(out_dir)            # before the first ROS participant of this process
     results: dict[str, dict] = {}
     # Compiled once here, in view, rather than inside the nodes' start-up during the

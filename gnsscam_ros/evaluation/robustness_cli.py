@@ -28,6 +28,7 @@ from ..io.provenance import provenance as tool_provenance
 from ..io.tables import format_table
 from .campaign import campaign_config
 from .campaign_cluster import ClusterError
+from .filter_options import add_n_particles
 from .robustness import (DEFAULT_CELLS, DEFAULT_FAULT_SEED, DEFAULT_SEEDS, TARGETS,
                          RobustnessError, matrix_rows, run_robustness, select_cells)
 
@@ -62,9 +63,7 @@ def add_robustness_parser(sub) -> argparse.ArgumentParser:
     grid.add_argument('--duration-s', type=float, default=None,
                       help="cut every cell's drive to this many seconds after its start "
                            '(quick runs; default: whole drive)')
-    grid.add_argument('--particles', type=int, default=None,
-                      help='particles per posterior, the same for every cell (default: the '
-                           "filter's default)")
+    add_n_particles(grid, None, "the same for every cell; default: the filter's")
     where = rob.add_argument_group('cluster (Dask)')
     where.add_argument('--scheduler', metavar='ADDRESS',
                        help='run on an existing Dask cluster, e.g. tcp://host:8786 (default: '
@@ -171,7 +170,7 @@ def run_robustness_command(args: argparse.Namespace, argv) -> int:
             raise RobustnessError(f'--workers must be at least 1, got {args.workers}')
         if args.duration_s is not None and not args.duration_s > 0:
             raise RobustnessError(f'--duration-s must be positive, got {args.duration_s}')
-        overrides = {} if args.particles is None else {'n_particles': args.particles}
+        overrides = {} if args.n_particles is None else {'n_particles': args.n_particles}
         config = campaign_config(**overrides)
     except ValueError as err:                # RobustnessError, a FilterConfig refusal
         return _error(str(err), EXIT_USAGE)

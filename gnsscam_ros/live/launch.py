@@ -41,7 +41,7 @@ from ..nodes.fusion_node import FusionNode
 from ..nodes.gnss_node import GnssNode
 from ..nodes.imu_node import ImuNode
 
-#: Where :func:`.chain.replay_through_nodes` runs the nodes: in this process, one
+#: Where :func:`.replay_through_nodes.replay_through_nodes` runs the nodes: in this process, one
 #: executor thread each; as four child processes; or as pipeline_node in one child process.
 LAYOUTS = ('threads', 'processes', 'pipeline')
 #: Wait after the graph is connected for node processes started together with the replay:

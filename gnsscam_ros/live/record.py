@@ -57,7 +57,8 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosbags.rosbag2 import Writer
 
-from msg_adapters.wire import ODOMETRY_GLOBAL
+from msg_adapters.wire import (INFO, ODOMETRY_GLOBAL, ORIGIN, RECORD_DEPTH,
+                               RESULT_BAG_TOPICS, TOPICS, TRUTH)
 
 from ..bags import schema
 from ..bags.convert import STORAGES
@@ -67,19 +68,11 @@ from .endpoints import NO_SUB_EVENTS, ros_message_class
 
 EXIT_OK, EXIT_USAGE, EXIT_OUTPUT = 0, 2, 4
 
-#: Topics recorded by default, with their types and whether they are once-only (latched).
+#: Topics recorded by default, with their types and whether they are once-only (latched),
+#: from the topic registry (``msg_adapters.wire.TOPICS``).
 DEFAULT_TOPICS: dict[str, tuple[str, bool]] = {
-    schema.POSE: (schema.POSE_COV_STAMPED, False),
-    schema.FIX: (schema.NAVSATFIX, False),
-    schema.PARTICLES: (schema.POSE_ARRAY, False),
-    schema.INTEGRITY: (schema.DIAGNOSTIC_ARRAY, False),
-    ODOMETRY_GLOBAL: (schema.ODOMETRY, False),
-    schema.TRUTH: (schema.POSE_STAMPED, False),
-    schema.ORIGIN: (schema.NAVSATFIX, True),
-    schema.INFO: (schema.STRING, True),
-}
-_DEPTH = {schema.PARTICLES: 100}       # particle clouds are large (~56 kB each)
-_QUEUE_DEPTH = 2000
+    name: (TOPICS[name].msgtype, TOPICS[name].latched)
+    for name in (*RESULT_BAG_TOPICS, ODOMETRY_GLOBAL, TRUTH, ORIGIN, INFO)}
 
 
 @dataclass
@@ -206,9 +199,12 @@ class BagRecorder(Node):
     def _subscribe(self, topic: str, msgtype: str) -> None:
         name = self.bag_name(topic)
         rel = schema.relative(name) or name
-        latched = DEFAULT_TOPICS.get(rel, (None, False))[1]
+        # Latching and queue depth of the registry's topics; a topic outside the graph
+        # (given by name and type) is recorded as a volatile stream.
+        known = TOPICS.get(rel)
+        latched = known is not None and known.latched
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST,
-                         depth=1 if latched else _DEPTH.get(rel, _QUEUE_DEPTH),
+                         depth=RECORD_DEPTH if known is None else known.record_depth,
                          reliability=ReliabilityPolicy.RELIABLE,
                          durability=(DurabilityPolicy.TRANSIENT_LOCAL if latched
                                      else DurabilityPolicy.VOLATILE))

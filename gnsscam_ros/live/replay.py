@@ -23,7 +23,8 @@ The live layer, by job:
 * :mod:`.summary`: what a replay did (:class:`~.summary.ReplaySummary`);
 * :mod:`.launch`: starting the nodes (threads or processes), their replay parameters, the
   domain id and namespace, the Fast DDS profile for camera images;
-* :mod:`.chain`: :func:`~.chain.replay_through_nodes`, the whole chain with recording;
+* :mod:`.replay_through_nodes`: :func:`~.replay_through_nodes.replay_through_nodes`, the
+  whole chain with recording;
 * :mod:`.record`: ``gnsscam_record``, the recorder;
 * this module: the ``gnsscam_replay`` command line; it re-exports the names above that
   other code imports from here.
@@ -60,7 +61,7 @@ from rclpy.validate_namespace import validate_namespace
 
 from ..bags.errors import BagError
 from ..io.atomic import check_writable, write_json_atomic
-from .chain import ReplayOptions, replay_through_nodes
+from .replay_through_nodes import ReplayOptions, replay_through_nodes
 from .launch import LAYOUTS, use_dds_profile
 from .player import BagReplayer
 from .summary import ReplaySummary

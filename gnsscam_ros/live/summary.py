@@ -27,7 +27,7 @@ class ReplaySummary:
         interrupted: Stopped early (Ctrl-C or shutdown).
         cpu_s: CPU time [s] by process (``replay`` = this process during the replay, with
             any in-process nodes; child node processes by name, start-up included), when
-            measured by :func:`.chain.replay_through_nodes`.
+            measured by :func:`.replay_through_nodes.replay_through_nodes`.
         node_diagnostics: The newest ``diagnostics`` values per status name seen during the
             replay (the nodes' counters: ``dropped_epochs``, ``dropped_frames``, ...).
         start: How the replay knew the graph was ready: ``'links matched'`` (the nodes

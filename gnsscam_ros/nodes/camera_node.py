@@ -10,7 +10,7 @@ the *oldest* waiting frame is dropped and counted, so the node always works on r
 images and never builds an unbounded backlog. Empty images, unsupported encodings, wrong
 buffer sizes, sides beyond the limits of ``msg_adapters.limits`` (checked from the
 serialised header before the pixels are copied), invalid stamps, stamps far from the
-stream (``msg_adapters.gate``) and stamps older than the last matched image are refused
+stream (``msg_adapters.stamp_gate``) and stamps older than the last matched image are refused
 and counted.
 
 Every frame taken from the queue is answered on ``camera/matches``: a frame that cannot be
@@ -37,7 +37,7 @@ from collections import deque
 
 import cv2
 import numpy as np
-from sensor_msgs.msg import Image, PointCloud2
+from sensor_msgs.msg import Image
 
 from gnsscam_ros.core.frames import LocalFrame
 from gnsscam_ros.vision.database import MapDatabase
@@ -45,24 +45,15 @@ from gnsscam_ros.vision.errors import MapDatabaseError, VisionError
 from msg_adapters import (OK, WARN, CameraMatches, MessageError, check_image,
                           check_serialized_image, image_to_array, matches_to_pointcloud2,
                           stamp_to_ns)
+from msg_adapters.wire import IMAGE, MATCHES, RELIABLE
 
-from .common import GnssCamNode, InputFileError, reliable_qos, sensor_qos
+from .node_base import GnssCamNode, InputFileError
+from .parameters import CAMERA_NODE, defaults_of
 from .runtime import run_node
 
-# Code defaults; config/camera_node.yaml documents the same values (a test checks).
-DEFAULTS = {
-    'database_path': '',
-    'top_k': 5,
-    'queue_size': 2,
-    'use_map_origin': False,
-    'map_origin_llh': [0.0, 0.0, 0.0],
-    'map_frame_id': 'map',
-    'opencv_threads': 1,
-    'input_queue_depth': 5,
-    'input_reliable': False,
-    'stale_timeout_s': 2.0,
-    'diagnostics_period_s': 1.0,
-}
+# Code defaults (nodes.parameters); config/camera_node.yaml documents the same values (a
+# test checks).
+DEFAULTS = defaults_of(CAMERA_NODE)
 
 
 def _origin_ok(value) -> str | None:
@@ -90,35 +81,7 @@ class CameraNode(GnssCamNode):
     def __init__(self, node_name: str = 'camera_node', database: MapDatabase | None = None,
                  **kwargs):
         super().__init__(node_name, **kwargs)
-        d = DEFAULTS
-        self.declare('database_path', d['database_path'],
-                     "Map database file (.npz from gnsscam_mapdb build); '' = none (every "
-                     'frame is refused as no_database).', read_only=True)
-        self.declare('top_k', d['top_k'], 'Matches published per image.', (1, 1000))
-        self.declare('queue_size', d['queue_size'],
-                     'Frames waiting for the matcher; when full the oldest is dropped.',
-                     (1, 1000), read_only=True)
-        self.declare('use_map_origin', d['use_map_origin'],
-                     'Convert WGS84 database positions to the map frame at map_origin_llh '
-                     '(set the same origin as fusion_node); false = database frame.',
-                     read_only=True)
-        self.declare('map_origin_llh', d['map_origin_llh'],
-                     'Map frame origin [lat deg, lon deg, alt m].', read_only=True,
-                     validator=_origin_ok)
-        self.declare('map_frame_id', d['map_frame_id'], 'Frame of camera/matches.')
-        self.declare('opencv_threads', d['opencv_threads'],
-                     'OpenCV worker threads (1 = match on one core).', (0, 256),
-                     read_only=True)
-        self.declare('input_queue_depth', d['input_queue_depth'],
-                     'Subscription queue depth of camera/image_raw [messages].', (1, 100000),
-                     read_only=True)
-        self.declare('input_reliable', d['input_reliable'],
-                     'Subscribe camera/image_raw reliably instead of best effort (sensor '
-                     'QoS): a VGA frame is ~0.9 MB, split into many UDP fragments; best '
-                     'effort loses the frame with any fragment.', read_only=True)
-        self.declare('stale_timeout_s', d['stale_timeout_s'],
-                     'No image for this long is reported as a stale input [s].',
-                     (0.01, 1e12))
+        self.declare_node_parameters(CAMERA_NODE, {'map_origin_llh': _origin_ok})
         cv2.setNumThreads(int(self.param('opencv_threads')))
         self.database = database
         if self.database is None and self.param('database_path'):
@@ -143,12 +106,11 @@ class CameraNode(GnssCamNode):
         self._last_stamp_ns: int | None = None
         self._last_receipt: float | None = None
         self._started = time.monotonic()
-        self.pub = self.create_publisher(PointCloud2, 'camera/matches', reliable_qos())
-        depth = self.param('input_queue_depth')
+        self.pub = self.publisher(MATCHES)
         self.sub = self.subscribe_input(
-            Image, 'camera/image_raw', self.on_image,
-            reliable_qos(depth) if self.param('input_reliable') else sensor_qos(depth),
-            'received_images', check_serialized_image).subscription
+            IMAGE, self.on_image, 'received_images', check_serialized_image,
+            depth=self.param('input_queue_depth'),
+            reliability=RELIABLE if self.param('input_reliable') else None).subscription
         self._worker = threading.Thread(target=self._work, name=f'{node_name}_matcher',
                                         daemon=True)
         self._worker.start()
@@ -177,14 +139,14 @@ class CameraNode(GnssCamNode):
             refused = None
         except MessageError as err:
             if err.reason == 'stamp':
-                self.warn_rejected('camera/image_raw', err.reason, str(err))
+                self.warn_rejected(IMAGE, err.reason, str(err))
                 return
             refused = err
         stamp_ns = stamp_to_ns(msg.header.stamp)
-        if self.admit_stamp('camera/image_raw', stamp_ns) is None:
+        if self.admit_stamp(IMAGE, stamp_ns) is None:
             return
         if refused is not None:
-            self.warn_rejected('camera/image_raw', refused.reason, str(refused))
+            self.warn_rejected(IMAGE, refused.reason, str(refused))
         with self._cond:
             if len(self._queue) >= self.param('queue_size'):
                 self._queue.popleft()
@@ -231,7 +193,7 @@ class CameraNode(GnssCamNode):
             except Exception as err:     # keep matching: one bad frame must not stop it
                 if not self.context.ok():
                     return               # the context went down while publishing
-                self.warn_rejected('camera/image_raw', 'error', repr(err))
+                self.warn_rejected(IMAGE, 'error', repr(err))
                 self._answer_unmatched(stamp_to_ns(item.header.stamp))
 
     def process(self, msg: Image) -> CameraMatches | None:
@@ -246,11 +208,11 @@ class CameraNode(GnssCamNode):
         with self.stats.timed():
             stamp_ns = stamp_to_ns(msg.header.stamp)
             if self._last_stamp_ns is not None and stamp_ns < self._last_stamp_ns:
-                self.warn_rejected('camera/image_raw', 'out_of_order',
+                self.warn_rejected(IMAGE, 'out_of_order',
                                    f'stamp {stamp_ns} ns before {self._last_stamp_ns}')
                 return None
             if self.database is None:
-                self.warn_rejected('camera/image_raw', 'no_database',
+                self.warn_rejected(IMAGE, 'no_database',
                                    'no map database loaded (database_path)')
                 return self._answer_unmatched(stamp_ns)
             try:
@@ -258,10 +220,10 @@ class CameraNode(GnssCamNode):
                 found = self.database.query(image, top_k=int(self.param('top_k')),
                                             encoding='rgb8' if encoding == 'rgb8' else 'bgr8')
             except MessageError as err:
-                self.warn_rejected('camera/image_raw', err.reason, str(err))
+                self.warn_rejected(IMAGE, err.reason, str(err))
                 return self._answer_unmatched(stamp_ns)
             except VisionError as err:
-                self.warn_rejected('camera/image_raw', 'vision', str(err))
+                self.warn_rejected(IMAGE, 'vision', str(err))
                 return self._answer_unmatched(stamp_ns)
             self._last_stamp_ns = stamp_ns
             idx = np.array([m.index for m in found], dtype=np.int64)

@@ -58,15 +58,12 @@ import time
 from dataclasses import replace
 
 import numpy as np
-from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
-from sensor_msgs.msg import NavSatFix, NavSatStatus, PointCloud2
+from sensor_msgs.msg import NavSatStatus, PointCloud2
 
 from gnsscam_ros.core.engine import (CAMERA, DEAD_RECKONING, DROPPED_OLDEST,
-                                     ESTIMATE_STATUSES, MAX_BUFFER_S, MAX_GNSS_QUEUE,
-                                     MAX_TIMEOUT_S, MAX_WAIT_S, NO_MATCH, EpochEngine,
-                                     EpochReport, InputTiming, best_match)
+                                     ESTIMATE_STATUSES, NO_MATCH, EpochEngine, EpochReport,
+                                     InputTiming, best_match)
 from gnsscam_ros.core.filter import INVALID, REJECTED, UPDATED, EpochResult, FilterConfig
 from gnsscam_ros.core.verdict import IntegrityVerdict
 from gnsscam_ros.core.frames import LocalFrame
@@ -82,62 +79,36 @@ from msg_adapters import (OK, STALE, WARN, GeodeticFix, GlobalOdometry, MessageE
                           pose_to_msg, service_bits)
 from msg_adapters.geometry import UNESTIMATED_VAR
 from msg_adapters.integrity import VERDICT_LEVELS
-from msg_adapters.wire import EARTH_FRAME
+from msg_adapters.wire import (DEAD_RECKONING as DEAD_RECKONING_TOPIC, EARTH_FRAME, FIX,
+                               GNSS_MEASUREMENTS, INTEGRITY, MATCHES, ODOMETRY_GLOBAL, ORIGIN,
+                               PARTICLES, POSE)
 
-from .common import BIG, GnssCamNode, ParameterError, latched_qos, reliable_qos
 from .memory import keep_epoch_memory
+from .node_base import GnssCamNode, ParameterError
+from .parameter_reference import FUSION_NODE
+from .parameters import defaults_of
 from .runtime import run_node
 
-#: Longest silence of GNSS (or of processed epochs) before integrity_risk is STALE [s]: a
-#: larger value would let a consumer take the last verdict as current for longer than a
-#: minute (1e12 disabled STALE altogether).
-MAX_GNSS_TIMEOUT_S = 60.0
-#: Longest period of the STALE reports while stale [s].
-MAX_STALE_REPORT_PERIOD_S = 10.0
 #: Engine counters shown on diagnostics (besides the node's own): resets of the filter and
 #: of the time base, inputs the engine refused, camera matches beyond its bounds.
 ENGINE_COUNTS = ('filter_resets', 'time_base_resets', 'refused_gnss', 'refused_dead_reckoning',
                  'refused_camera', 'camera_over_limit', 'camera_dropped')
-#: Node parameters that are fields of the engine's InputTiming (same meaning).
-TIMING_PARAMETERS = {'odometry_buffer_s': 'dead_reckoning_buffer_s',
-                     'camera_buffer_s': 'camera_buffer_s', 'gnss_queue_size': 'gnss_queue_size',
-                     'odometry_wait_s': 'odometry_wait_s',
-                     'odometry_timeout_s': 'odometry_timeout_s',
-                     'camera_wait_s': 'camera_wait_s', 'camera_timeout_s': 'camera_timeout_s'}
-
-_FILTER_DEFAULTS = FilterConfig()
+#: Node parameters that are fields of the engine's InputTiming (same names).
+TIMING_PARAMETERS = tuple(spec.name for spec in InputTiming.parameter_specs())
 # Every filter parameter's default, meaning, unit and range: its part's field metadata
 # (gnsscam_ros/core/config.py). FilterConfig fields that are not node parameters are for
 # evaluation only.
-_FILTER_SPECS = tuple(s for s in FilterConfig.parameter_specs() if s.node_parameter)
 NOT_PARAMETERS = tuple(s.name for s in FilterConfig.parameter_specs() if not s.node_parameter)
-FILTER_PARAMETERS = tuple(s.name for s in _FILTER_SPECS)
+FILTER_PARAMETERS = tuple(s.name for s in FilterConfig.parameter_specs() if s.node_parameter)
 
-# Code defaults; config/fusion_node.yaml documents the same values (a test checks). The
-# filter ones are FilterConfig's.
-DEFAULTS = {
-    **_FILTER_DEFAULTS.as_parameters(),
-    'seed': -1,
-    'use_map_origin': False,
-    'map_origin_llh': [0.0, 0.0, 0.0],
-    'map_frame_id': 'map',
-    'fix_frame_id': 'gnss',
-    'base_frame_id': 'base_link',
-    'odom_frame_id': 'odom',
-    'gnss_timeout_s': 2.0,
-    'stale_report_period_s': 1.0,
-    'odometry_wait_s': 0.2,
-    'odometry_timeout_s': 1.0,
-    'camera_wait_s': 0.2,
-    'camera_timeout_s': 2.0,
-    'odometry_buffer_s': 60.0,
-    'camera_buffer_s': 60.0,
-    'max_published_particles': 1000,
-    'gnss_queue_size': 10,
-    'odometry_queue_depth': 1000,
-    'input_queue_depth': 10,
-    'diagnostics_period_s': 1.0,
-}
+# Code defaults (nodes.parameter_reference: FilterConfig's, fusion_node's own,
+# InputTiming's); config/fusion_node.yaml documents the same values (a test checks).
+DEFAULTS = defaults_of(FUSION_NODE)
+
+
+def _origin_ok(value) -> str | None:
+    return (None if len(value) == 3 and np.all(np.isfinite(value))
+            else 'map_origin_llh must be 3 finite numbers')
 
 
 def yaw_variance(yaw_rad: np.ndarray, log_w: np.ndarray) -> float:
@@ -171,70 +142,10 @@ class FusionNode(GnssCamNode):
         kernel_warm_up_s = warm_up_kernels()
         super().__init__(node_name, **kwargs)
         self.kernel_warm_up_s = kernel_warm_up_s
-        for spec in _FILTER_SPECS:
-            # ROS ranges are closed and finite: FilterConfig refuses an open bound itself.
-            about = f' Admissible: {spec.constraint}.' if spec.constraint else ''
-            self.declare(spec.name, DEFAULTS[spec.name],
-                         f'{spec.description}{about} (FilterConfig.{spec.part})',
-                         None if spec.range is None else spec.range.closed(BIG))
-        self.declare('seed', DEFAULTS['seed'],
-                     'Seed of the filter random generator; -1 = fresh entropy.',
-                     (-1, 2 ** 62), read_only=True)
-        self.declare('use_map_origin', DEFAULTS['use_map_origin'],
-                     'Anchor the map frame at map_origin_llh; false = at the first robust '
-                     'fix.', read_only=True)
-        self.declare('map_origin_llh', DEFAULTS['map_origin_llh'],
-                     'Map frame origin [lat deg, lon deg, alt m].', read_only=True,
-                     validator=lambda v: None if len(v) == 3 and np.all(np.isfinite(v))
-                     else 'map_origin_llh must be 3 finite numbers')
-        self.declare('map_frame_id', DEFAULTS['map_frame_id'],
-                     'Frame of pose, particles, odometry/global and map/origin, and the '
-                     "required frame of camera/matches (camera_node's map_frame_id).")
-        self.declare('fix_frame_id', DEFAULTS['fix_frame_id'], 'Frame of fix.')
-        self.declare('base_frame_id', DEFAULTS['base_frame_id'],
-                     'Child frame of odometry/global (the vehicle; its twist is in it) and '
-                     'of odometry/dead_reckoning (others are refused).')
-        self.declare('odom_frame_id', DEFAULTS['odom_frame_id'],
-                     "Frame of odometry/dead_reckoning (imu_node's odom_frame_id; others "
-                     'are refused).')
-        # Upper bounds (core.engine MAX_*): a longer wait or timeout would hide a stopped
-        # input behind the last verdict; a longer buffer only costs memory.
-        self.declare('gnss_timeout_s', DEFAULTS['gnss_timeout_s'],
-                     'No GNSS epoch (or none processed) for this long: integrity_risk STALE '
-                     '[s].', (0.01, MAX_GNSS_TIMEOUT_S))
-        self.declare('stale_report_period_s', DEFAULTS['stale_report_period_s'],
-                     'Period of the STALE integrity_risk reports while stale [s].',
-                     (0.01, MAX_STALE_REPORT_PERIOD_S))
-        self.declare('odometry_wait_s', DEFAULTS['odometry_wait_s'],
-                     'Longest wait for the dead reckoning to reach a GNSS epoch [s] '
-                     '(wall time).', (0.0, MAX_WAIT_S))
-        self.declare('odometry_timeout_s', DEFAULTS['odometry_timeout_s'],
-                     'Dead reckoning silent this long is not waited for [s] (wall time).',
-                     (0.0, MAX_TIMEOUT_S))
-        self.declare('camera_wait_s', DEFAULTS['camera_wait_s'],
-                     'Longest wait for the camera images due before a GNSS epoch [s] (wall '
-                     'time).', (0.0, MAX_WAIT_S))
-        self.declare('camera_timeout_s', DEFAULTS['camera_timeout_s'],
-                     'A camera whose newest image is this far behind the other inputs has '
-                     'stopped and is not waited for [s] (stamp time).', (0.0, MAX_TIMEOUT_S))
-        self.declare('odometry_buffer_s', DEFAULTS['odometry_buffer_s'],
-                     'Dead-reckoning history kept [s] (stamp time).', (1.0, MAX_BUFFER_S),
-                     read_only=True)
-        self.declare('camera_buffer_s', DEFAULTS['camera_buffer_s'],
-                     'Camera matches kept behind the newest [s] (stamp time).',
-                     (0.0, MAX_BUFFER_S))
-        self.declare('max_published_particles', DEFAULTS['max_published_particles'],
-                     'Particles published on particles (weighted subsample); 0 = all.',
-                     (0, 100_000_000))
-        self.declare('gnss_queue_size', DEFAULTS['gnss_queue_size'],
-                     'GNSS epochs waiting for the dead reckoning; when full the oldest is '
-                     'dropped.', (1, MAX_GNSS_QUEUE), read_only=True)
-        self.declare('odometry_queue_depth', DEFAULTS['odometry_queue_depth'],
-                     'Subscription queue depth of odometry/dead_reckoning [messages] (covers '
-                     'a filter epoch at the IMU rate).', (1, 1_000_000), read_only=True)
-        self.declare('input_queue_depth', DEFAULTS['input_queue_depth'],
-                     'Subscription queue depth of gnss/measurements and camera/matches.',
-                     (1, 100000), read_only=True)
+        # Ranges of the waits and timeouts (InputTiming, MAX_GNSS_TIMEOUT_S): a longer
+        # one would hide a stopped input behind the last verdict. ROS ranges are closed
+        # and finite: FilterConfig refuses an open bound itself.
+        self.declare_node_parameters(FUSION_NODE, {'map_origin_llh': _origin_ok})
         seed = self.param('seed')
         rng = np.random.default_rng(None if seed < 0 else seed)
         frame = LocalFrame(*self.param('map_origin_llh')) if self.param(
@@ -244,7 +155,7 @@ class FusionNode(GnssCamNode):
         except ValueError as err:        # FilterConfig's own checks (likelihood, ...)
             raise ParameterError(f'{node_name}: {err}') from err
         self.engine = EpochEngine(config, frame=frame, rng=rng, timing=InputTiming(
-            **{field: self.param(name) for name, field in TIMING_PARAMETERS.items()}))
+            **{name: self.param(name) for name in TIMING_PARAMETERS}))
         self._camera_count = 0
         self._started = time.monotonic()
         self._last_gnss_receipt: float | None = None
@@ -255,26 +166,24 @@ class FusionNode(GnssCamNode):
         self.last_verdict: IntegrityVerdict | None = None
         self.origin_published = False
 
-        self.pub_integrity = self.create_publisher(DiagnosticArray, 'integrity_risk',
-                                                   reliable_qos())
-        self.pub_pose = self.create_publisher(PoseWithCovarianceStamped, 'pose', reliable_qos())
-        self.pub_odometry = self.create_publisher(Odometry, 'odometry/global', reliable_qos())
-        self.pub_origin = self.create_publisher(NavSatFix, 'map/origin', latched_qos())
-        self.pub_fix = self.create_publisher(NavSatFix, 'fix', reliable_qos())
-        self.pub_particles = self.create_publisher(PoseArray, 'particles', reliable_qos(2))
+        self.pub_integrity = self.publisher(INTEGRITY)
+        self.pub_pose = self.publisher(POSE)
+        self.pub_odometry = self.publisher(ODOMETRY_GLOBAL)
+        self.pub_origin = self.publisher(ORIGIN)
+        self.pub_fix = self.publisher(FIX)
+        self.pub_particles = self.publisher(PARTICLES)
         depth = self.param('input_queue_depth')
         # Through InputTopic: decoded and size-checked there, losses (queue overwrites
         # while an epoch runs) and undecodable messages counted on diagnostics.
         self.sub_gnss = self.subscribe_input(
-            PointCloud2, 'gnss/measurements', self.on_gnss, reliable_qos(depth),
-            'received_measurements', check_serialized_gnss).subscription
+            GNSS_MEASUREMENTS, self.on_gnss, 'received_measurements', check_serialized_gnss,
+            depth).subscription
         self.sub_dr = self.subscribe_input(
-            Odometry, 'odometry/dead_reckoning', self.on_dead_reckoning,
-            reliable_qos(self.param('odometry_queue_depth')),
-            'received_dead_reckoning', check_serialized_size).subscription
+            DEAD_RECKONING_TOPIC, self.on_dead_reckoning, 'received_dead_reckoning',
+            check_serialized_size, self.param('odometry_queue_depth')).subscription
         self.sub_camera = self.subscribe_input(
-            PointCloud2, 'camera/matches', self.on_matches, reliable_qos(depth),
-            'received_matches', check_serialized_matches).subscription
+            MATCHES, self.on_matches, 'received_matches', check_serialized_matches,
+            depth).subscription
         self._timer = self.create_timer(0.02, self.on_timer)
         if self.engine.frame is not None:
             self.publish_origin(self.now_ns())
@@ -317,8 +226,7 @@ class FusionNode(GnssCamNode):
         return None
 
     def apply_parameters(self, changes: dict) -> None:
-        timing = {TIMING_PARAMETERS[k]: v for k, v in changes.items()
-                  if k in TIMING_PARAMETERS}
+        timing = {k: v for k, v in changes.items() if k in TIMING_PARAMETERS}
         if timing:
             self.engine.timing = replace(self.engine.timing, **timing)
         filter_changes = {k: v for k, v in changes.items() if k in FILTER_PARAMETERS}
@@ -332,18 +240,18 @@ class FusionNode(GnssCamNode):
         try:
             # gnss_node publishes checked satellites only (no NaN, non-positive variance,
             # duplicate or unknown system), in the ECEF frame whatever its input's name.
-            epoch = pointcloud2_to_gnss_epoch(msg, EARTH_FRAME, 'gnss/measurements',
+            epoch = pointcloud2_to_gnss_epoch(msg, EARTH_FRAME, GNSS_MEASUREMENTS,
                                               checked=True)
         except MessageError as err:
-            self.warn_rejected('gnss/measurements', err.reason, str(err))
+            self.warn_rejected(GNSS_MEASUREMENTS, err.reason, str(err))
             return
-        if self.admit_stamp('gnss/measurements', epoch.stamp_ns) is None:
+        if self.admit_stamp(GNSS_MEASUREMENTS, epoch.stamp_ns) is None:
             return
         now = time.monotonic()
         self._last_gnss_receipt = now
         outcome = self.engine.add_gnss(epoch, now)
         if outcome == OUT_OF_ORDER:
-            self.warn_rejected('gnss/measurements', 'out_of_order',
+            self.warn_rejected(GNSS_MEASUREMENTS, 'out_of_order',
                                f'stamp {epoch.stamp_ns} ns not after the queued epoch')
             return
         if outcome == DROPPED_OLDEST:
@@ -356,14 +264,14 @@ class FusionNode(GnssCamNode):
             state = odometry_to_dead_reckoning(msg, frame_id=self.param('odom_frame_id'),
                                                child_frame_id=self.param('base_frame_id'))
         except MessageError as err:
-            self.warn_rejected('odometry/dead_reckoning', err.reason, str(err))
+            self.warn_rejected(DEAD_RECKONING_TOPIC, err.reason, str(err))
             return
-        if self.admit_stamp('odometry/dead_reckoning', state.stamp_ns) is None:
+        if self.admit_stamp(DEAD_RECKONING_TOPIC, state.stamp_ns) is None:
             return
         now = time.monotonic()
         outcome = self.engine.add_dead_reckoning(state, now)
         if outcome == OUT_OF_ORDER:
-            self.warn_rejected('odometry/dead_reckoning', 'out_of_order',
+            self.warn_rejected(DEAD_RECKONING_TOPIC, 'out_of_order',
                                f'stamp {state.stamp_ns} ns not after the previous state')
             return
         if outcome == RESET:
@@ -383,15 +291,15 @@ class FusionNode(GnssCamNode):
         try:
             matches = pointcloud2_to_matches(msg, self.param('map_frame_id'))
         except MessageError as err:
-            self.warn_rejected('camera/matches', err.reason, str(err))
+            self.warn_rejected(MATCHES, err.reason, str(err))
             return
-        if self.admit_stamp('camera/matches', matches.stamp_ns) is None:
+        if self.admit_stamp(MATCHES, matches.stamp_ns) is None:
             return
         measurement = best_match(matches.stamp_ns, matches.position_m, matches.score,
                                  self._camera_count)
         outcome = self.engine.add_camera(matches.stamp_ns, measurement, time.monotonic())
         if outcome == OUT_OF_ORDER:
-            self.warn_rejected('camera/matches', 'out_of_order',
+            self.warn_rejected(MATCHES, 'out_of_order',
                                f'stamp {matches.stamp_ns} ns before the previous image')
             return
         self._camera_count += 1
@@ -453,7 +361,7 @@ class FusionNode(GnssCamNode):
         if CAMERA in report.late:
             self.stats.count('camera_late')
         if result.status == REJECTED:
-            self.warn_rejected('gnss/measurements', 'filter_rejected', result.reason)
+            self.warn_rejected(GNSS_MEASUREMENTS, 'filter_rejected', result.reason)
             self.stats.add_time(time.perf_counter() - start)
             return
         if result.status == INVALID:

@@ -9,7 +9,7 @@ Checks (``core.gnss_checks.check_epoch``): non-finite values, non-positive range
 duplicated satellites, unknown system code, elevation and C/N0 masks, minimum satellite
 count; whole messages with wrong fields or frame, more satellites or values beyond the
 limits of ``msg_adapters.limits``, invalid stamps, stamps far from the stream
-(``msg_adapters.gate``) or not after the previous epoch, are refused. Everything refused
+(``msg_adapters.stamp_gate``) or not after the previous epoch, are refused. Everything refused
 is counted and reported on ``diagnostics``.
 
 Exit codes: 0 stopped (Ctrl-C, shutdown), 1 failed while running, 2 a parameter refused at
@@ -32,23 +32,15 @@ from gnsscam_ros.core.types import GnssEpoch
 from msg_adapters import (OK, WARN, GeodeticFix, MessageError, check_serialized_gnss,
                           fix_to_navsatfix, gnss_epoch_to_pointcloud2,
                           pointcloud2_to_gnss_epoch, service_bits)
-from msg_adapters.wire import KNOWN_SYSTEMS
+from msg_adapters.wire import GNSS, GNSS_FIX, GNSS_MEASUREMENTS, KNOWN_SYSTEMS
 
-from .common import BIG, GnssCamNode, reliable_qos, sensor_qos
+from .node_base import GnssCamNode
+from .parameters import GNSS_NODE, defaults_of
 from .runtime import run_node
 
-# Code defaults; config/gnss_node.yaml documents the same values (a test checks).
-DEFAULTS = {
-    'elevation_mask_deg': 0.0,
-    'cn0_mask_dbhz': 0.0,
-    'min_satellites': 4,
-    'measurement_var_m2': 10.0,
-    'input_frame_id': 'earth',
-    'fix_frame_id': 'gnss',
-    'input_queue_depth': 10,
-    'stale_timeout_s': 2.0,
-    'diagnostics_period_s': 1.0,
-}
+# Code defaults (nodes.parameters); config/gnss_node.yaml documents the same values (a test
+# checks).
+DEFAULTS = defaults_of(GNSS_NODE)
 
 
 def fix_covariance_enu(epoch: GnssEpoch, ecef_m: np.ndarray, var_floor_m2: float
@@ -82,40 +74,16 @@ class GnssNode(GnssCamNode):
 
     def __init__(self, node_name: str = 'gnss_node', **kwargs):
         super().__init__(node_name, **kwargs)
-        d = DEFAULTS
-        self.declare('elevation_mask_deg', d['elevation_mask_deg'],
-                     'Satellites below this elevation are dropped [deg]; NaN elevations '
-                     'are kept.', (-90.0, 90.0))
-        self.declare('cn0_mask_dbhz', d['cn0_mask_dbhz'],
-                     'Satellites below this C/N0 are dropped [dB-Hz]; NaN C/N0 is kept.',
-                     (0.0, 100.0))
-        self.declare('min_satellites', d['min_satellites'],
-                     'Fewest satellites for a usable epoch (position + clock: >= 4).',
-                     (4, 1000))
-        self.declare('measurement_var_m2', d['measurement_var_m2'],
-                     'Floor of the pseudorange variance in the snapshot fix [m^2].',
-                     (1e-6, BIG))
-        self.declare('input_frame_id', d['input_frame_id'],
-                     'Required frame of gnss/pseudoranges (ECEF); others are refused.',
-                     read_only=True)
-        self.declare('fix_frame_id', d['fix_frame_id'], 'Frame of gnss/fix (antenna).')
-        self.declare('input_queue_depth', d['input_queue_depth'],
-                     'Subscription queue depth of gnss/pseudoranges [messages].',
-                     (1, 100000), read_only=True)
-        self.declare('stale_timeout_s', d['stale_timeout_s'],
-                     'No pseudoranges for this long is reported as a stale input [s].',
-                     (0.01, BIG))
+        self.declare_node_parameters(GNSS_NODE)
         self._last_stamp_ns: int | None = None
         self._last_receipt: float | None = None
         self._last_fix_ecef: np.ndarray | None = None
         self._started = time.monotonic()
-        self.pub_measurements = self.create_publisher(PointCloud2, 'gnss/measurements',
-                                                      reliable_qos())
-        self.pub_fix = self.create_publisher(NavSatFix, 'gnss/fix', reliable_qos())
+        self.pub_measurements = self.publisher(GNSS_MEASUREMENTS)
+        self.pub_fix = self.publisher(GNSS_FIX)
         self.sub = self.subscribe_input(
-            PointCloud2, 'gnss/pseudoranges', self.on_epoch,
-            sensor_qos(self.param('input_queue_depth')), 'received_pseudoranges',
-            check_serialized_gnss).subscription
+            GNSS, self.on_epoch, 'received_pseudoranges', check_serialized_gnss,
+            depth=self.param('input_queue_depth')).subscription
         self.parameters_declared()
 
     def ready_settings(self) -> dict:
@@ -129,12 +97,12 @@ class GnssNode(GnssCamNode):
             try:
                 epoch = pointcloud2_to_gnss_epoch(msg, self.param('input_frame_id'))
             except MessageError as err:
-                self.warn_rejected('gnss/pseudoranges', err.reason, str(err))
+                self.warn_rejected(GNSS, err.reason, str(err))
                 return
-            if self.admit_stamp('gnss/pseudoranges', epoch.stamp_ns) is None:
+            if self.admit_stamp(GNSS, epoch.stamp_ns) is None:
                 return
             if self._last_stamp_ns is not None and epoch.stamp_ns <= self._last_stamp_ns:
-                self.warn_rejected('gnss/pseudoranges', 'out_of_order',
+                self.warn_rejected(GNSS, 'out_of_order',
                                    f'stamp {epoch.stamp_ns} ns not after {self._last_stamp_ns}')
                 return
             self._last_stamp_ns = epoch.stamp_ns

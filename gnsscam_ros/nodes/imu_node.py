@@ -13,7 +13,7 @@ A source is *active* while its messages keep arriving (``source_timeout_s``, wal
 states are emitted up to the newest stamp every active source has reached, so the output
 does not depend on how the two streams interleave. Messages with non-finite values,
 values beyond the limits of ``msg_adapters.limits`` (speeds, rates, accelerations,
-variances), invalid stamps, stamps far from their stream (``msg_adapters.gate``) or not
+variances), invalid stamps, stamps far from their stream (``msg_adapters.stamp_gate``) or not
 after their stream's previous one are refused and counted; a new time base (a replay
 started again) restarts the dead reckoning.
 
@@ -25,48 +25,24 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import fields
 
 from geometry_msgs.msg import TwistWithCovarianceStamped
-from nav_msgs.msg import Odometry
 from sensor_msgs.msg import Imu
 
 from gnsscam_ros.core.motion import IMU, ODOMETRY, DeadReckoner, DeadReckoningConfig
 from msg_adapters import (OK, WARN, MessageError, check_serialized_size,
                           dead_reckoning_to_odometry, imu_to_sample, twist_to_sample)
+from msg_adapters.wire import DEAD_RECKONING, IMU as IMU_TOPIC, TWIST
 
-from .common import BIG, GnssCamNode, ParameterError, reliable_qos, sensor_qos
+from .node_base import GnssCamNode, ParameterError
+from .parameters import IMU_NODE, defaults_of
 from .runtime import run_node
 
-_DR = DeadReckoningConfig()
-# Code defaults; config/imu_node.yaml documents the same values (a test checks). The
-# dead-reckoning ones are DeadReckoningConfig's.
-DEFAULTS = {
-    **{f.name: getattr(_DR, f.name) for f in fields(DeadReckoningConfig)},
-    'source_timeout_s': 0.5,
-    'odom_frame_id': 'odom',
-    'base_frame_id': 'base_link',
-    'input_queue_depth': 100,
-    'output_queue_depth': 100,
-    'diagnostics_period_s': 1.0,
-}
-
-_DR_DESCRIPTIONS = {
-    'yaw_rate_source': ("Yaw-rate source while both are received: 'odometry' (vehicle yaw "
-                        "rate) or 'imu' (gyro z).", None),
-    'gyro_yaw_rate_var': ('Variance of one gyro yaw-rate sample [(rad/s)^2].', (0.0, BIG)),
-    'accel_var': ('Variance of one forward-acceleration sample [(m/s^2)^2].', (0.0, BIG)),
-    'default_speed_var': ('Speed variance used when odom/twist reports none [(m/s)^2].',
-                          (0.0, BIG)),
-    'default_yaw_rate_var': ('Yaw-rate variance used when odom/twist reports none '
-                             '[(rad/s)^2].', (0.0, BIG)),
-    'speed_error_correlation_s': ('Without odometry, how long an error of the integrated '
-                                  'speed persists, for the distance variance [s].',
-                                  (0.0, BIG)),
-    'output_period_s': ('Publish one dead-reckoning state per this much stamp time (the first '
-                        'at or after each multiple of it); 0 = one per input sample stamp '
-                        '[s].', (0.0, BIG)),
-}
+# Code defaults (nodes.parameters; the dead-reckoning ones are DeadReckoningConfig's);
+# config/imu_node.yaml documents the same values (a test checks).
+DEFAULTS = defaults_of(IMU_NODE)
+#: Node parameters that are DeadReckoningConfig fields (same names).
+_DR_PARAMETERS = tuple(spec.name for spec in DeadReckoningConfig.parameter_specs())
 
 
 class ImuNode(GnssCamNode):
@@ -79,21 +55,7 @@ class ImuNode(GnssCamNode):
 
     def __init__(self, node_name: str = 'imu_node', **kwargs):
         super().__init__(node_name, **kwargs)
-        for name, (text, value_range) in _DR_DESCRIPTIONS.items():
-            self.declare(name, DEFAULTS[name], text, value_range)
-        self.declare('source_timeout_s', DEFAULTS['source_timeout_s'],
-                     'A source without messages for this long is inactive [s] (wall time).',
-                     (0.001, BIG))
-        self.declare('odom_frame_id', DEFAULTS['odom_frame_id'],
-                     'Frame of odometry/dead_reckoning.')
-        self.declare('base_frame_id', DEFAULTS['base_frame_id'],
-                     'Child frame of odometry/dead_reckoning.')
-        self.declare('input_queue_depth', DEFAULTS['input_queue_depth'],
-                     'Subscription queue depth of imu/data and odom/twist [messages].',
-                     (1, 100000), read_only=True)
-        self.declare('output_queue_depth', DEFAULTS['output_queue_depth'],
-                     'Publisher queue depth of odometry/dead_reckoning [messages].',
-                     (1, 100000), read_only=True)
+        self.declare_node_parameters(IMU_NODE)
         try:
             config = self._dr_config({})
         except ValueError as err:        # DeadReckoningConfig's own checks
@@ -101,15 +63,12 @@ class ImuNode(GnssCamNode):
         self.dead_reckoner = DeadReckoner(config)
         self._receipt: dict[str, float] = {}
         self._started = time.monotonic()
-        self.pub = self.create_publisher(Odometry, 'odometry/dead_reckoning',
-                                         reliable_qos(self.param('output_queue_depth')))
+        self.pub = self.publisher(DEAD_RECKONING, self.param('output_queue_depth'))
         depth = self.param('input_queue_depth')
-        self.sub_imu = self.subscribe_input(Imu, 'imu/data', self.on_imu, sensor_qos(depth),
-                                            'received_imu', check_serialized_size).subscription
-        self.sub_twist = self.subscribe_input(TwistWithCovarianceStamped, 'odom/twist',
-                                              self.on_twist, sensor_qos(depth),
-                                              'received_odom_twist',
-                                              check_serialized_size).subscription
+        self.sub_imu = self.subscribe_input(IMU_TOPIC, self.on_imu, 'received_imu',
+                                            check_serialized_size, depth).subscription
+        self.sub_twist = self.subscribe_input(TWIST, self.on_twist, 'received_odom_twist',
+                                              check_serialized_size, depth).subscription
         self.parameters_declared()
 
     def ready_settings(self) -> dict:
@@ -117,7 +76,7 @@ class ImuNode(GnssCamNode):
                                                     'source_timeout_s')}
 
     def _dr_config(self, changes: dict) -> DeadReckoningConfig:
-        values = {name: changes.get(name, self.param(name)) for name in _DR_DESCRIPTIONS}
+        values = {name: changes.get(name, self.param(name)) for name in _DR_PARAMETERS}
         return DeadReckoningConfig(**values)
 
     def on_imu(self, msg: Imu) -> None:
@@ -126,15 +85,15 @@ class ImuNode(GnssCamNode):
             try:
                 sample = imu_to_sample(msg)
             except MessageError as err:
-                self.warn_rejected('imu/data', err.reason, str(err))
+                self.warn_rejected(IMU_TOPIC, err.reason, str(err))
                 return
-            if self.admit_stamp('imu/data', sample.stamp_ns) is None:
+            if self.admit_stamp(IMU_TOPIC, sample.stamp_ns) is None:
                 return
             try:
                 self.dead_reckoner.add_imu(sample.stamp_ns, sample.accel_mps2[0],
                                            sample.gyro_rps[2])
             except ValueError as err:       # stamp not after the previous one
-                self.warn_rejected('imu/data', 'out_of_order', str(err))
+                self.warn_rejected(IMU_TOPIC, 'out_of_order', str(err))
                 return
             self._receipt[IMU] = time.monotonic()
             self._advance()
@@ -145,15 +104,15 @@ class ImuNode(GnssCamNode):
             try:
                 s = twist_to_sample(msg)
             except MessageError as err:
-                self.warn_rejected('odom/twist', err.reason, str(err))
+                self.warn_rejected(TWIST, err.reason, str(err))
                 return
-            if self.admit_stamp('odom/twist', s.stamp_ns) is None:
+            if self.admit_stamp(TWIST, s.stamp_ns) is None:
                 return
             try:
                 self.dead_reckoner.add_odometry(s.stamp_ns, s.speed_mps, s.yaw_rate_rps,
                                                 s.speed_var, s.yaw_rate_var)
             except ValueError as err:       # stamp not after the previous one
-                self.warn_rejected('odom/twist', 'out_of_order', str(err))
+                self.warn_rejected(TWIST, 'out_of_order', str(err))
                 return
             self._receipt[ODOMETRY] = time.monotonic()
             self._advance()
@@ -189,7 +148,7 @@ class ImuNode(GnssCamNode):
             self.stats.count('published_dead_reckoning')
 
     def validate_parameters(self, changes: dict) -> str | None:
-        if any(name in _DR_DESCRIPTIONS for name in changes):
+        if any(name in _DR_PARAMETERS for name in changes):
             try:
                 self._dr_config(changes)
             except ValueError as err:
@@ -197,7 +156,7 @@ class ImuNode(GnssCamNode):
         return None
 
     def apply_parameters(self, changes: dict) -> None:
-        if any(name in _DR_DESCRIPTIONS for name in changes):
+        if any(name in _DR_PARAMETERS for name in changes):
             self.dead_reckoner.config = self._dr_config({})
 
     def diagnostic_summary(self):

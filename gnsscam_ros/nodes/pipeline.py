@@ -18,7 +18,7 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 
 from .camera_node import CameraNode
-from .common import EXIT_FAILED, EXIT_OK
+from .node_base import EXIT_FAILED, EXIT_OK
 from .fusion_node import FusionNode
 from .gnss_node import GnssNode
 from .imu_node import ImuNode

@@ -1,4 +1,4 @@
-"""The process around the nodes: ``main()`` with its exit codes (:mod:`.common`), help,
+"""The process around the nodes: ``main()`` with its exit codes (:mod:`.node_base`), help,
 starting and spinning one or several nodes, a clean stop on Ctrl-C or a failure, and
 stopping a node's child process as Ctrl-C does."""
 from __future__ import annotations
@@ -14,7 +14,7 @@ from typing import Callable
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
-from .common import EXIT_FAILED, EXIT_OK, EXIT_PARAMETER, StartupError
+from .node_base import EXIT_FAILED, EXIT_OK, EXIT_PARAMETER, StartupError
 from .memory import configure_node_memory
 
 

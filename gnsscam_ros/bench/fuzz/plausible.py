@@ -187,7 +187,7 @@ def _twist_values(twist) -> None:
     lin, ang = twist.linear, twist.angular
     _within('speed', [lin.x, lin.y, lin.z], lim.MAX_SPEED_MPS)
     _within('roll or pitch rate', [ang.x, ang.y], lim.MAX_GYRO_RPS)
-    _within('yaw rate', [ang.z], lim.MAX_YAW_RATE_RPS)
+    _within('yaw rate', [ang.z], lim.MAX_MESSAGE_YAW_RATE_RPS)
 
 
 # ---------------------------------------------------------------------- messages
@@ -197,7 +197,7 @@ def _imu(topic: str, msg) -> None:
     a, g = msg.linear_acceleration, msg.angular_velocity
     _within('acceleration', [a.x, a.y, a.z], lim.MAX_ACCEL_MPS2)
     _within('angular velocity', [g.x, g.y, g.z], lim.MAX_GYRO_RPS)
-    _within('yaw rate', [g.z], lim.MAX_YAW_RATE_RPS)
+    _within('yaw rate', [g.z], lim.MAX_MESSAGE_YAW_RATE_RPS)
     _covariance('angular velocity covariance', msg.angular_velocity_covariance)
     _covariance('acceleration covariance', msg.linear_acceleration_covariance)
     if msg.orientation_covariance[0] != -1.0:       # REP 145: -1 = no orientation
@@ -261,16 +261,16 @@ def _points(msg, layout: np.dtype, limit: int) -> np.ndarray:
 
 
 def _gnss(topic: str, msg) -> None:
-    pts = _points(msg, wire.GNSS_DTYPE, lim.MAX_SATELLITES)
+    pts = _points(msg, wire.GNSS_DTYPE, lim.MAX_MESSAGE_SATELLITES)
     sv = np.column_stack([pts['x'], pts['y'], pts['z']]).astype(float)
     pr, var = pts['pseudorange'].astype(float), pts['variance'].astype(float)
     _need(np.isfinite(sv).all() and np.isfinite(pr).all() and np.isfinite(var).all()
           and (pr > 0).all() and (var > 0).all(), 'a satellite without a measurement')
-    _within('satellite coordinate', sv, lim.MAX_SATELLITE_RADIUS_M)
+    _within('satellite coordinate', sv, lim.MAX_MESSAGE_SATELLITE_RADIUS_M)
     radius = np.sqrt((sv ** 2).sum(axis=1))
-    _need(((radius >= lim.MIN_SATELLITE_RADIUS_M)
-           & (radius <= lim.MAX_SATELLITE_RADIUS_M)).all(), 'satellite radius')
-    _need(((pr >= lim.MIN_PSEUDORANGE_M) & (pr <= lim.MAX_PSEUDORANGE_M)).all(),
+    _need(((radius >= lim.MIN_MESSAGE_SATELLITE_RADIUS_M)
+           & (radius <= lim.MAX_MESSAGE_SATELLITE_RADIUS_M)).all(), 'satellite radius')
+    _need(((pr >= lim.MIN_MESSAGE_PSEUDORANGE_M) & (pr <= lim.MAX_MESSAGE_PSEUDORANGE_M)).all(),
           'pseudorange')
     _need((var <= lim.MAX_VARIANCE).all(), 'variance')
     cn0, elevation = pts['cn0'].astype(float), pts['elevation'].astype(float)

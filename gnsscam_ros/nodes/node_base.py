@@ -35,14 +35,17 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 
-from diagnostic_msgs.msg import DiagnosticArray
 from std_srvs.srv import Trigger
 
 from msg_adapters import (NEW_BASE, OK, WARN, MessageError, StampGate, make_diagnostic_array,
                           make_status)
+from msg_adapters.message_classes import message_class
+from msg_adapters.wire import (BEST_EFFORT, DIAGNOSTICS, RELIABLE, TOPICS, TRANSIENT_LOCAL,
+                               Topic)
 
-# Float ranges need finite ends; this stands for "no upper limit".
-BIG = 1e12
+from ..core.parameters import ParameterSpec
+from .parameters import BIG, EVERY_NODE, Groups
+
 
 EXIT_OK, EXIT_FAILED, EXIT_PARAMETER, EXIT_INPUT = 0, 1, 2, 3
 
@@ -66,14 +69,6 @@ class InputFileError(StartupError):
     exit_code = EXIT_INPUT
 
 
-def latched_qos() -> QoSProfile:
-    """Once-only outputs (``map/origin``): reliable, transient local, depth 1, so that a
-    subscriber that comes later still receives the last message."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
-                      reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
-
-
 def _coerced(param: Parameter, expected: int) -> Parameter:
     """An INTEGER value given for a DOUBLE parameter as that DOUBLE (``-p x:=16`` and
     ``x: 16`` in YAML mean 16.0); anything else unchanged."""
@@ -83,23 +78,29 @@ def _coerced(param: Parameter, expected: int) -> Parameter:
     return param
 
 
-def sensor_qos(depth: int) -> QoSProfile:
-    """Inputs from sensors: best effort, keep the newest ``depth`` (a late sample is
-    worth less than the next one)."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(depth),
-                      reliability=ReliabilityPolicy.BEST_EFFORT,
-                      durability=DurabilityPolicy.VOLATILE)
+_RELIABILITY = {RELIABLE: ReliabilityPolicy.RELIABLE,
+                BEST_EFFORT: ReliabilityPolicy.BEST_EFFORT}
 
 
-def reliable_qos(depth: int = 10) -> QoSProfile:
-    """Outputs and node-to-node streams: reliable, keep the newest ``depth``."""
-    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=int(depth),
-                      reliability=ReliabilityPolicy.RELIABLE,
-                      durability=DurabilityPolicy.VOLATILE)
+def topic_qos(topic: Topic, depth: int | None = None,
+              reliability: str | None = None) -> QoSProfile:
+    """The QoS of a registry topic (``msg_adapters.wire.TOPICS``): its reliability,
+    durability and ``KEEP_LAST`` depth, the last two overridable (a node parameter).
+
+    Sensor inputs are best effort (a late sample is worth less than the next one),
+    node-to-node streams and outputs reliable, once-only outputs (``map/origin``)
+    transient local, so that a subscriber that comes later still receives the last one.
+    """
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST,
+                      depth=int(topic.depth if depth is None else depth),
+                      reliability=_RELIABILITY[reliability or topic.reliability],
+                      durability=(DurabilityPolicy.TRANSIENT_LOCAL
+                                  if topic.durability == TRANSIENT_LOCAL
+                                  else DurabilityPolicy.VOLATILE))
 
 
 #: Topics every node has (not links of the gnsscam_ros graph).
-_INFRASTRUCTURE_TOPICS = frozenset({'diagnostics', 'rosout', 'parameter_events',
+_INFRASTRUCTURE_TOPICS = frozenset({DIAGNOSTICS, 'rosout', 'parameter_events',
                                     '/rosout', '/parameter_events'})
 
 
@@ -303,14 +304,14 @@ class GnssCamNode(Node):
         self.fatal_error: str | None = None
         self._validators: dict[str, Callable] = {}
         self._all_declared = False
-        self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', reliable_qos())
+        self._diag_pub = self.publisher(DIAGNOSTICS)
         # Run-time updates (`ros2 param set n x 16`): an integer for a float parameter is
         # that float. Start-up overrides are coerced in declare().
         self.add_pre_set_parameters_callback(self._coerce_types)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._post_set_parameters)
-        self.declare('diagnostics_period_s', 1.0, 'Period of the diagnostics report [s].',
-                     (0.05, 3600.0), read_only=True)
+        for spec in EVERY_NODE:
+            self.declare_spec(spec, 'every node')
         self._diag_timer = self.create_timer(self.param('diagnostics_period_s'),
                                              self.publish_diagnostics)
         self._reset_service = self.create_service(Trigger, '~/reset', self._on_reset)
@@ -375,6 +376,31 @@ class GnssCamNode(Node):
                 raise ParameterError(f'{self.get_name()}: parameter {name} = '
                                      f'{self.param(name)!r} refused: {reason}')
         return self.param(name)
+
+    def declare_spec(self, spec: ParameterSpec, where: str,
+                     validator: Callable | None = None):
+        """Declare the parameter of ``spec`` (``core.parameters``): its default, its
+        description (meaning, unit, admissible values, ``where`` it is declared), its range
+        (open bounds are checked by the configuration it belongs to) and read-only flag.
+
+        Returns:
+            The value in force (:meth:`declare`).
+        """
+        about = f' Admissible: {spec.constraint}.' if spec.constraint else ''
+        default = list(spec.default) if isinstance(spec.default, tuple) else spec.default
+        return self.declare(spec.name, default, f'{spec.description}{about} ({where})',
+                            None if spec.range is None else spec.range.closed(BIG),
+                            read_only=spec.read_only, validator=validator)
+
+    def declare_node_parameters(self, groups: Groups, validators: dict | None = None) -> None:
+        """Declare every parameter of a node's ``groups`` (``nodes.parameters``) but the
+        ones every node has (declared by this base); ``validators`` maps names to further
+        checks (``f(value) -> reason or None``)."""
+        validators = validators or {}
+        for where, specs in groups:
+            for spec in specs:
+                if spec not in EVERY_NODE:
+                    self.declare_spec(spec, where, validators.get(spec.name))
 
     def _coerce_types(self, params: list) -> list:
         out = []
@@ -493,13 +519,25 @@ class GnssCamNode(Node):
         self.get_logger().warning(f'{topic}: rejected ({reason}): {detail}',
                                   throttle_duration_sec=5.0)
 
-    # ---------------------------------------------------------------------- inputs
-    def subscribe_input(self, msg_type, topic: str, callback: Callable, qos: QoSProfile,
-                        received: str, check_raw: Callable | None = None) -> InputTopic:
-        """Subscribe an input topic through :class:`InputTopic` (decoded and counted
-        here; ``callback`` gets the message). ``check_raw(raw, topic)`` may refuse the
-        serialised message before it is decoded (``MessageError``)."""
-        handler = InputTopic(self, msg_type, topic, callback, qos, received, check_raw)
+    # ------------------------------------------------------------ inputs, outputs
+    def publisher(self, topic: str, depth: int | None = None):
+        """A publisher of the registry topic ``topic`` (``msg_adapters.wire.TOPICS``):
+        its message type and QoS from there, ``depth`` overriding the registry's."""
+        spec = TOPICS[topic]
+        return self.create_publisher(message_class(spec.msgtype), topic,
+                                     topic_qos(spec, depth))
+
+    def subscribe_input(self, topic: str, callback: Callable, received: str,
+                        check_raw: Callable | None = None, depth: int | None = None,
+                        reliability: str | None = None) -> InputTopic:
+        """Subscribe the registry topic ``topic`` through :class:`InputTopic` (decoded
+        and counted here; ``callback`` gets the message), with its message type and QoS
+        from ``msg_adapters.wire.TOPICS`` (``depth`` and ``reliability`` override them).
+        ``check_raw(raw, topic)`` may refuse the serialised message before it is decoded
+        (``MessageError``)."""
+        spec = TOPICS[topic]
+        handler = InputTopic(self, message_class(spec.msgtype), topic, callback,
+                             topic_qos(spec, depth, reliability), received, check_raw)
         self.inputs[topic] = handler
         return handler
 
@@ -614,5 +652,4 @@ def _type_name(default) -> str:
 
 __all__ = ['BIG', 'EXIT_FAILED', 'EXIT_INPUT', 'EXIT_OK', 'EXIT_PARAMETER', 'GnssCamNode',
            'InputFileError', 'InputTopic', 'NodeStats', 'OK', 'ParameterError',
-           'SequenceGaps', 'StartupError', 'WARN',
-           'latched_qos', 'reliable_qos', 'sensor_qos']
+           'SequenceGaps', 'StartupError', 'WARN', 'topic_qos']
