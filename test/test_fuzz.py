@@ -1,4 +1,4 @@
-"""The fault-injection kit (``python -m gnsscam_ros.bench.fuzz``): its parts, and a short
+"""The fault-injection kit (``python -m tools.fuzz``): its parts, and a short
 seeded sample of each campaign.
 
 The samples assert the kit's mechanics (it tried what it was asked to, in every topic and
@@ -26,10 +26,10 @@ import pytest
 from ros_harness import ros_domain_id, serialize_message  # skips without rclpy
 
 import msg_adapters as ma
-from gnsscam_ros.bench.fuzz import accounting, cases, mutate, plausible, schedule
-from gnsscam_ros.bench.fuzz.report import Target, verdict_line
-from gnsscam_ros.bench.fuzz.stream import INPUT_TOPICS, StreamConfig, ValidStream
-from gnsscam_ros.bench.fuzz.tools import fingerprint, run_in_process
+from tools.fuzz import accounting, cases, mutate, plausible, schedule
+from tools.fuzz.report import Target, verdict_line
+from tools.fuzz.stream import INPUT_TOPICS, StreamConfig, ValidStream
+from tools.fuzz.tools import fingerprint, run_in_process
 
 
 @pytest.fixture(scope='module')
@@ -138,7 +138,7 @@ def _report(counters, node: str, t_s: float, **values) -> None:
 
 
 def test_a_node_is_drained_only_after_its_counts_stood_still_for_a_while():
-    from gnsscam_ros.bench.fuzz.graph import DRAINED_QUIET_S, Counters
+    from tools.fuzz.graph import DRAINED_QUIET_S, Counters
     c = Counters()
     period = 0.05
     _report(c, 'imu_node', 10.0, received_imu=4, rejected_total=4)
@@ -159,7 +159,7 @@ def test_a_node_is_drained_only_after_its_counts_stood_still_for_a_while():
 
 
 def test_a_snapshot_reads_one_set_of_reports():
-    from gnsscam_ros.bench.fuzz.graph import Counters
+    from tools.fuzz.graph import Counters
     c = Counters()
     _report(c, 'imu_node', 1.0, received_imu=4, rejected_total=4, rejected_undecodable=4)
     reading = c.reading()
@@ -199,7 +199,7 @@ def _cov(msg, attr, index, value):
 def test_plausibility_judgement_of_faulty_messages(stream):
     """The kit's own judgement (never the nodes' parsers): plausible changes are valid
     messages, values beyond the documented physics or structure are not."""
-    from gnsscam_ros.bench.fuzz.cases import flip_bit
+    from tools.fuzz.cases import flip_bit
     tpl = stream.templates(stream.gnss_stamps[2] + 1000)
 
     def judged(topic, edit):
@@ -272,7 +272,7 @@ def test_what_the_kit_judges_malformed_the_boundary_refuses(stream, topic):
     has satellites gnss_node drops and counts); every one judged valid parses."""
     from rclpy.serialization import deserialize_message
 
-    from gnsscam_ros.bench.fuzz.graph import TOPIC_TYPES
+    from tools.fuzz.graph import TOPIC_TYPES
     from gnsscam_ros.core.gnss import check_epoch
     from msg_adapters import limits, wire
     parse = {wire.GNSS: ma.pointcloud2_to_gnss_epoch,
@@ -306,8 +306,8 @@ def test_what_the_kit_judges_malformed_the_boundary_refuses(stream, topic):
 
 
 def test_ok_on_injected_epochs_is_scored_against_the_truth(stream):
-    from gnsscam_ros.bench.fuzz.graph import Verdict
-    from gnsscam_ros.bench.fuzz.messages import PassResult, injected_ok_errors
+    from tools.fuzz.graph import Verdict
+    from tools.fuzz.messages import PassResult, injected_ok_errors
     s = stream.gnss_stamps
     between = s[1] + (s[2] - s[1]) // 3
     truth = stream.truth_at(between)
@@ -344,7 +344,7 @@ def test_in_process_run_reports_a_traceback_and_the_exit_code(tmp_path):
 @pytest.mark.slow
 @pytest.mark.ros
 def test_messages_sample(tmp_path):
-    from gnsscam_ros.bench.fuzz.messages import MessagesConfig, run_messages
+    from tools.fuzz.messages import MessagesConfig, run_messages
     cfg = MessagesConfig(seed=3, duration_s=16.0, warmup_s=4.0, tail_s=6.0, structured=40,
                          mutations=20, heavy=False, prestart=False, domain=ros_domain_id(),
                          work_dir=str(tmp_path))
@@ -367,7 +367,7 @@ def test_messages_sample(tmp_path):
 @pytest.mark.slow
 @pytest.mark.ros
 def test_processes_sample(tmp_path):
-    from gnsscam_ros.bench.fuzz.processes import ProcessesConfig, run_processes
+    from tools.fuzz.processes import ProcessesConfig, run_processes
     cfg = ProcessesConfig(seed=2, duration_s=90.0, rate=5.0, warmup_s=10.0, gap_s=2.0,
                           down_s=2.0, nodes=['imu_node', 'fusion_node'], camera=False,
                           particles=300, acquisition_particles=1000,
@@ -387,7 +387,7 @@ def test_processes_sample(tmp_path):
 @pytest.mark.slow
 @pytest.mark.ros
 def test_files_sample(tmp_path, monkeypatch):
-    from gnsscam_ros.bench.fuzz.files import GENERATORS, FilesConfig, run_files
+    from tools.fuzz.files import GENERATORS, FilesConfig, run_files
     monkeypatch.setenv('ROS_LOG_DIR', str(tmp_path / 'ros_log'))
     result = run_files(FilesConfig(seed=1, per_tool=5, domain=ros_domain_id(),
                                    work_dir=str(tmp_path)), log=lambda *a: None)
@@ -403,9 +403,9 @@ def test_files_mcap_storage_named_db3_is_a_valid_bag(tmp_path, monkeypatch):
     """A bag whose MCAP file is named ``.db3`` (metadata still saying ``mcap``) is valid:
     the replay plays every message of the original bag and exits 0, and the kit expects
     just that (it expected a refusal before)."""
-    from gnsscam_ros.bench.fuzz.corpus import build_corpus
-    from gnsscam_ros.bench.fuzz.corrupt_data import BAG_VARIANTS, replay_case
-    from gnsscam_ros.bench.fuzz.files import FilesConfig, run_case
+    from tools.fuzz.corpus import build_corpus
+    from tools.fuzz.corrupt_data import BAG_VARIANTS, replay_case
+    from tools.fuzz.files import FilesConfig, run_case
     monkeypatch.setenv('ROS_LOG_DIR', str(tmp_path / 'ros_log'))
     corpus = build_corpus(tmp_path, seed=1)
     folder = tmp_path / 'case'

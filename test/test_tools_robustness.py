@@ -19,9 +19,6 @@ import cv2
 import numpy as np
 import pytest
 from conftest import SMARTLOC_EXCERPT, wait_until
-from tools_corrupt import (BAD_NUMBERS, GOOD_INPUT, GOOD_TRUTH, ODOM, POINT, PR,
-                           assert_refused, dead_pid, hidden_leftovers, image_cases,
-                           librsf_cases, line_with, snapshot, unwritable_folder)
 
 from gnsscam_ros.bags.convert_cli import main as convert_main
 from gnsscam_ros.evaluation.cli import main as eval_main
@@ -30,6 +27,10 @@ from gnsscam_ros.io.atomic import write_csv_atomic, write_json_atomic, write_npz
 from gnsscam_ros.vision import mapdb_cli
 from gnsscam_ros.vision.database import MapDatabase
 from gnsscam_ros.vision.synthetic import synthetic_scene
+from tools.fuzz.corrupt_inputs import (BAD_NUMBERS, GOOD_INPUT, GOOD_TRUTH, ODOM, POINT, PR,
+                                       assert_refused, dead_pid, hidden_leftovers,
+                                       image_cases, librsf_cases, line_with, snapshot,
+                                       unwritable_folder)
 
 
 def run(main, argv, capsys):
