@@ -392,7 +392,8 @@ def test_mapdb_query_refuses_each_unusable_image(mapdb_set, tmp_path, capsys):
     # Several at once: every bad one named, the good one answered, exit 3, the JSON says
     # which failed.
     js = tmp_path / 'answers.json'
-    bad = [tmp_path / 'one_pixel.png', tmp_path / 'bomb.png', tmp_path / 'garbage_3.png']
+    bad = [tmp_path / 'one_pixel.png', tmp_path / 'huge_dimensions.png',
+           tmp_path / 'garbage_3.png']
     code, out, err = run(mapdb_cli.main, ['query', '--db', db, *bad, good, '--json', js],
                          capsys)
     assert code == 3 and 'Traceback' not in err
