@@ -4,11 +4,14 @@ from glob import glob
 from setuptools import find_packages, setup
 
 PACKAGE = 'gnsscam_ros'
+#: Source folders never installed (test/test_wheel_contents.py checks the wheel).
+EXCLUDED_PACKAGES = ['test', 'test.*', 'tools', 'tools.*']
 
 setup(
     name=PACKAGE,
     version='0.1.0',
-    packages=find_packages(exclude=['test', 'test.*']),
+    # tools/ (the fault-injection kit, fixture cutters) is the workshop, not the product.
+    packages=find_packages(exclude=EXCLUDED_PACKAGES),
     # The node processes' Fast DDS profile (gnsscam_ros/nodes/memory.py).
     package_data={'gnsscam_ros.nodes': ['fastdds_profile.xml']},
     data_files=[

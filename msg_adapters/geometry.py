@@ -44,7 +44,9 @@ def quaternion_to_yaw(q: Quaternion) -> float:
     x, y, z, w = float(q.x), float(q.y), float(q.z), float(q.w)
     if not np.all(np.isfinite([x, y, z, w])) or x * x + y * y + z * z + w * w < 1e-12:
         raise MessageError(f'invalid quaternion {(x, y, z, w)}', 'non_finite')
-    return float(np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z)))
+    # w^2 + x^2 - y^2 - z^2, not 1 - 2 (y^2 + z^2): the heading of a quaternion that is
+    # only near unit length (tf2 accepts |q|^2 within 1e-2) is that of its normalised form.
+    return float(np.arctan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z))
 
 
 # ------------------------------------------------------------------------------ pose

@@ -7,7 +7,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import logsumexp, rel_entr
 
+from gnsscam_ros.core.fusion import FusionResult
 from gnsscam_ros.core.gnss import LOG_SQRT_2PI, PreparedEpoch
 from gnsscam_ros.core.particles import STATE_DIM, YAW, MotionIncrement
 from gnsscam_ros.core.types import OdometrySeries
@@ -348,9 +350,6 @@ def fuse_camera(log_p: np.ndarray, log_q: np.ndarray, kl_threshold_nats: float,
     Returns:
         ``core.fusion.FusionResult``; ``log_q_mix`` covers the N particles only.
     """
-    from scipy.special import logsumexp
-
-    from gnsscam_ros.core.fusion import FusionResult
     n = log_p.shape[-1]
     if log_q.shape[-1] == n + 1:
         if elsewhere_prob is None:
@@ -379,9 +378,40 @@ def fuse_camera(log_p: np.ndarray, log_q: np.ndarray, kl_threshold_nats: float,
 
 # ============================================================ integrity (paper §6)
 # The numpy forms the compiled posterior kernels replaced (``core.kernels.posterior``).
+def bernoulli_kl(q, p) -> np.ndarray:
+    """``kl(q || p) = q log(q / p) + (1 - q) log((1 - q) / (1 - p))`` [nats], elementwise
+    (scipy's relative entropy: 0 log 0 = 0, inf where p excludes what q allows)."""
+    q, p = np.asarray(q, dtype=float), np.asarray(p, dtype=float)
+    return rel_entr(q, p) + rel_entr(1.0 - q, 1.0 - p)
+
+
+def _x_minus_log1p(x: np.ndarray) -> np.ndarray:
+    """``x - log(1 + x)`` without cancellation for small ``|x|`` (its series there)."""
+    x = np.asarray(x, dtype=float)
+    small = np.abs(x) < 1e-3
+    xs = np.where(small, x, 0.0)
+    series = xs * xs * (0.5 - xs / 3.0 + xs * xs / 4.0 - xs ** 3 / 5.0)
+    with np.errstate(divide='ignore'):
+        direct = x - np.log1p(np.where(small, 0.0, x))
+    return np.where(small, series, direct)
+
+
+def bernoulli_kl_gap(q: float, t: float) -> float:
+    """``kl(q || q + t)`` [nats], accurate also when ``t`` is far below ``q``: the linear
+    terms of the two logarithms cancel exactly, leaving
+    ``q g(t / q) + (1 - q) g(-t / (1 - q))`` with ``g(x) = x - log(1 + x)``."""
+    if q == 0.0:
+        return float(-np.log1p(-t))
+    if q + t >= 1.0:
+        return 0.0 if q == 1.0 else math.inf
+    # q g(t / q) = t - q log((q + t) / q), by logarithms: t / q overflows for tiny q.
+    first = (float(q * _x_minus_log1p(t / q)) if t < 1e-3 * q
+             else t - q * (math.log(q + t) - math.log(q)))
+    return first + float((1.0 - q) * _x_minus_log1p(-t / (1.0 - q)))
+
+
 def inverse_bernoulli_exact(q, eps, iterations: int = 64) -> np.ndarray:
     """``t >= 0`` with ``kl(q || q + t) = eps``: vectorised bisection on ``[q, 1]``."""
-    from gnsscam_ros.core.integrity import bernoulli_kl
     q, eps = np.broadcast_arrays(np.asarray(q, dtype=float), np.asarray(eps, dtype=float))
     lo = q.copy()
     hi = np.ones_like(q)
@@ -565,18 +595,30 @@ def max_empirical_risk_exact(target: float, eps: float, iterations: int = 60) ->
     return lo
 
 
+def gaussian_kl(mean0, cov0, mean1, cov1, floor_m2: float = 1e-2) -> float:
+    """KL(N0 || N1) [nats] = (tr(S1^-1 S0) + d^T S1^-1 d - k + log det S1 - log det S0) / 2,
+    with the package's diagonal floor on both covariances; by Cholesky factors."""
+    k = len(mean0)
+    l0 = np.linalg.cholesky(np.asarray(cov0, float) + floor_m2 * np.eye(k))
+    l1 = np.linalg.cholesky(np.asarray(cov1, float) + floor_m2 * np.eye(k))
+    a = np.linalg.solve(l1, l0)                     # S1^-1 S0 has trace |L1^-1 L0|_F^2
+    b = np.linalg.solve(l1, np.asarray(mean1, float) - mean0)
+    log_det = 2.0 * (np.log(np.diag(l1)).sum() - np.log(np.diag(l0)).sum())
+    return float(0.5 * ((a * a).sum() + b @ b - k + log_det))
+
+
 def integrity_epoch(posteriors, priors, mean: np.ndarray, limits: np.ndarray,
                     target: float = 0.1, delta: float = 0.1):
     """The risk bound and level of an epoch as ``ParticleFilter._integrity`` computed them
     before the kernels: pooled moments twice, Gaussian KL, float32 distances, hazard mass,
     vectorised inverse Bernoulli, scalar threshold, partitioned level."""
-    from gnsscam_ros.core import integrity
     post, prior = NumpyPosteriorSet(posteriors), NumpyPosteriorSet(priors)
-    kl = integrity.gaussian_kl(*post.pooled_moments(), *prior.pooled_moments())
+    kl = gaussian_kl(*post.pooled_moments(), *prior.pooled_moments())
     m = posteriors.n_posteriors
     dist_w = post.distances(mean)
     empirical = post.hazard_mass(mean, limits, dist_w)
-    eps = integrity.divergence_budget(kl, m, delta)
+    # The PAC-Bayes budget (paper §6): eps = (KL + log((M + 1) / delta)) / M.
+    eps = (max(kl, 0.0) + math.log((m + 1) / delta)) / m
     bound = np.minimum(empirical + inverse_bernoulli_exact(empirical, eps), 1.0)
     q_max = max_empirical_risk_exact(target, eps)
     return bound, post.protection_level(mean, q_max, dist_w)

@@ -45,11 +45,19 @@ def _refused(reason, parse, *args, **kwargs):
     return str(err.value)
 
 
-def _accepted_or_refused(reason, parse, msg):
-    """``parse(msg)`` succeeds when ``reason`` is None, else refuses it for ``reason``."""
-    if reason is None:
-        return parse(msg)
-    return _refused(reason, parse, msg)
+def _accepted_or_refused(reason, parse, msg, rtol=0.0, **expected):
+    """``parse(msg)`` refuses ``msg`` for ``reason``; when ``reason`` is None it takes it
+    and gives the values sent: every ``expected`` attribute of the result, to ``rtol``
+    (FLOAT32 fields on the wire: 1e-7)."""
+    if reason is not None:
+        return _refused(reason, parse, msg)
+    assert expected, 'an accepted edge value must be compared with what was sent'
+    parsed = parse(msg)
+    for name, value in expected.items():
+        np.testing.assert_allclose(np.asarray(getattr(parsed, name), float).ravel(),
+                                   np.asarray(value, float).ravel(), rtol=rtol, atol=0,
+                                   err_msg=name)
+    return parsed
 
 
 class _Untouchable:
@@ -107,8 +115,10 @@ def test_every_input_parser_refuses_an_invalid_stamp(make, parse, sec, nanosec):
     (lim.MIN_MESSAGE_SATELLITE_RADIUS_M * 0.999, 'range'),
     (lim.MAX_MESSAGE_SATELLITE_RADIUS_M * 1.001, 'range')])
 def test_satellite_radius_limits(radius, reason):
-    msg = ma.gnss_epoch_to_pointcloud2(_epoch(radius=radius))
-    _accepted_or_refused(reason, ma.pointcloud2_to_gnss_epoch, msg)
+    epoch = _epoch(radius=radius)
+    msg = ma.gnss_epoch_to_pointcloud2(epoch)
+    _accepted_or_refused(reason, ma.pointcloud2_to_gnss_epoch, msg,
+                         sv_pos_ecef_m=epoch.sv_pos_ecef_m, pr_m=epoch.pr_m)
 
 
 def test_one_satellite_coordinate_of_1e160_or_a_flipped_exponent_is_refused():
@@ -126,8 +136,10 @@ def test_one_satellite_coordinate_of_1e160_or_a_flipped_exponent_is_refused():
     (lim.MIN_MESSAGE_PSEUDORANGE_M - 1.0, 'range'), (lim.MAX_MESSAGE_PSEUDORANGE_M + 1.0, 'range'),
     (1e300, 'range')])
 def test_pseudorange_limits(pr, reason):
-    msg = ma.gnss_epoch_to_pointcloud2(_epoch(pr=pr))
-    _accepted_or_refused(reason, ma.pointcloud2_to_gnss_epoch, msg)
+    epoch = _epoch(pr=pr)
+    msg = ma.gnss_epoch_to_pointcloud2(epoch)
+    _accepted_or_refused(reason, ma.pointcloud2_to_gnss_epoch, msg, pr_m=np.full(
+        epoch.n_sv, pr))
 
 
 def test_markers_of_a_missing_measurement_pass_to_the_core_checks_only_from_the_receiver():
@@ -158,7 +170,8 @@ def test_other_satellite_fields(field, value, reason):
     values = getattr(epoch, name).copy()
     values[1] = value
     msg = ma.gnss_epoch_to_pointcloud2(_with(epoch, **{name: values}))
-    _accepted_or_refused(reason, ma.pointcloud2_to_gnss_epoch, msg)
+    _accepted_or_refused(reason, ma.pointcloud2_to_gnss_epoch, msg, rtol=1e-7,
+                         **{name: values})
 
 
 def test_checked_epochs_refuse_duplicates_and_unknown_systems_the_receiver_gets_them_dropped():
@@ -202,7 +215,7 @@ def test_satellite_count_is_refused_before_anything_is_decoded():
     ([0, np.nan, 0], [0, 0, 0], 'non_finite')])
 def test_imu_limits(accel, gyro, reason):
     msg = ma.sample_to_imu(ma.ImuSample(T0, np.array(accel, float), np.array(gyro, float)))
-    _accepted_or_refused(reason, ma.imu_to_sample, msg)
+    _accepted_or_refused(reason, ma.imu_to_sample, msg, accel_mps2=accel, gyro_rps=gyro)
 
 
 @pytest.mark.parametrize('speed, yaw_rate, var, reason', [
@@ -273,7 +286,9 @@ def _twist(**changes):
     ({'14': math.inf}, 'non_finite')])
 def test_every_twist_component_and_the_whole_covariance_are_checked(changes, reason):
     msg = _twist(**changes)
-    _accepted_or_refused(reason, ma.twist_to_sample, msg)
+    # Only the forward speed, the yaw rate and their variances reach the node.
+    _accepted_or_refused(reason, ma.twist_to_sample, msg, speed_mps=5.0, yaw_rate_rps=0.1,
+                         speed_var=0.01, yaw_rate_var=1e-4)
 
 
 def _imu(**changes):
@@ -306,7 +321,8 @@ def _imu(**changes):
     ({'angular_velocity_covariance': (8, math.nan)}, 'non_finite')])
 def test_imu_covariances_and_a_reported_orientation_are_checked(changes, reason):
     msg = _imu(**changes)
-    _accepted_or_refused(reason, ma.imu_to_sample, msg)
+    _accepted_or_refused(reason, ma.imu_to_sample, msg, accel_mps2=[0.1, 0.0, 9.8],
+                         gyro_rps=np.zeros(3))
 
 
 def _odometry(**changes):
@@ -334,7 +350,9 @@ def _odometry(**changes):
     ({'child_frame_id': 'imu'}, 'frame')])
 def test_dead_reckoning_frames_quaternion_and_covariances(changes, reason):
     msg = _odometry(**changes)
-    _accepted_or_refused(reason, ma.odometry_to_dead_reckoning, msg)
+    # A quaternion within tf2's tolerance of unit length gives the same heading.
+    _accepted_or_refused(reason, ma.odometry_to_dead_reckoning, msg, rtol=1e-12, x_m=10.0,
+                         y_m=-3.0, yaw_rad=0.3, speed_mps=5.0, yaw_rate_rps=0.1)
     # Other frames when the node is configured so; None takes any.
     moved = _odometry(**{'header.frame_id': 'odom_2', 'child_frame_id': 'car'})
     ma.odometry_to_dead_reckoning(moved, frame_id='odom_2', child_frame_id='car')

@@ -1,20 +1,24 @@
-"""The fault-injection kit (``python -m gnsscam_ros.bench.fuzz``): its parts, and a short
+"""The fault-injection kit (``python -m tools.fuzz``): its parts, and a short
 seeded sample of each campaign.
 
 The samples assert the kit's mechanics (it tried what it was asked to, in every topic and
 tool, measured RSS, counted rejections, restarted what it killed) and only the targets of
 the issue that already hold today:
 
-* ``messages``: the clean pass answers every epoch without a crash; no misleading OK
-  (no OK verdict with the error above the alert limit, on a valid epoch or, scored against
-  the truth at its stamp, on one the kit injected);
-* ``processes``: no integrity OK while a needed input is missing or reset; no other node
-  exits when one is killed; every node exits 0 when stopped;
-* ``files``: nothing of ``gnsscam_eval bag`` fails (its corrupt bags are all refused with
-  exit 3, naming the bag, leaving nothing behind).
+* ``messages``: the clean pass answers every epoch without a crash; under fault no crash,
+  no hang, no permanent block, no malformed message taken or lost without a count, the
+  estimate back to its clean accuracy before the drive ends, and no misleading OK (no OK
+  verdict with the error above the alert limit, on a valid epoch or, scored against the
+  truth at its stamp, on one the kit injected);
+* ``processes``: each killed node restarted and the graph answering again before the drive
+  ends; no integrity OK while a needed input is missing or reset, while OK verdicts
+  outside those windows show the check bites; no other node exits when one is killed;
+  every node exits 0 when stopped;
+* ``files``: every tool's corrupt inputs handled as documented (no traceback, the
+  documented exit code, the file named, nothing overwritten or left behind).
 
-The others (crashes, blocks, uncounted rejections, recovery, RSS, restart time,
-tracebacks, exit codes, overwrites, leftovers) are reported by the kit and fail today.
+How fast (recovery seconds, restart time) and RSS are the campaigns' figures, measured
+alone: a loaded test machine would turn them into flaky tests.
 """
 from __future__ import annotations
 
@@ -24,12 +28,23 @@ import math
 import numpy as np
 import pytest
 from ros_harness import ros_domain_id, serialize_message  # skips without rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.serialization import deserialize_message
 
 import msg_adapters as ma
-from gnsscam_ros.bench.fuzz import accounting, cases, mutate, plausible, schedule
-from gnsscam_ros.bench.fuzz.report import Target, verdict_line
-from gnsscam_ros.bench.fuzz.stream import INPUT_TOPICS, StreamConfig, ValidStream
-from gnsscam_ros.bench.fuzz.tools import fingerprint, run_in_process
+from gnsscam_ros.core.gnss import check_epoch
+from msg_adapters import limits, wire
+from tools.fuzz import accounting, cases, mutate, plausible, schedule
+from tools.fuzz.cases import flip_bit
+from tools.fuzz.corpus import build_corpus
+from tools.fuzz.corrupt_data import BAG_VARIANTS, replay_case
+from tools.fuzz.files import GENERATORS, FilesConfig, run_case, run_files
+from tools.fuzz.graph import DRAINED_QUIET_S, TOPIC_TYPES, Counters, Verdict
+from tools.fuzz.messages import MessagesConfig, PassResult, injected_ok_errors, run_messages
+from tools.fuzz.processes import ProcessesConfig, run_processes
+from tools.fuzz.report import Target, verdict_line
+from tools.fuzz.stream import INPUT_TOPICS, StreamConfig, ValidStream
+from tools.fuzz.tools import fingerprint, run_in_process
 
 
 @pytest.fixture(scope='module')
@@ -129,7 +144,6 @@ def test_judged_bursts_count_valid_messages_apart_and_late_counts_settle_losses(
 
 
 def _report(counters, node: str, t_s: float, **values) -> None:
-    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
     msg = DiagnosticArray()
     msg.header.stamp = ma.ns_to_stamp(int(t_s * 1e9))
     msg.status = [DiagnosticStatus(name=f'{node}: status', values=[
@@ -138,7 +152,6 @@ def _report(counters, node: str, t_s: float, **values) -> None:
 
 
 def test_a_node_is_drained_only_after_its_counts_stood_still_for_a_while():
-    from gnsscam_ros.bench.fuzz.graph import DRAINED_QUIET_S, Counters
     c = Counters()
     period = 0.05
     _report(c, 'imu_node', 10.0, received_imu=4, rejected_total=4)
@@ -159,7 +172,6 @@ def test_a_node_is_drained_only_after_its_counts_stood_still_for_a_while():
 
 
 def test_a_snapshot_reads_one_set_of_reports():
-    from gnsscam_ros.bench.fuzz.graph import Counters
     c = Counters()
     _report(c, 'imu_node', 1.0, received_imu=4, rejected_total=4, rejected_undecodable=4)
     reading = c.reading()
@@ -199,7 +211,6 @@ def _cov(msg, attr, index, value):
 def test_plausibility_judgement_of_faulty_messages(stream):
     """The kit's own judgement (never the nodes' parsers): plausible changes are valid
     messages, values beyond the documented physics or structure are not."""
-    from gnsscam_ros.bench.fuzz.cases import flip_bit
     tpl = stream.templates(stream.gnss_stamps[2] + 1000)
 
     def judged(topic, edit):
@@ -270,11 +281,6 @@ def test_what_the_kit_judges_malformed_the_boundary_refuses(stream, topic):
     """Seeded random mutations: every one the kit judges malformed is refused by the
     parser of its topic (or outside the stamp window of the gate, or, from the receiver,
     has satellites gnss_node drops and counts); every one judged valid parses."""
-    from rclpy.serialization import deserialize_message
-
-    from gnsscam_ros.bench.fuzz.graph import TOPIC_TYPES
-    from gnsscam_ros.core.gnss import check_epoch
-    from msg_adapters import limits, wire
     parse = {wire.GNSS: ma.pointcloud2_to_gnss_epoch,
              wire.GNSS_MEASUREMENTS: lambda msg: ma.pointcloud2_to_gnss_epoch(
                  msg, wire.EARTH_FRAME, checked=True),
@@ -306,8 +312,6 @@ def test_what_the_kit_judges_malformed_the_boundary_refuses(stream, topic):
 
 
 def test_ok_on_injected_epochs_is_scored_against_the_truth(stream):
-    from gnsscam_ros.bench.fuzz.graph import Verdict
-    from gnsscam_ros.bench.fuzz.messages import PassResult, injected_ok_errors
     s = stream.gnss_stamps
     between = s[1] + (s[2] - s[1]) // 3
     truth = stream.truth_at(between)
@@ -344,30 +348,36 @@ def test_in_process_run_reports_a_traceback_and_the_exit_code(tmp_path):
 @pytest.mark.slow
 @pytest.mark.ros
 def test_messages_sample(tmp_path):
-    from gnsscam_ros.bench.fuzz.messages import MessagesConfig, run_messages
     cfg = MessagesConfig(seed=3, duration_s=16.0, warmup_s=4.0, tail_s=6.0, structured=40,
                          mutations=20, heavy=False, prestart=False, domain=ros_domain_id(),
                          work_dir=str(tmp_path))
     result = run_messages(cfg, log=lambda *a: None)
+    clean, faults = result['passes']['clean'], result['passes']['faults']
+    assert clean['crashes'] == 0 and clean['unanswered'] == 0
+    # Under fault: nothing crashed, hung or stayed blocked, every malformed message was
+    # refused or lost with a count, and the estimate came back before the drive ended.
+    assert (faults['crashes'], faults['hangs'], faults['blocks']) == (0, 0, 0), \
+        (result['crashes'], result['blocks'])
+    assert result['uncounted'] == 0, [
+        (k['kind'], k['uncounted']) for k in result['kinds'].values() if k['uncounted']]
+    assert faults['answered'] > 0 and math.isfinite(result['recovery_s'])
+    # The kit tried what it was asked to, on every topic, and measured.
     m = result['messages']
     assert m['structured'] >= 40 and m['mutations'] == 20
     tried = {t for t, row in result['by_topic'].items()
              if row['structured'] + row['mutations']}
     assert len(tried) >= 5
-    clean, faults = result['passes']['clean'], result['passes']['faults']
     for figures in (clean, faults):
         assert figures['rss_end_mb'] > 50 and figures['rss_peak_mb'] >= figures['rss_end_mb']
     assert sum(row['refused'] for row in result['by_topic'].values()) > 0     # counted
-    assert clean['crashes'] == 0 and clean['unanswered'] == 0
-    targets = {t['name']: t['passed'] for t in result['targets']}
+    targets = {t['name']: t for t in result['targets']}
     assert len(targets) == 10
-    assert targets['misleading OK == 0']
+    assert targets['misleading OK == 0']['passed'], targets['misleading OK == 0']
 
 
 @pytest.mark.slow
 @pytest.mark.ros
 def test_processes_sample(tmp_path):
-    from gnsscam_ros.bench.fuzz.processes import ProcessesConfig, run_processes
     cfg = ProcessesConfig(seed=2, duration_s=90.0, rate=5.0, warmup_s=10.0, gap_s=2.0,
                           down_s=2.0, nodes=['imu_node', 'fusion_node'], camera=False,
                           particles=300, acquisition_particles=1000,
@@ -375,11 +385,14 @@ def test_processes_sample(tmp_path):
     result = run_processes(cfg, log=lambda *a: None)
     assert [k['node'] for k in result['kills']] == ['imu_node', 'fusion_node']
     for kill in result['kills']:
-        # Killed and measured; how fast it recovers is the campaign's figure, not a test's
-        # (a restarted node's imports take seconds on a loaded machine).
-        assert kill['exit_status'] == -9 and kill['recovery_s'] > 0
+        # Killed, restarted and the graph answering again before the drive ended; how fast
+        # is the campaign's figure, not a test's (a restarted node's imports take seconds
+        # on a loaded machine).
+        assert kill['exit_status'] == -9, kill
+        assert kill['not_killed'] is None and math.isfinite(kill['recovery_s']), kill
     targets = {t['name'].split(' (')[0]: t['passed'] for t in result['targets']}
     assert targets['integrity OK while a needed input is missing or reset == 0']
+    assert targets['OK verdicts outside the windows']        # the check above bites
     assert targets['other nodes exited meanwhile == 0']
     assert targets['every node exits 0 when stopped']
 
@@ -387,7 +400,6 @@ def test_processes_sample(tmp_path):
 @pytest.mark.slow
 @pytest.mark.ros
 def test_files_sample(tmp_path, monkeypatch):
-    from gnsscam_ros.bench.fuzz.files import GENERATORS, FilesConfig, run_files
     monkeypatch.setenv('ROS_LOG_DIR', str(tmp_path / 'ros_log'))
     result = run_files(FilesConfig(seed=1, per_tool=5, domain=ros_domain_id(),
                                    work_dir=str(tmp_path)), log=lambda *a: None)
@@ -403,9 +415,6 @@ def test_files_mcap_storage_named_db3_is_a_valid_bag(tmp_path, monkeypatch):
     """A bag whose MCAP file is named ``.db3`` (metadata still saying ``mcap``) is valid:
     the replay plays every message of the original bag and exits 0, and the kit expects
     just that (it expected a refusal before)."""
-    from gnsscam_ros.bench.fuzz.corpus import build_corpus
-    from gnsscam_ros.bench.fuzz.corrupt_data import BAG_VARIANTS, replay_case
-    from gnsscam_ros.bench.fuzz.files import FilesConfig, run_case
     monkeypatch.setenv('ROS_LOG_DIR', str(tmp_path / 'ros_log'))
     corpus = build_corpus(tmp_path, seed=1)
     folder = tmp_path / 'case'

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from synthetic import FRAME, epoch_at, sky
+from synthetic import (C_MPS, FRAME, WGS84_A_M, WGS84_OMEGA_RPS, enu_to_ecef, epoch_at,
+                       light_time_range, sky)
 
 from gnsscam_ros.core import gnss
 from gnsscam_ros.core.filter import FilterConfig
@@ -42,12 +43,36 @@ def test_snapshot_two_constellations_separate_clocks():
 
 
 def test_sagnac_correction_matters_and_is_exact():
+    """The corrected range equals the light-time range solved from first principles
+    (synthetic.light_time_range), and its difference from the straight distance is the
+    published first-order Earth-rotation correction omega_E (x_s y_r - y_s x_r) / c
+    (IS-GPS-200, 20.3.3.4.3.4): tens of metres here."""
     epoch = epoch_at(TRUTH_ENU, clock_m=0.0)
-    rx = FRAME.enu_to_ecef(TRUTH_ENU)
-    corrected = np.linalg.norm(sagnac_corrected(epoch.sv_pos_ecef_m, rx) - rx, axis=1)
-    raw = np.linalg.norm(epoch.sv_pos_ecef_m - rx, axis=1)
-    np.testing.assert_allclose(corrected, epoch.pr_m, atol=1e-4)
-    assert np.max(np.abs(raw - epoch.pr_m)) > 5.0      # tens of metres at mid latitudes
+    rx = enu_to_ecef(TRUTH_ENU)
+    sv = epoch.sv_pos_ecef_m
+    corrected = np.linalg.norm(sagnac_corrected(sv, rx) - rx, axis=1)
+    raw = np.linalg.norm(sv - rx, axis=1)
+    # One rotation with the flight time of the straight distance is what the code does;
+    # the exact light time differs by omega |sv| (delta range / c) ~ 0.2 mm.
+    np.testing.assert_allclose(corrected, epoch.pr_m, rtol=0, atol=1e-3)
+    first_order = WGS84_OMEGA_RPS * (sv[:, 0] * rx[1] - sv[:, 1] * rx[0]) / C_MPS
+    np.testing.assert_allclose(corrected - raw, first_order, rtol=0, atol=1e-3)
+    assert np.max(np.abs(first_order)) > 5.0           # tens of metres at mid latitudes
+
+
+def test_sagnac_correction_at_a_known_geometry():
+    """A receiver on the equator at 0 deg longitude, a satellite due east at GPS radius in
+    the equatorial plane: the Earth turns the receiver towards the satellite during the
+    flight, shortening the range by omega_E a r_s sin(lambda_s) / c (35.7 m here)."""
+    rx = np.array([WGS84_A_M, 0.0, 0.0])
+    lon = np.radians(60.0)
+    sv = np.array([[26_560e3 * np.cos(lon), 26_560e3 * np.sin(lon), 0.0]])
+    shortening = WGS84_OMEGA_RPS * WGS84_A_M * 26_560e3 * np.sin(lon) / C_MPS
+    assert shortening == pytest.approx(35.68, abs=0.01)
+    corrected = np.linalg.norm(sagnac_corrected(sv, rx) - rx, axis=1)
+    raw = np.linalg.norm(sv - rx, axis=1)
+    assert raw - corrected == pytest.approx([shortening], abs=1e-3)
+    assert corrected == pytest.approx(light_time_range(sv, rx), abs=1e-3)
 
 
 def prepared(epoch, centre=TRUTH_ENU):

@@ -222,5 +222,11 @@ def test_filter_bound_and_level_equal_the_oracles_on_its_posteriors():
         np.testing.assert_allclose(result.risk.empirical_risk,
                                    oracles.hazard_mass(dist, w, cfg.alert_limits_m),
                                    rtol=0, atol=1e-12)
-        q_max = integrity.max_empirical_risk(cfg.target_risk, result.risk.epsilon)
+        # The budget and threshold by the oracles, from the epoch's KL: the PAC-Bayes
+        # budget eps = (KL + log((M + 1) / delta)) / M, then the largest empirical risk
+        # whose bound meets the target (scalar bisection).
+        m = cfg.n_posteriors
+        eps = (max(result.risk.kl_nats, 0.0) + np.log((m + 1) / cfg.risk_delta)) / m
+        assert result.risk.epsilon == pytest.approx(eps, rel=1e-12)
+        q_max = oracles.max_empirical_risk_exact(cfg.target_risk, eps)
         assert result.protection_level_m == oracles.protection_level(dist, w, q_max)

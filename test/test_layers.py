@@ -8,11 +8,14 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PROJECT = ('gnsscam_ros', 'msg_adapters')
-#: Bottom first; a package may import only packages before it (and itself).
+#: The installed packages, and the workshop (tools/: the fault-injection kit and the
+#: developer scripts, not installed), held to the same structure.
+PROJECT = ('gnsscam_ros', 'msg_adapters', 'tools')
+#: Bottom first; a package may import only packages before it (and itself). The workshop
+#: is last: nothing of the product may import it.
 LAYERS = ('gnsscam_ros.core', 'gnsscam_ros.io', 'msg_adapters', 'gnsscam_ros.vision',
           'gnsscam_ros.datasets', 'gnsscam_ros.bags', 'gnsscam_ros.nodes', 'gnsscam_ros.live',
-          'gnsscam_ros.evaluation', 'gnsscam_ros.bench')
+          'gnsscam_ros.evaluation', 'gnsscam_ros.bench', 'tools')
 MAX_LOCAL_IMPORTS, MAX_FUNCTION_LINES, MAX_FILE_LINES = 5, 120, 700
 
 

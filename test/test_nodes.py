@@ -363,10 +363,11 @@ def test_integrity_is_stale_without_gnss_and_never_a_stale_ok(graph, drive):
     assert all(r.stale and r.epoch_stamp_ns is None for r in before)
     n_before = len(risks)
     for epoch in drive.gnss[:6]:
+        # Each epoch's verdict before the next epoch (not a fixed pause: a loaded machine
+        # may take longer than any pause chosen here).
         pub.publish(ma.gnss_epoch_to_pointcloud2(epoch))
-        g.spin_for(0.05)
-    g.spin_until(lambda: any(ma.parse_integrity_risk(m).epoch_stamp_ns == drive.gnss[5].stamp_ns
-                             for m in risks), what='the last epoch')
+        g.spin_until(lambda: any(ma.parse_integrity_risk(m).epoch_stamp_ns == epoch.stamp_ns
+                                 for m in risks[n_before:]), what='the epoch verdict')
     during = [ma.parse_integrity_risk(m) for m in risks[n_before:]]
     assert any(r.level in (ma.OK, ma.ERROR) for r in during)
     # No dead reckoning at all: the motion is unknown, so never OK, and the message says
@@ -559,10 +560,11 @@ def test_odometry_global_map_origin_and_integrity_on_diagnostics(graph, drive):
 def test_configured_map_origin_is_latched_from_the_start(graph):
     g = graph
     origin = [48.858, 2.2945, 35.0]
-    g.add(FusionNode(context=g.ctx, parameter_overrides=overrides(
+    fusion = g.add(FusionNode(context=g.ctx, parameter_overrides=overrides(
         n_particles=100, use_map_origin=True, map_origin_llh=origin)))
     late = []
-    g.spin_for(0.3)
+    # Subscribed only once the origin went out: the latched copy is what arrives.
+    g.spin_until(lambda: fusion.origin_published, 10.0, 'map/origin published')
     g.probe.create_subscription(NavSatFix, 'map/origin', late.append, LATCHED)
     g.spin_until(lambda: late, 10.0, 'map/origin before any GNSS')
     fix = ma.navsatfix_to_fix(late[0])

@@ -19,9 +19,6 @@ import cv2
 import numpy as np
 import pytest
 from conftest import SMARTLOC_EXCERPT, wait_until
-from tools_corrupt import (BAD_NUMBERS, GOOD_INPUT, GOOD_TRUTH, ODOM, POINT, PR,
-                           assert_refused, dead_pid, hidden_leftovers, image_cases,
-                           librsf_cases, line_with, snapshot, unwritable_folder)
 
 from gnsscam_ros.bags.convert_cli import main as convert_main
 from gnsscam_ros.evaluation.cli import main as eval_main
@@ -30,6 +27,10 @@ from gnsscam_ros.io.atomic import write_csv_atomic, write_json_atomic, write_npz
 from gnsscam_ros.vision import mapdb_cli
 from gnsscam_ros.vision.database import MapDatabase
 from gnsscam_ros.vision.synthetic import synthetic_scene
+from tools.fuzz.corrupt_inputs import (BAD_NUMBERS, GOOD_INPUT, GOOD_TRUTH, ODOM, POINT, PR,
+                                       assert_refused, dead_pid, hidden_leftovers,
+                                       image_cases, librsf_cases, line_with, snapshot,
+                                       unwritable_folder)
 
 
 def run(main, argv, capsys):
@@ -391,7 +392,8 @@ def test_mapdb_query_refuses_each_unusable_image(mapdb_set, tmp_path, capsys):
     # Several at once: every bad one named, the good one answered, exit 3, the JSON says
     # which failed.
     js = tmp_path / 'answers.json'
-    bad = [tmp_path / 'one_pixel.png', tmp_path / 'bomb.png', tmp_path / 'garbage_3.png']
+    bad = [tmp_path / 'one_pixel.png', tmp_path / 'huge_dimensions.png',
+           tmp_path / 'garbage_3.png']
     code, out, err = run(mapdb_cli.main, ['query', '--db', db, *bad, good, '--json', js],
                          capsys)
     assert code == 3 and 'Traceback' not in err

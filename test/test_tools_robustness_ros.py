@@ -19,7 +19,6 @@ import pytest
 from ros_harness import RosGraph, ros_domain_id, ros_env, wait_until
 from rosbags.rosbag2 import StoragePlugin, Writer
 from sensor_msgs.msg import Imu
-from tools_corrupt import assert_refused, dead_pid, hidden_leftovers, unwritable_folder
 
 from gnsscam_ros.bags import schema
 from gnsscam_ros.bags.convert import convert_drive
@@ -30,6 +29,8 @@ from gnsscam_ros.live.player import BagReplayer
 from gnsscam_ros.live.record import BagRecorder
 from gnsscam_ros.live.record import main as record_main
 from gnsscam_ros.live.replay import main as replay_main
+from tools.fuzz.corrupt_inputs import (assert_refused, dead_pid, hidden_leftovers,
+                                       unwritable_folder)
 
 pytestmark = pytest.mark.ros
 

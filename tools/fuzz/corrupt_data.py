@@ -20,7 +20,8 @@ import numpy as np
 from gnsscam_ros.bags.read import bag_topics
 
 from .corpus import Corpus
-from .filecase import UNWRITABLE, FileCase, named
+from .corrupt_inputs import BAD_NUMBERS, FIELD_FAULTS, FILE_FAULTS, file_fault, unwritable_folder
+from .filecase import FileCase, named
 
 BAG_VARIANTS = ('truncated', 'bytes_flipped', 'garbage', 'empty_storage', 'storage_missing',
                 'metadata_garbage', 'metadata_truncated', 'metadata_empty', 'empty_folder',
@@ -138,16 +139,15 @@ def eval_bag_case(i: int, rng, corpus: Corpus, folder: Path) -> FileCase:
 
 
 # ====================================================================== libRSF text
+#: A bad number in a random field of a random line (``value_nan``, ...).
+VALUE_VARIANTS = {f'value_{v}': v for v in BAD_NUMBERS}
 LIBRSF_VARIANTS = (
-    'value_nan', 'value_inf', 'value_minus_inf', 'value_1e308', 'value_1e400',
-    'value_minus_1e308', 'value_text', 'field_dropped', 'field_added', 'unknown_tag',
-    'cut_mid_line', 'binary_garbage', 'nul_bytes', 'invalid_utf8', 'empty', 'only_comments',
-    'missing', 'directory', 'time_backwards', 'variance_negative', 'sv_id_1e12',
-    'system_3.5', 'elevation_1e5', 'truth_nan', 'truth_garbage', 'crlf', 'comments_blanks',
-    'tabs_trailing', 'stamp_1e20', 'token_1mb', 'pseudorange_negative',
-    'duplicate_satellite')
+    *VALUE_VARIANTS, *FIELD_FAULTS, *FILE_FAULTS, 'field_dropped', 'field_added',
+    'unknown_tag', 'cut_mid_line', 'missing', 'directory', 'time_backwards', 'truth_nan',
+    'truth_garbage', 'token_1mb', 'duplicate_satellite')
 #: Variants a correct loader accepts (exit 0).
-LIBRSF_BENIGN = ('crlf', 'comments_blanks', 'tabs_trailing', 'duplicate_satellite')
+LIBRSF_BENIGN = (*(k for k, why in FILE_FAULTS.items() if why is None),
+                 'duplicate_satellite')
 
 
 def _data_lines(text: str, tag: str | None = None) -> list[int]:
@@ -175,21 +175,13 @@ def make_librsf(kind: str, rng, corpus: Corpus, folder: Path
     text = corpus.librsf_input.read_text()
     shutil.copy(corpus.librsf_truth, truth)
     line, bad = None, inp
-    values = {'value_nan': 'nan', 'value_inf': 'inf', 'value_minus_inf': '-inf',
-              'value_1e308': '1e308', 'value_1e400': '1e400', 'value_minus_1e308': '-1e308',
-              'value_text': 'abc'}
-    fields = {'variance_negative': ('pseudorange3', 3, '-10'),
-              'sv_id_1e12': ('pseudorange3', 7, '1e12'),
-              'system_3.5': ('pseudorange3', 8, '3.5'),
-              'elevation_1e5': ('pseudorange3', 9, '1e5'),
-              'stamp_1e20': ('pseudorange3', 1, '1e20'),
-              'pseudorange_negative': ('pseudorange3', 2, '-2e7'),
-              'token_1mb': (None, None, '1' * 1_000_000)}
-    if kind in values:
-        text, line = _set_field(text, rng, values[kind])
-    elif kind in fields:
-        tag, field, value = fields[kind]
+    if kind in VALUE_VARIANTS:
+        text, line = _set_field(text, rng, VALUE_VARIANTS[kind])
+    elif kind in FIELD_FAULTS:
+        tag, field, value, _ = FIELD_FAULTS[kind]
         text, line = _set_field(text, rng, value, tag, field)
+    elif kind == 'token_1mb':
+        text, line = _set_field(text, rng, '1' * 1_000_000)
     elif kind in ('field_dropped', 'field_added', 'unknown_tag', 'time_backwards',
                   'duplicate_satellite'):
         text, line = _line_fault(kind, text, rng)
@@ -205,7 +197,7 @@ def make_librsf(kind: str, rng, corpus: Corpus, folder: Path
             truth.write_text(ttext)
         else:
             truth.write_bytes(rng.bytes(int(rng.integers(10, 5000))))
-    inp_bytes = _whole_file_fault(kind, text, rng)
+    inp_bytes = file_fault(kind, text.encode(), rng) if kind in FILE_FAULTS else text.encode()
     if kind == 'missing':
         pass
     elif kind == 'directory':
@@ -238,29 +230,6 @@ def _line_fault(kind: str, text: str, rng) -> tuple[str, int]:
     return '\n'.join(lines), k + 1
 
 
-def _whole_file_fault(kind: str, text: str, rng) -> bytes:
-    data = text.encode()
-    if kind == 'binary_garbage':
-        return rng.bytes(int(rng.integers(100, 20000)))
-    if kind == 'nul_bytes':
-        i = int(rng.integers(len(data)))
-        return data[:i] + b'\x00' * int(rng.integers(1, 64)) + data[i:]
-    if kind == 'invalid_utf8':
-        i = int(rng.integers(len(data)))
-        return data[:i] + b'\xff\xfe\xc3' + data[i:]
-    if kind == 'empty':
-        return b''
-    if kind == 'only_comments':
-        return b'# nothing here\n# at all\n'
-    if kind == 'crlf':
-        return data.replace(b'\n', b'\r\n')
-    if kind == 'comments_blanks':
-        return b'# smartLoc excerpt\n\n' + data.replace(b'\n', b'\n\n', 5)
-    if kind == 'tabs_trailing':
-        return data.replace(b' ', b'\t', 50).replace(b'\n', b'   \n')
-    return data
-
-
 def _librsf(i: int, rng, corpus: Corpus, folder: Path):
     kind = LIBRSF_VARIANTS[i % len(LIBRSF_VARIANTS)]
     inp, truth, line, bad = make_librsf(kind, rng, corpus, folder)
@@ -285,7 +254,7 @@ def eval_smartloc_case(i: int, rng, corpus: Corpus, folder: Path) -> FileCase:
             out.write_text('{"keep": true}\n')
             protect.append(out)
         elif kind == 'json_unwritable':
-            out = UNWRITABLE / 'metrics.json'
+            out = unwritable_folder(folder) / 'metrics.json'
             argv_out = ['--json', str(out)]
         elif kind == 'json_is_folder':
             out.mkdir()
@@ -336,7 +305,7 @@ def _convert_output_case(i: int, rng, corpus: Corpus, folder: Path) -> FileCase:
         out.write_text('keep\n')
         protect.append(out)
     elif kind == 'out_unwritable':
-        out = UNWRITABLE / 'out_bag'
+        out = unwritable_folder(folder) / 'out_bag'
     elif kind == 'out_through_file':
         blocker = folder / 'a_file'
         blocker.write_text('keep\n')

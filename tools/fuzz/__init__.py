@@ -1,4 +1,4 @@
-"""The project's fault-injection kit: ``python -m gnsscam_ros.bench.fuzz``.
+"""The project's fault-injection kit: ``python -m tools.fuzz``.
 
 Three campaigns, each seeded (``--seed``), each printing a table of figures and a one-line
 verdict per target (the issue "never crash, never lie"):

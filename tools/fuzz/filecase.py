@@ -11,8 +11,7 @@ from typing import Callable
 
 from gnsscam_ros.io.partials import partial_prefix
 
-#: A folder no one can write into, root included (sysfs refuses new entries).
-UNWRITABLE = Path('/sys/gnsscam_fuzz_unwritable')
+from .corrupt_inputs import dead_pid
 
 
 @dataclass
@@ -93,11 +92,10 @@ def killed_writer_leftovers(rng, out: Path) -> list[Path]:
     """1-3 hidden partial files of ``out`` as a writer SIGKILLed on this host leaves them
     (``.NAME.partial-HOST-PID-*`` with the pid of a process that has ended): the next
     write of ``out`` must remove them."""
-    ended = subprocess.Popen(['true'])
-    ended.wait()
+    ended = dead_pid()
     made = []
     for _ in range(int(rng.integers(1, 4))):
-        path = out.parent / f'{partial_prefix(out, ended.pid)}{rng.integers(1 << 30):x}'
+        path = out.parent / f'{partial_prefix(out, ended)}{rng.integers(1 << 30):x}'
         path.write_bytes(rng.bytes(int(rng.integers(1, 4096))))
         made.append(path)
     return made

@@ -11,65 +11,27 @@ leftovers of a killed run are removed or reported on the next run.
 """
 from __future__ import annotations
 
-import os
 import shutil
-import struct
 import zipfile
-import zlib
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from .corpus import Corpus
-from .filecase import UNWRITABLE, FileCase, all_removed, killed_writer_leftovers, named
 from gnsscam_ros.vision.database import MapDatabase
 
-IMAGE_VARIANTS = ('truncated', 'zero_bytes', 'garbage', 'one_pixel', 'two_by_two', 'text',
-                  'directory', 'missing', 'huge_dimensions', 'symlink_outside',
-                  'png_named_jpg', 'grey_featureless')
+from . import corrupt_inputs
+from .corpus import Corpus
+from .corrupt_inputs import IMAGE_FAULTS, unwritable_folder
+from .filecase import FileCase, all_removed, killed_writer_leftovers, named
+
+IMAGE_VARIANTS = tuple(IMAGE_FAULTS)
 #: Images a correct tool uses (or answers without a match): not an error.
 IMAGE_BENIGN = ('png_named_jpg',)
 
 
-def _png(width: int, height: int, payload: bytes = b'') -> bytes:
-    """A PNG whose header claims ``width`` x ``height`` (the pixels need not follow)."""
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return (struct.pack('>I', len(data)) + kind + data
-                + struct.pack('>I', zlib.crc32(kind + data) & 0xffffffff))
-    ihdr = struct.pack('>IIBBBBB', width, height, 8, 2, 0, 0, 0)
-    return (b'\x89PNG\r\n\x1a\n' + chunk(b'IHDR', ihdr)
-            + chunk(b'IDAT', zlib.compress(payload or b'\x00' * 64)) + chunk(b'IEND', b''))
-
-
 def write_image(kind: str, rng, good: Path, path: Path) -> None:
-    """A corrupt image of ``kind`` at ``path`` (from the valid image ``good``)."""
-    data = good.read_bytes()
-    if kind == 'truncated':
-        path.write_bytes(data[:int(len(data) * rng.uniform(0.01, 0.9))])
-    elif kind == 'zero_bytes':
-        path.write_bytes(b'')
-    elif kind == 'garbage':
-        path.write_bytes(rng.bytes(int(rng.integers(10, 50_000))))
-    elif kind in ('one_pixel', 'two_by_two'):
-        n = 1 if kind == 'one_pixel' else 2
-        ok, enc = cv2.imencode('.png', rng.integers(0, 256, (n, n, 3), dtype=np.uint8))
-        path.write_bytes(enc.tobytes())
-    elif kind == 'text':
-        path.write_text('this is not an image\n')
-    elif kind == 'directory':
-        path.mkdir()
-    elif kind == 'huge_dimensions':
-        side = int(rng.choice([65_535, 100_000, 2**31 - 1]))
-        path.write_bytes(_png(side, side))
-    elif kind == 'symlink_outside':
-        os.symlink('/etc/hostname', path)
-    elif kind == 'png_named_jpg':
-        img = cv2.imread(str(good))
-        path.write_bytes(cv2.imencode('.png', img)[1].tobytes())
-    elif kind == 'grey_featureless':
-        path.write_bytes(cv2.imencode('.jpg', np.full((240, 320, 3), 128, np.uint8))[1]
-                         .tobytes())
+    """A corrupt image of ``kind`` at ``path`` (from the valid image file ``good``)."""
+    corrupt_inputs.write_image(kind, rng, good.read_bytes(), path)
 
 
 def _image_set(corpus: Corpus, folder: Path) -> tuple[Path, Path, list[str]]:
@@ -142,7 +104,7 @@ def mapdb_build_case(i: int, rng, corpus: Corpus, folder: Path) -> FileCase:
         out.write_bytes(corpus.database.read_bytes())
         protect.append(out)
     elif kind == 'out_unwritable':
-        out = UNWRITABLE / 'map.npz'
+        out = unwritable_folder(folder) / 'map.npz'
     elif kind == 'out_is_folder':
         out.mkdir()
     else:
@@ -301,7 +263,7 @@ def mapdb_query_case(i: int, rng, corpus: Corpus, folder: Path) -> FileCase:
         out.write_text('{"keep": true}\n')
         protect.append(out)
     elif kind == 'json_unwritable':
-        out = UNWRITABLE / 'matches.json'
+        out = unwritable_folder(folder) / 'matches.json'
     elif kind == 'json_stale_partials':     # a killed earlier query left its temporary file
         stale = killed_writer_leftovers(rng, out)
         return FileCase('mapdb_query', f'output_{kind}',
@@ -337,7 +299,7 @@ def record_case(i: int, rng, corpus: Corpus, folder: Path) -> FileCase:
         out.write_text('keep\n')
         protect.append(out)
     elif kind == 'unwritable':
-        out = UNWRITABLE / name
+        out = unwritable_folder(folder) / name
     elif kind == 'through_file':
         blocker = folder / 'a_file'
         blocker.write_text('keep\n')

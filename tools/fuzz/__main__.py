@@ -1,4 +1,4 @@
-"""``python -m gnsscam_ros.bench.fuzz {messages,processes,files} [--seed S] [--json FILE]``.
+"""``python -m tools.fuzz {messages,processes,files} [--seed S] [--json FILE]``.
 
 Each subcommand prints its figures as tables and ends with one verdict line (PASS only when
 every target of the issue holds; each target with its figure). ``--json FILE`` also writes
@@ -33,7 +33,7 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog='python -m gnsscam_ros.bench.fuzz',
+    parser = argparse.ArgumentParser(prog='python -m tools.fuzz',
                                      description=__doc__.split('\n\n')[0])
     sub = parser.add_subparsers(dest='command', required=True)
     m = sub.add_parser('messages', help='malformed and mutated messages on every input '

@@ -1,20 +1,23 @@
 """Corrupt inputs for the command-line tools, and the checks every refusal must pass.
 
-Shared by test_tools_robustness.py (gnsscam_eval, gnsscam_convert, gnsscam_mapdb, partial
-outputs) and test_tools_robustness_ros.py (gnsscam_replay, gnsscam_record). Each table
-entry is cheap to make, so the tests try many variants in-process through the tools'
-``main(argv)``.
+The one implementation of each corruption (libRSF fields and whole-file faults, image
+files, dead writers, unwritable folders): the kit's seeded campaigns (:mod:`.corrupt_data`,
+:mod:`.corrupt_vision`: one corruption at a random place of a valid corpus file) and the
+tests' tables (test_tools_robustness.py, test_tools_robustness_ros.py: each corruption on
+a fixed line, with the message part the refusal must hold) both build from it.
 """
 from __future__ import annotations
 
 import os
 import struct
+import subprocess
+import sys
 import tempfile
 import zlib
 from pathlib import Path
 
+import cv2
 import numpy as np
-import pytest
 
 # ------------------------------------------------------------------ refusal checks
 
@@ -60,11 +63,15 @@ def hidden_leftovers(folder: Path) -> list[str]:
     return [p.name for p in Path(folder).iterdir() if p.name.startswith('.')]
 
 
-def unwritable_folder(tmp_path: Path) -> Path:
-    """A folder nobody may create files in: a read-only one, or (as root, whom permission
-    bits do not stop) sysfs, which refuses even root; skips the test when neither works."""
-    ro = tmp_path / 'read_only'
-    ro.mkdir()
+def unwritable_folder(scratch: Path) -> Path:
+    """A folder nobody may create files in: a read-only one under ``scratch``, or (as root,
+    whom permission bits do not stop) sysfs, which refuses even root.
+
+    Raises:
+        RuntimeError: neither refuses writes on this machine.
+    """
+    ro = Path(scratch) / 'read_only'
+    ro.mkdir(exist_ok=True)
     ro.chmod(0o555)
     try:
         probe = tempfile.mkdtemp(dir=ro)
@@ -72,18 +79,17 @@ def unwritable_folder(tmp_path: Path) -> Path:
         return ro
     os.rmdir(probe)
     ro.chmod(0o755)
+    ro.rmdir()
     try:
         probe = tempfile.mkdtemp(dir='/sys')
     except OSError:
         return Path('/sys')
     os.rmdir(probe)
-    pytest.skip('no folder here refuses writes')
+    raise RuntimeError('no folder here refuses writes (neither a read-only one nor /sys)')
 
 
 def dead_pid() -> int:
     """The pid of a process that has ended (a partial output's writer that was killed)."""
-    import subprocess
-    import sys
     proc = subprocess.Popen([sys.executable, '-c', ''])
     proc.wait()
     return proc.pid
@@ -109,6 +115,57 @@ def line_with(fields: list[str], index: int, value: str, time: str = '1') -> str
     return ' '.join(out) + '\n'
 
 
+#: One field of one record set to a value the loader must refuse: ``{name: (record tag,
+#: field index, value, part of the refusal)}``.
+FIELD_FAULTS = {
+    'pseudorange_negative': ('pseudorange3', 2, '-2e7', 'pseudorange'),
+    'variance_zero': ('pseudorange3', 3, '0', 'variance'),
+    'variance_negative': ('pseudorange3', 3, '-25', 'variance'),
+    'sv_id_fraction': ('pseudorange3', 7, '12.5', 'not an integer'),
+    'sv_id_65536': ('pseudorange3', 7, '65536', 'outside'),
+    'sv_id_1e12': ('pseudorange3', 7, '1e12', 'outside'),
+    'system_fraction': ('pseudorange3', 8, '3.5', 'not an integer'),
+    'elevation_91': ('pseudorange3', 9, '91', 'elevation'),
+    'elevation_1e5': ('pseudorange3', 9, '1e5', 'elevation'),
+    'cn0_negative': ('pseudorange3', 10, '-1', 'C/N0'),
+    'time_beyond_int32': ('pseudorange3', 1, '3e9', 'time'),
+    'time_1e20': ('pseudorange3', 1, '1e20', 'time'),
+    'speed_101': ('odom3', 2, '101', 'vx'),
+    'yaw_rate_11': ('odom3', 7, '11', 'wz'),
+}
+#: Faults of a whole libRSF file: ``{kind: part of the refusal}`` ('' any refusal; None: a
+#: correct loader accepts the file).
+FILE_FAULTS = {
+    'binary_garbage': '', 'nul_bytes': 'NUL', 'invalid_utf8': 'not a text file',
+    'empty': 'no pseudorange3 lines', 'only_comments': 'no pseudorange3 lines',
+    'crlf': None, 'comments_blanks': None, 'tabs_trailing': None,
+}
+
+
+def file_fault(kind: str, data: bytes, rng: np.random.Generator) -> bytes:
+    """``data`` (a valid libRSF file) with the whole-file fault ``kind`` of
+    :data:`FILE_FAULTS` at a place ``rng`` picks."""
+    if kind == 'binary_garbage':
+        return rng.bytes(int(rng.integers(100, 20000)))
+    if kind == 'nul_bytes':
+        i = int(rng.integers(len(data)))
+        return data[:i] + b'\x00' * int(rng.integers(1, 64)) + data[i:]
+    if kind == 'invalid_utf8':
+        i = int(rng.integers(len(data)))
+        return data[:i] + b'\xff\xfe\xc3' + data[i:]
+    if kind == 'empty':
+        return b''
+    if kind == 'only_comments':
+        return b'# nothing here\n# at all\n'
+    if kind == 'crlf':
+        return data.replace(b'\n', b'\r\n')
+    if kind == 'comments_blanks':
+        return b'# smartLoc excerpt\n\n' + data.replace(b'\n', b'\n\n', 5)
+    if kind == 'tabs_trailing':
+        return data.replace(b' ', b'\t', 50).replace(b'\n', b'   \n')
+    raise ValueError(f'unknown file fault {kind!r}; known: {sorted(FILE_FAULTS)}')
+
+
 def librsf_cases() -> list[tuple[str, str, str, str]]:
     """``(id, input text, truth text or '', expected message part)``: malformed files.
 
@@ -116,41 +173,38 @@ def librsf_cases() -> list[tuple[str, str, str, str]]:
     otherwise; the expected part is matched in the error line.
     """
     pr = ' '.join(PR)
+    records = {'pseudorange3': PR, 'odom3': ODOM}
     cases = []
-    for tag, fields in (('pseudorange3', PR), ('odom3', ODOM)):
+    for tag, fields in records.items():
         for n in (1, 2, len(fields) // 2, len(fields) - 1, len(fields) + 1):
             line = ' '.join((fields * 2)[:n]) + '\n'
             cases.append((f'{tag}-{n}-fields', GOOD_INPUT + line, '', ':3:'))
+    for name, (tag, index, value, expected) in FIELD_FAULTS.items():
+        time = value if index == 1 else '1'
+        cases.append((name, GOOD_INPUT + line_with(records[tag], index, value, time), '',
+                      expected))
+    rng = np.random.default_rng(12)
+    for kind, expected in FILE_FAULTS.items():
+        for seed in range(8 if kind == 'binary_garbage' else 1):
+            if expected is not None:
+                text = file_fault(kind, GOOD_INPUT.encode(), rng).decode('latin-1')
+                cases.append((f'{kind}-{seed}', text, '', expected))
     cases += [
         ('unknown-tag', GOOD_INPUT + 'gyro3 0 1 2 3\n', '', "unknown record type 'gyro3'"),
         ('long-line', GOOD_INPUT + 'pseudorange3 ' + '1' * 10000 + '\n', '', 'longer than'),
-        ('nul-byte', GOOD_INPUT + pr.replace('25', '2\x005') + '\n', '', 'NUL'),
         ('latin1', GOOD_INPUT + 'odom3 0 \xe9\n', '', 'not a text file'),
         ('epochs-back', GOOD_INPUT.replace('pseudorange3 0', 'pseudorange3 5') + pr + '\n', '',
          'not in time order'),
         ('odom-repeated', GOOD_INPUT + ' '.join(ODOM) + '\n', '', 'not increasing'),
-        ('sv-id-fraction', GOOD_INPUT + line_with(PR, 7, '12.5'), '', 'not an integer'),
-        ('system-fraction', GOOD_INPUT + line_with(PR, 8, '1.5'), '', 'not an integer'),
-        ('sv-id-65536', GOOD_INPUT + line_with(PR, 7, '65536'), '', 'outside'),
         ('satellite-at-centre', GOOD_INPUT + ' '.join(PR[:4] + ['0', '0', '0'] + PR[7:])
          .replace('pseudorange3 0', 'pseudorange3 1') + '\n', '', "Earth's centre"),
         ('satellite-beyond-1e8', GOOD_INPUT + line_with(PR, 4, '9.9e7').replace(
             '2809850.97', '9.9e7'), '', "Earth's centre"),
-        ('variance-zero', GOOD_INPUT + line_with(PR, 3, '0'), '', 'variance'),
-        ('variance-negative', GOOD_INPUT + line_with(PR, 3, '-25'), '', 'variance'),
-        ('pseudorange-negative', GOOD_INPUT + line_with(PR, 2, '-2e7'), '', 'pseudorange'),
-        ('elevation-91', GOOD_INPUT + line_with(PR, 9, '91'), '', 'elevation'),
-        ('cn0-negative', GOOD_INPUT + line_with(PR, 10, '-1'), '', 'C/N0'),
-        ('speed-101', GOOD_INPUT + line_with(ODOM, 2, '101'), '', 'vx'),
-        ('yaw-rate-11', GOOD_INPUT + line_with(ODOM, 7, '11'), '', 'wz'),
         ('time-negative', ' '.join(ODOM) + '\n' + ' '.join(PR).replace(
             'pseudorange3 0', 'pseudorange3 -1') + '\n', '', 'time'),
-        ('time-beyond-int32', GOOD_INPUT + line_with(PR, 1, '3e9'), '', 'time'),
         ('too-many-satellites', GOOD_INPUT + line_with(PR, 1, '1') * 257, '',
          '257 pseudoranges in one epoch'),
         ('no-pseudoranges', ' '.join(ODOM) + '\n', '', 'no pseudorange3 lines'),
-        ('empty', '', '', 'no pseudorange3 lines'),
-        ('comments-only', '# nothing\n# here\n', '', 'no pseudorange3 lines'),
         ('truth-empty', GOOD_INPUT, '\n', 'no point3 lines'),
         ('truth-at-centre', GOOD_INPUT, GOOD_TRUTH + ' '.join(
             ['point3', '1', '0', '0', '0'] + ['0'] * 9) + '\n', "Earth's centre"),
@@ -161,20 +215,17 @@ def librsf_cases() -> list[tuple[str, str, str, str]]:
         ('truth-pseudorange-tag-garbage', GOOD_INPUT, GOOD_TRUTH + 'point3 x\n',
          'needs 14 fields'),
     ]
-    rng = np.random.default_rng(12)
-    for seed in range(8):
-        junk = rng.integers(0, 256, 64 + 97 * seed, dtype=np.uint8).tobytes()
-        cases.append((f'binary-{seed}', junk.decode('latin-1'), '', ''))
     return cases
 
 
 # ---------------------------------------------------------------------- image files
-def png_header(width: int, height: int) -> bytes:
-    """A PNG that declares ``width x height`` (8-bit grey) and holds one tiny IDAT."""
+def png_header(width: int, height: int, colour_type: int = 0) -> bytes:
+    """A PNG that declares ``width x height`` (8-bit; ``colour_type`` 0 grey, 2 RGB) and
+    holds one tiny IDAT (the pixels need not follow)."""
     def chunk(kind: bytes, data: bytes) -> bytes:
         return (struct.pack('>I', len(data)) + kind + data
                 + struct.pack('>I', zlib.crc32(kind + data) & 0xFFFFFFFF))
-    ihdr = struct.pack('>IIBBBBB', width, height, 8, 0, 0, 0, 0)
+    ihdr = struct.pack('>IIBBBBB', width, height, 8, colour_type, 0, 0, 0)
     return (b'\x89PNG\r\n\x1a\n' + chunk(b'IHDR', ihdr)
             + chunk(b'IDAT', zlib.compress(b'\x00' * 64)) + chunk(b'IEND', b''))
 
@@ -201,34 +252,75 @@ def webp_header(width: int, height: int) -> bytes:
     return b'RIFF' + struct.pack('<I', 4 + len(vp8x)) + b'WEBP' + vp8x
 
 
+#: Faults of one image file: ``{kind: why gnsscam_mapdb refuses it}`` (None: a correct
+#: tool uses it, or answers it without a match; ``symlink_outside``: refused by a build as
+#: outside the image folder, not readable as an image by a query).
+IMAGE_FAULTS = {
+    'truncated': 'not a decodable image', 'zero_bytes': 'not a decodable image',
+    'garbage': 'not a decodable image', 'text': 'not a decodable image',
+    'one_pixel': 'too small', 'two_by_two': 'too small', 'directory': 'not a regular file',
+    'missing': 'no such image file', 'huge_dimensions': 'larger than',
+    'symlink_outside': None, 'png_named_jpg': None, 'grey_featureless': None,
+}
+
+
+def write_image(kind: str, rng: np.random.Generator, good: bytes, path: Path) -> None:
+    """A corrupt image of ``kind`` (:data:`IMAGE_FAULTS`) at ``path``, made from the
+    encoded valid image ``good``."""
+    if kind == 'truncated':
+        path.write_bytes(good[:int(len(good) * rng.uniform(0.01, 0.9))])
+    elif kind == 'zero_bytes':
+        path.write_bytes(b'')
+    elif kind == 'garbage':
+        path.write_bytes(rng.bytes(int(rng.integers(10, 50_000))))
+    elif kind in ('one_pixel', 'two_by_two'):
+        n = 1 if kind == 'one_pixel' else 2
+        path.write_bytes(_encoded(rng.integers(0, 256, (n, n, 3), dtype=np.uint8)))
+    elif kind == 'text':
+        path.write_text('this is not an image\n')
+    elif kind == 'directory':
+        path.mkdir()
+    elif kind == 'missing':
+        pass                                # a row naming a file that is not there
+    elif kind == 'huge_dimensions':
+        side = int(rng.choice([65_535, 100_000, 2**31 - 1]))
+        path.write_bytes(png_header(side, side, colour_type=2))
+    elif kind == 'symlink_outside':
+        os.symlink('/etc/hostname', path)
+    elif kind == 'png_named_jpg':
+        path.write_bytes(_encoded(cv2.imdecode(np.frombuffer(good, np.uint8),
+                                               cv2.IMREAD_COLOR)))
+    elif kind == 'grey_featureless':
+        path.write_bytes(_encoded(np.full((240, 320, 3), 128, np.uint8), '.jpg'))
+    else:
+        raise ValueError(f'unknown image fault {kind!r}; known: {sorted(IMAGE_FAULTS)}')
+
+
+def _encoded(img: np.ndarray, ext: str = '.png') -> bytes:
+    return cv2.imencode(ext, img)[1].tobytes()
+
+
 def image_cases(folder: Path) -> dict[str, str]:
     """Write unusable image files into ``folder``: ``{file name: expected reason part}``."""
-    import cv2
     folder = Path(folder)
     rng = np.random.default_rng(7)
+    reasons: dict[str, str] = {}
+    good_png = _encoded(rng.integers(0, 256, (120, 160, 3), dtype=np.uint8))
+    for kind, why in IMAGE_FAULTS.items():
+        for k in range({'truncated': 5, 'garbage': 10}.get(kind, 1) if why else 0):
+            name = f'{kind}_{k}.png' if kind in ('truncated', 'garbage') else f'{kind}.png'
+            write_image(kind, rng, good_png, folder / name)
+            reasons[name] = why
     files: dict[str, tuple[bytes, str]] = {}
-
-    def encoded(img, ext='.png') -> bytes:
-        return cv2.imencode(ext, img)[1].tobytes()
-
-    noise = rng.integers(0, 256, (120, 160, 3), dtype=np.uint8)
-    for name, shape in (('one_pixel', (1, 1, 3)), ('one_row', (1, 1000, 3)),
-                        ('one_column', (1000, 1, 3)), ('ten_pixels', (10, 10)),
-                        ('just_too_small', (62, 400)), ('grey_2x2', (2, 2))):
-        files[f'{name}.png'] = (encoded(rng.integers(0, 256, shape, dtype=np.uint8)),
+    for name, shape in (('one_row', (1, 1000, 3)), ('one_column', (1000, 1, 3)),
+                        ('ten_pixels', (10, 10)), ('just_too_small', (62, 400))):
+        files[f'{name}.png'] = (_encoded(rng.integers(0, 256, shape, dtype=np.uint8)),
                                 'too small')
-    files['one_pixel.jpg'] = (encoded(np.zeros((1, 1, 3), np.uint8), '.jpg'), 'too small')
-    files['one_pixel.bmp'] = (encoded(np.zeros((1, 1, 3), np.uint8), '.bmp'), 'too small')
-    good_png = encoded(noise)
-    files['empty.png'] = (b'', 'not a decodable image')
-    files['text.jpg'] = (b'hello, world\n', 'not a decodable image')
+    files['one_pixel.jpg'] = (_encoded(np.zeros((1, 1, 3), np.uint8), '.jpg'), 'too small')
+    files['one_pixel.bmp'] = (_encoded(np.zeros((1, 1, 3), np.uint8), '.bmp'), 'too small')
     files['html.png'] = (b'<html><body>404</body></html>', 'not a decodable image')
-    for cut in (8, 16, 33, 60, len(good_png) // 3):
+    for cut in (8, 16, 33, 60):
         files[f'cut_{cut}.png'] = (good_png[:cut], 'not a decodable image')
-    for seed in range(10):
-        junk = rng.integers(0, 256, 200 + 300 * seed, dtype=np.uint8).tobytes()
-        files[f'garbage_{seed}.png'] = (junk, 'not a decodable image')
-    files['bomb.png'] = (png_header(100_000, 100_000), 'larger than')
     files['bomb_wide.png'] = (png_header(2 ** 31 - 1, 1000), 'larger than')
     files['bomb_8001.png'] = (png_header(8001, 8000), 'larger than')
     files['bomb.jpg'] = (jpeg_header(60_000, 60_000), 'larger than')
@@ -237,11 +329,9 @@ def image_cases(folder: Path) -> dict[str, str]:
     files['bomb.webp'] = (webp_header(16_383, 16_383), 'larger than')
     files['bomb.pgm'] = (b'P5\n# huge\n100000 100000\n255\n' + b'\x00' * 16, 'larger than')
     files['zero_size.png'] = (png_header(0, 0), 'not a decodable image')
-    for name, (data, _) in files.items():
+    for name, (data, why) in files.items():
         (folder / name).write_bytes(data)
-    (folder / 'a_folder.png').mkdir()
-    reasons = {name: why for name, (_, why) in files.items()}
-    reasons['a_folder.png'] = 'not a regular file'
+        reasons[name] = why
     with open(folder / 'sparse_300MB.png', 'wb') as f:
         f.truncate(300 * 1024 * 1024)          # no blocks on disk: refused by its size
     reasons['sparse_300MB.png'] = 'larger than an image file may be'
