@@ -378,7 +378,9 @@ def test_messages_sample(tmp_path):
 @pytest.mark.slow
 @pytest.mark.ros
 def test_processes_sample(tmp_path):
-    cfg = ProcessesConfig(seed=2, duration_s=90.0, rate=5.0, warmup_s=10.0, gap_s=2.0,
+    # At 2x real time: at 5x a loaded machine's nodes fall behind the replay and the
+    # filter never settles, so no OK verdict would show that the check below can bite.
+    cfg = ProcessesConfig(seed=2, duration_s=90.0, rate=2.0, warmup_s=10.0, gap_s=2.0,
                           down_s=2.0, nodes=['imu_node', 'fusion_node'], camera=False,
                           particles=300, acquisition_particles=1000,
                           domain=ros_domain_id(), work_dir=str(tmp_path))

@@ -42,6 +42,19 @@ README = (ROOT / 'README.md').read_text(encoding='utf-8')
 BLOCK = re.compile(r'^```(\w+)\n(.*?)^```', re.S | re.M)
 
 
+def test_a_ros_user_finds_install_own_data_topics_and_the_consumer_first():
+    """The README is for the people who run the package: at most 250 lines, and install,
+    running on one's own data, the topics and the /integrity_risk consumer start within
+    its first 100."""
+    lines = README.splitlines()
+    assert len(lines) <= 250, len(lines)
+    headings = {line[3:]: number for number, line in enumerate(lines, 1)
+                if line.startswith('## ')}
+    for wanted in ('Install', 'Run the nodes on your own data', 'Topics',
+                   'A consumer of `/integrity_risk`'):
+        assert headings.get(wanted, 10**6) <= 100, (wanted, headings)
+
+
 def blocks(language: str) -> list[str]:
     return [body for lang, body in BLOCK.findall(README) if lang == language]
 
