@@ -14,6 +14,12 @@ default), so the tolerance only absorbs a last-bit difference of another CPU's s
 order; a change of the algorithm or of its plumbing moves them by many orders more (1e-9
 of a 20 m protection level is 20 nm).
 
+The last bits depend on the numeric libraries, and a particle filter turns a last-bit
+difference into another resampling pick: the reference holds where it was recorded (its
+environment is stored with it: the default, newest tier). On another tier (Debian's or
+Ubuntu's numpy and numba) the comparison does not apply and says so; there the other
+tests of the suite check the behaviour.
+
 When the algorithm changes these outputs on purpose, regenerate the reference (the command
 is in every failure message) and commit it with the change that explains it.
 """
@@ -54,6 +60,12 @@ def test_reference_holds_both_verdict_levels():
 @pytest.mark.slow
 @pytest.mark.parametrize('name', record_reference.DRIVES)
 def test_outputs_equal_the_reference(name):
+    with np.load(record_reference.REFERENCE) as stored:
+        recorded = str(stored[record_reference.ENVIRONMENT_KEY])
+    here = record_reference.numeric_environment()
+    if recorded != here:
+        pytest.skip(f'reference recorded with {recorded}; this environment has {here}: '
+                    'bit-level equality does not carry across numeric libraries')
     expected = _stored(name)
     actual = record_reference.record_drive(name)
     assert sorted(actual) == sorted(expected), f'{name}: recorded arrays {_advice()}'

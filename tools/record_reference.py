@@ -26,10 +26,13 @@ against refactoring.
 from __future__ import annotations
 
 import argparse
+import platform
 import sys
 from pathlib import Path
 
+import numba
 import numpy as np
+import scipy
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -46,6 +49,8 @@ from gnsscam_ros.io.atomic import OutputExistsError, atomic_output  # noqa: E402
 #: The reference file and the command that writes it (named by the test's failures).
 REFERENCE = ROOT / 'test' / 'data' / 'reference_epochs.npz'
 COMMAND = './run python tools/record_reference.py --force'
+#: Key of the environment the reference was recorded in.
+ENVIRONMENT_KEY = 'environment'
 SEED = 0
 #: Alert limit of the reference runs [m]: within it the protection levels of both drives
 #: fall once settled, so that both OK and ERROR verdicts are held (at the default 8 m
@@ -119,13 +124,21 @@ def record_drive(name: str) -> dict[str, np.ndarray]:
     return {**published_epochs(drive, config), **evaluated_epochs(drive, config)}
 
 
+def numeric_environment() -> str:
+    """The libraries whose arithmetic the reference's last bits depend on: a particle
+    filter turns a last-bit difference (another numpy's summation, another numba's
+    vectorisation) into another resampling pick, and the runs part."""
+    return (f'python {platform.python_version()}, numpy {np.__version__}, '
+            f'scipy {scipy.__version__}, numba {numba.__version__}, {platform.machine()}')
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--out', type=Path, default=REFERENCE,
                         help=f'the reference file (default {REFERENCE.relative_to(ROOT)})')
     parser.add_argument('--force', action='store_true', help='replace an existing file')
     args = parser.parse_args(argv)
-    arrays = {}
+    arrays = {ENVIRONMENT_KEY: np.array(numeric_environment())}
     for name in DRIVES:
         for key, value in record_drive(name).items():
             arrays[f'{name}/{key}'] = value
