@@ -44,6 +44,26 @@ def replace_marked(text: str, name: str, body: str) -> str:
     return f'{head}{begin}\n{body.strip(chr(10))}\n{end}{tail}'
 
 
+def rewrite_text(path: Path, transform) -> bool:
+    """Rewrite a text file through ``transform(old text) -> new text``, atomically and only
+    when it changes; whether it changed.
+
+    Raises:
+        ValueError: From ``transform`` (the message names the file).
+    """
+    path = Path(path)
+    old = path.read_text(encoding='utf-8')
+    try:
+        new = transform(old)
+    except ValueError as err:
+        raise ValueError(f'{path}: {err}') from err
+    if new == old:
+        return False
+    with atomic_output(path, force=True, encoding='utf-8') as handle:
+        handle.write(new)
+    return True
+
+
 def rewrite_marked(path: Path, name: str, body: str) -> bool:
     """Put ``body`` into the section ``name`` of the file ``path``, atomically.
 
@@ -54,14 +74,4 @@ def rewrite_marked(path: Path, name: str, body: str) -> bool:
         OSError: The file cannot be read or written.
         ValueError: As :func:`marked_section` (the message names the file).
     """
-    path = Path(path)
-    old = path.read_text(encoding='utf-8')
-    try:
-        new = replace_marked(old, name, body)
-    except ValueError as err:
-        raise ValueError(f'{path}: {err}') from err
-    if new == old:
-        return False
-    with atomic_output(path, force=True, encoding='utf-8') as handle:
-        handle.write(new)
-    return True
+    return rewrite_text(path, lambda old: replace_marked(old, name, body))

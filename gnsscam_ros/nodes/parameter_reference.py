@@ -21,8 +21,7 @@ from gnsscam_ros.core.config import (YAML_END, FilterConfig, comment_lines,
 from gnsscam_ros.core.engine import InputTiming
 from gnsscam_ros.core.parameters import (PARAMETER_SECTION, ParameterSpec,
                                          render_parameter_table)
-from gnsscam_ros.io.atomic import atomic_output
-from gnsscam_ros.io.marked import rewrite_marked
+from gnsscam_ros.io.marked import rewrite_marked, rewrite_text
 
 from .parameters import (CAMERA_NODE, EVERY_NODE, GNSS_NODE, IMU_NODE, FusionNodeSettings,
                          Groups, own)
@@ -110,16 +109,7 @@ def _rewrite(path: Path) -> bool:
         return rewrite_marked(path, PARAMETER_SECTION, body)
     if path.stem not in NODE_PARAMETERS:
         raise ValueError(f'{path}: not the YAML file of a node ({", ".join(NODE_PARAMETERS)})')
-    old = path.read_text(encoding='utf-8')
-    try:
-        new = update_node_yaml(old, path.stem)
-    except ValueError as err:
-        raise ValueError(f'{path}: {err}') from err
-    if new == old:
-        return False
-    with atomic_output(path, force=True, encoding='utf-8') as handle:
-        handle.write(new)
-    return True
+    return rewrite_text(path, lambda old: update_node_yaml(old, path.stem))
 
 
 def main(argv: list[str] | None = None) -> int:
