@@ -5,6 +5,7 @@ importing test module, with the reason (conftest.NO_RCLPY).
 The rclpy-free parts (a domain id of its own, a child's environment, polling) are in
 conftest and re-exported here for the ROS tests.
 """
+import contextlib
 import signal
 import subprocess
 import time
@@ -14,6 +15,10 @@ from conftest import NO_RCLPY, ros_domain_id, ros_env, wait_until
 
 rclpy = pytest.importorskip('rclpy', reason=NO_RCLPY)
 
+from gnsscam_ros.nodes.camera_node import CameraNode  # noqa: E402
+from gnsscam_ros.nodes.fusion_node import FusionNode  # noqa: E402
+from gnsscam_ros.nodes.gnss_node import GnssNode  # noqa: E402
+from gnsscam_ros.nodes.imu_node import ImuNode  # noqa: E402
 from gnsscam_ros.nodes.runtime import stop_process  # noqa: E402  (needs rclpy)
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
@@ -89,3 +94,19 @@ def stop(proc: subprocess.Popen, timeout_s: float = 20.0) -> int:
     rc = stop_process(proc, timeout_s)
     assert rc != -signal.SIGKILL, f'the process ignored SIGINT for {timeout_s} s'
     return rc
+
+
+@contextlib.contextmanager
+def every_node_in_process():
+    """The four nodes with their default parameters in one rclpy context of this process
+    (no spinning), by name; destroyed and the context shut down afterwards."""
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=ros_domain_id())
+    made = []
+    try:
+        made = [cls(context=ctx) for cls in (GnssNode, CameraNode, ImuNode, FusionNode)]
+        yield {node.get_name(): node for node in made}
+    finally:
+        for node in made:
+            node.destroy_node()
+        rclpy.shutdown(context=ctx)

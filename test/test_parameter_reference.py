@@ -2,19 +2,12 @@
 (``core.parameters``; ``nodes.parameters``, ``nodes.parameter_reference``), under one name,
 and the rendered parameter reference lists every parameter a node declares."""
 import pytest
-from ros_harness import ros_domain_id  # skips this module without rclpy
-
-import rclpy
-from rclpy.context import Context
+from ros_harness import every_node_in_process  # skips this module without rclpy
 
 from test_parameter_docs import table_rows
 
 from gnsscam_ros.core.engine import InputTiming
 from gnsscam_ros.nodes import parameter_reference
-from gnsscam_ros.nodes.camera_node import CameraNode
-from gnsscam_ros.nodes.fusion_node import FusionNode
-from gnsscam_ros.nodes.gnss_node import GnssNode
-from gnsscam_ros.nodes.imu_node import ImuNode
 from gnsscam_ros.nodes.parameters import specs_of
 
 pytestmark = pytest.mark.ros
@@ -24,16 +17,8 @@ _RCLPY_PARAMETERS = {'use_sim_time', 'start_type_description_service'}
 
 @pytest.fixture(scope='module')
 def nodes():
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=ros_domain_id())
-    made = []
-    try:
-        made = [cls(context=ctx) for cls in (GnssNode, CameraNode, ImuNode, FusionNode)]
-        yield {node.get_name(): node for node in made}
-    finally:
-        for node in made:
-            node.destroy_node()
-        rclpy.shutdown(context=ctx)
+    with every_node_in_process() as by_name:
+        yield by_name
 
 
 @pytest.mark.parametrize('name', sorted(parameter_reference.NODE_PARAMETERS))

@@ -2,17 +2,13 @@
 name, message type, reliability, durability and depth, and the node is named there as its
 producer or consumer; the recorder subscribes with the registry's latching and depths."""
 import pytest
-from ros_harness import ros_domain_id  # skips this module without rclpy
+from ros_harness import every_node_in_process, ros_domain_id  # skips without rclpy
 
 import rclpy
 from rclpy.context import Context
 from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
 
 from gnsscam_ros.live.record import DEFAULT_TOPICS, BagRecorder
-from gnsscam_ros.nodes.camera_node import CameraNode
-from gnsscam_ros.nodes.fusion_node import FusionNode
-from gnsscam_ros.nodes.gnss_node import GnssNode
-from gnsscam_ros.nodes.imu_node import ImuNode
 from msg_adapters import wire
 from msg_adapters.message_classes import message_class
 
@@ -32,16 +28,8 @@ _DEPTH_PARAMETERS = {('gnss_node', wire.GNSS): 'input_queue_depth',
 
 @pytest.fixture(scope='module')
 def nodes():
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=ros_domain_id())
-    made = []
-    try:
-        made = [cls(context=ctx) for cls in (GnssNode, CameraNode, ImuNode, FusionNode)]
-        yield {node.get_name(): node for node in made}
-    finally:
-        for node in made:
-            node.destroy_node()
-        rclpy.shutdown(context=ctx)
+    with every_node_in_process() as by_name:
+        yield by_name
 
 
 def _relative(node, topic_name: str) -> str:
