@@ -21,7 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 SPECS = FilterConfig.parameter_specs()
 # Unit implied by a name's suffix (units in names); the longest matching suffix wins.
 SUFFIX_UNITS = {'_m': 'm', '_m2': 'm^2/s', '_rad2': 'rad^2/s', '_s': 's', '_deg': 'deg',
-                '_dbhz': 'dB-Hz', '_mps': 'm/s', '_rps': 'rad/s', '_nats': 'nats'}
+                '_dbhz': 'dB-Hz', '_mps': 'm/s', '_rps': 'rad/s', '_nats': 'nats',
+                '_m2_per_m': 'm^2/m'}
 
 
 def test_every_parameter_is_documented_once_with_the_unit_of_its_name():

@@ -49,6 +49,33 @@ def test_converges_on_exact_geometry(likelihood):
     assert abs(heading_error) < np.radians(10)
 
 
+def _spread_growth_m2(travelled_m: float, dt_s: float) -> float:
+    """Variance of the east displacement of the particles over one GNSS-less step [m^2]."""
+    cfg = config(motion_perturbation_scale=0.0)
+    filt = ParticleFilter(cfg, frame=FRAME, rng=np.random.default_rng(9))
+    drive_east(filt, 5, speed=0.0)
+    before = filt.particles[:, 0].copy()
+    blind = epoch_at([0.0, 0.0, 0.0], stamp_ns=int((4 + dt_s) * SECOND))
+    blind = replace(blind, pr_m=np.full_like(blind.pr_m, np.nan))
+    # Driving north: the east spread grows by the process noise only.
+    heading_north = MotionIncrement(dt_s, travelled_m, 0.0, 1e-12, 1e-12)
+    filt.particles[:, 3] = np.pi / 2
+    assert filt.step(blind, heading_north).status == PROPAGATED
+    # A step without GNSS keeps the particles in order: each one's own displacement.
+    return float(np.var(filt.particles[:, 0] - before))
+
+
+def test_process_noise_grows_with_the_distance_driven_not_with_time_at_rest():
+    cfg = FilterConfig()
+    at_rest = _spread_growth_m2(0.0, 30.0)
+    moving = _spread_growth_m2(150.0, 30.0)
+    # Measured against the parameters (sampling error of 800 particles: ~5 %).
+    assert at_rest == pytest.approx(cfg.propagation_var_m2 * 30.0, rel=0.15)
+    assert moving == pytest.approx(cfg.propagation_var_m2 * 30.0
+                                   + cfg.propagation_var_m2_per_m * 150.0, rel=0.15)
+    assert moving > 10.0 * at_rest
+
+
 def test_time_going_backwards_is_rejected_and_state_kept():
     filt = ParticleFilter(config(), frame=FRAME, rng=np.random.default_rng(2))
     drive_east(filt, 5)

@@ -45,8 +45,7 @@ def oracle_choice(filt: ParticleFilter, epoch, motion, camera):
     cfg = filt.config
     distance, dyaw = motion_samples(motion, cfg.motion_sample_count,
                                     cfg.motion_perturbation_scale, filt.rng)
-    pos_var = np.array([cfg.propagation_var_m2, cfg.propagation_var_m2,
-                        cfg.vertical_propagation_var_m2]) * motion.dt_s
+    pos_var = cfg.motion.position_process_var_m2(motion.dt_s, motion.distance_m)
     priors = oracles.propagate(filt.particles, distance, dyaw, motion.dup_m, pos_var,
                                cfg.yaw_propagation_var_rad2 * motion.dt_s,
                                filt.noise.take((distance.shape[0], filt.particles.shape[0],

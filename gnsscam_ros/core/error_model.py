@@ -100,7 +100,7 @@ class ErrorPriors:
     wide_share: float = 0.3
     pooled_strength: float = 30.0
     class_strength: float = 30.0
-    min_core_sd_m: float = 1.0
+    min_core_sd_m: float = 0.3
     max_shape: float = 10.0
 
     def shape(self) -> np.ndarray:

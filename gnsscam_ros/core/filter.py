@@ -310,8 +310,7 @@ class ParticleFilter:
         # heading), so the protection level grows with the gap.
         gap_m2 = (cfg.max_speed_mps * motion.unknown_s) ** 2
         priors = propagate(self.particles, distance, dyaw, motion.dup_m,
-                           np.array([cfg.propagation_var_m2, cfg.propagation_var_m2,
-                                     cfg.vertical_propagation_var_m2]) * dt_s
+                           cfg.motion.position_process_var_m2(dt_s, motion.distance_m)
                            + np.array([gap_m2, gap_m2, 0.0]),
                            cfg.yaw_propagation_var_rad2 * dt_s
                            + (cfg.max_yaw_rate_rps * motion.unknown_s) ** 2,
