@@ -2,7 +2,7 @@
 are those recorded in test/data/reference_epochs.npz (by tools/record_reference.py).
 
 The reference holds every GNSS epoch of the smartLoc excerpt (284 epochs at 5 Hz) and of
-120 s of the emulated drive (121 epochs) with a 25 m alert limit, so that it holds both OK
+120 s of the emulated drive (121 epochs) with a 30 m alert limit, so that it holds both OK
 and ERROR verdicts: what fusion_node publishes (status, estimate, covariance, heading,
 protection level, risk bounds, integrity level) and what the evaluation records of the
 same run (its verdicts and the reference risk of the M posteriors at the truth).
