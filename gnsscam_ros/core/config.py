@@ -135,8 +135,8 @@ class MotionConfig(_Part):
         'slowly and GNSS observes it poorly.', 'm^2/m', low=0.0)
     propagation_var_m2: float = parameter(
         0.01, 'Position process noise per axis per second, horizontal and vertical, on top '
-        'of the travelled share: a vehicle at rest does not drift, this keeps its particle '
-        'set diverse (centimetres per minute of rest).', 'm^2/s', low=0.0)
+        'of the travelled share: a vehicle at rest does not drift, this only keeps its '
+        'particle set diverse (0.3 m in 10 s of rest).', 'm^2/s', low=0.0)
     yaw_propagation_var_rad2: float = parameter(
         3e-4, 'Heading process noise per second.', 'rad^2/s', low=0.0)
     motion_perturbation_scale: float = parameter(

@@ -91,7 +91,8 @@ class ErrorPriors:
         wide_share: Share of NLOS / multipath residuals before any data.
         pooled_strength: Pseudo-samples of the pooled fit's prior.
         class_strength: Pseudo-samples by which a class is drawn to the pooled fit.
-        min_core_sd_m: Smallest core spread: code noise never vanishes [m].
+        min_core_sd_m: Smallest core spread: code noise never vanishes (0.3 m: a good
+            receiver's code tracking) [m].
         max_shape: Largest factor of the SIGMA-epsilon shape (at the lowest C/N0).
     """
 
