@@ -66,7 +66,7 @@ def _spread_growth_m2(travelled_m: float, dt_s: float) -> float:
 
 
 def test_process_noise_grows_with_the_distance_driven_not_with_time_at_rest():
-    cfg = FilterConfig()
+    cfg = config()                       # the process noise of the runs below
     at_rest = _spread_growth_m2(0.0, 30.0)
     moving = _spread_growth_m2(150.0, 30.0)
     # Measured against the parameters (sampling error of 800 particles: ~5 %).
