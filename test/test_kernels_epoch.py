@@ -69,7 +69,8 @@ def oracle_choice(filt: ParticleFilter, epoch, motion, camera):
         log_lik = oracles.mixture_log_likelihood(e, prep.sigma_m, prep.wide_share,
                                                  prep.wide_mean_m, prep.wide_sd_m,
                                                  gnss.FAULT_SHARE, cfg.outlier_range_m)
-    joint = filt.log_w + filt._tempering_exponent(motion.dt_s) * log_lik
+    tempering = filt._tempering_exponent(filt._persisting_tempering(motion.dt_s))
+    joint = filt.log_w + tempering * log_lik
     if camera:
         total = np.log(np.exp(joint).sum(axis=1))
         matches = np.array([c.position_enu_m for c in camera])

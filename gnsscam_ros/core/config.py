@@ -187,12 +187,15 @@ class GnssConfig(_Part):
         'errors are positive; a kernel wide enough to take them in biases the clock, and '
         'through it the height, by tens of metres.', 'm', low=0.0)
     error_correlation_time_s: float = parameter(
-        10.0, 'Correlation time tau of the GNSS errors (a first-order Gauss-Markov process): '
-        'an epoch dt after the last is worth tanh(dt / (2 tau)) of an independent one in '
-        "the likelihood, whatever the GNSS rate (and the 'learned' bias hypotheses' memory "
-        'until the error model has measured its own); 0 = every epoch independent. A '
-        'measured correlation would make the likelihood bolder where errors decorrelate '
-        'fast, and a wrong lock likelier; this fixed value keeps it.', 's', low=0.0,
+        10.0, 'Correlation time tau of the persisting part of the GNSS errors (a first-order '
+        'Gauss-Markov process): an epoch dt after the last is worth c = tanh(dt / (2 tau)) '
+        'of an independent one in the likelihood, whatever the GNSS rate, or '
+        '1 / ((1 - s) + s / c) with s the persisting share measured from the snapshot '
+        "solutions (core.persistence; 1 until measured); the 'learned' bias hypotheses' "
+        'memory until the error model has measured its own; 0 = every epoch independent. '
+        'A measured correlation time would make the likelihood bolder where errors '
+        'decorrelate fast, and a wrong lock likelier; this fixed value keeps it.', 's',
+        low=0.0,
         provenance='Chosen among 2.5, 10 and 30 s on the first half of the smartLoc Berlin '
         'drive (filter seeds 1-3); reported on its second half and the robustness variants.')
     likelihood: str = parameter(

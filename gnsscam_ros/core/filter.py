@@ -29,6 +29,7 @@ from .kernels import weights as weight_kernels
 from .noise import ProcessNoise
 from .particles import (POS, STATE_DIM, SYSTEMATIC, YAW, MotionIncrement,
                         motion_samples, normalize_log_weights, propagate, weighted_mean_cov)
+from .persistence import SnapshotPersistence
 from .rng import spawn
 from .snapshot import solve_snapshot
 # Epoch outcomes (``core.types``, so that the verdict needs no filter to read them).
@@ -162,6 +163,7 @@ class ParticleFilter:
         self.errors = AdaptiveErrorModel(config.error_window_s, config.error_correlation_time_s)
         self.consistency = ConsistencyMonitor(config.consistency_suspect_nats,
                                               config.consistency_recover_nats)
+        self.persistence = SnapshotPersistence(config.error_window_s)
         self._consistency_state = ConsistencyState()
         self.last_stamp_ns: int | None = None
         self.distance_since_init_m = 0.0
@@ -197,6 +199,7 @@ class ParticleFilter:
         self.errors = AdaptiveErrorModel(self.config.error_window_s,
                                          self.config.error_correlation_time_s)
         self.consistency.reset()
+        self.persistence.reset()
         self.distance_since_init_m = 0.0
         self.acquired_stamp_ns = None
         self._settled_stationary = False
@@ -316,6 +319,9 @@ class ParticleFilter:
                            + (cfg.max_yaw_rate_rps * motion.unknown_s) ** 2,
                            self.noise.take((distance.shape[0], self.particles.shape[0],
                                             STATE_DIM)))
+        # The predicted motion of the estimate, for the dead-reckoned path the snapshot
+        # solutions are compared with (core.persistence).
+        self.persistence.move(np.exp(self.log_w) @ (priors[0, :, :2] - self.particles[:, :2]))
         self._motion_unknown_s = float(motion.unknown_s)
         if motion.unknown_s * cfg.max_yaw_rate_rps > HEADING_LOST_RAD:
             # Without dead reckoning the heading drifts by up to max_yaw_rate_rps: beyond
@@ -417,12 +423,13 @@ class ParticleFilter:
         # (profiled out inside the likelihood kernel).
         spread_m = min(float(np.sqrt(max(np.trace(cov), 0.0))), cfg.clock_kernel_max_m)
         clock_w = gnss.clock_weights(prep, centre, spread_m)
-        tempering = self._tempering_exponent(dt_s)
+        persisting = self._persisting_tempering(dt_s)
+        tempering = self._tempering_exponent(persisting)
         lik = self.likelihood.joint(priors, prep, clock_w, tempering, self.log_w)
         joint, total = lik.joint, lik.total
         self._consistency_state = self._snapshot_step(epoch.stamp_ns, priors[0], prep,
                                                       centre, spread_m, tempering,
-                                                      float(total[0]))
+                                                      float(total[0]), persisting)
         fusion = None
         if camera and cfg.use_camera:
             # The cost is images x samples x particles: a bounded number of images.
@@ -454,7 +461,7 @@ class ParticleFilter:
 
     def _snapshot_step(self, stamp_ns: int, cloud: np.ndarray, prep: gnss.PreparedEpoch,
                        centre: np.ndarray, spread_m: float, tempering: float,
-                       cloud_total: float) -> ConsistencyState:
+                       cloud_total: float, persisting: float) -> ConsistencyState:
         """What the epoch's own robust snapshot solution tells: its residuals teach the
         error model (``core.error_model``; the snapshot depends on this epoch alone, so
         a filter locked onto a wrong place cannot teach the model that place), and the
@@ -467,6 +474,7 @@ class ParticleFilter:
                                  prep.n_systems, centre)
         if snap is None:
             return self.consistency.observe(stamp_ns, float('nan'))
+        self.persistence.observe(stamp_ns, snap[:2])
         if adaptive:
             at_snap = gnss.clock_weights(prep, snap, cfg.clock_kernel_max_m)
             residual = gnss.clock_corrected_residuals(snap[None], prep, at_snap)[0]
@@ -485,8 +493,13 @@ class ParticleFilter:
         clock_w = gnss.clock_weights(prep, centre + shift[:3], spread_m)
         moved_total = float(self.likelihood.joint(moved, prep, clock_w, tempering,
                                                   log_w).total[0])
-        return self.consistency.observe(stamp_ns, moved_total - cloud_total, tempering,
-                                        shift[:2])
+        # The test weighs the epoch as if all of its error persisted: a snapshot solution
+        # pulled off by an NLOS episode stays off for as long as the episode, and must not
+        # outweigh the cloud sooner because the rest of the error is white. The ratio of
+        # two likelihoods tempered alike scales with the exponent.
+        return self.consistency.observe(
+            stamp_ns, (moved_total - cloud_total) * (persisting / tempering), persisting,
+            shift[:2])
 
     def _recover(self, stamp_ns: int) -> None:
         """Move a share of the cloud by the smoothed separation onto the snapshot
@@ -584,13 +597,16 @@ class ParticleFilter:
         if cfg.bias_model == BIAS_NONE:
             offsets = prior_offsets
         else:
-            # The 'learned' hypotheses take an inlier's error (the core of its class) and
-            # how long it persists from the error model; the residuals at the estimate size
+            # The 'learned' hypotheses take the persisting part of an inlier's error (the
+            # core of its class times the square root of the persisting share: the white
+            # part is averaged by the filter and is in the cloud's own spread) and how
+            # long it persists from the error model; the residuals at the estimate size
             # the 'cn0' ones. The update weighed each satellite with tempering times inlier
             # probability over its variance.
             sigma = tau = None
             if cfg.bias_model == BIAS_LEARNED:
-                sigma = self.errors.satellite_model(prep.cn0_dbhz)[0]
+                sigma = (self.errors.satellite_model(prep.cn0_dbhz)[0]
+                         * np.sqrt(self.persistence.persistent_share))
                 tau = self.errors.correlation_time_s
             else:
                 at_estimate = gnss.clock_corrected_residuals(mean[None], prep, clock_w)[0]
@@ -620,17 +636,29 @@ class ParticleFilter:
         self.posterior_set = posteriors
         return risk, level
 
-    def _tempering_exponent(self, dt_s: float) -> float:
-        """Tempering exponent of this epoch's GNSS log-likelihood.
+    def _persisting_tempering(self, dt_s: float) -> float:
+        """What an epoch is worth if all of its error persists.
 
         Errors that follow a first-order Gauss-Markov process with correlation time
         ``tau = error_correlation_time_s`` make a new epoch ``dt`` after the last worth
-        ``(1 - phi) / (1 + phi) = tanh(dt / (2 tau))`` of an independent one,
+        ``c = (1 - phi) / (1 + phi) = tanh(dt / (2 tau))`` of an independent one,
         ``phi = exp(-dt / tau)`` (the information an AR(1) sample adds about a constant):
         ``dt / (2 tau)`` per epoch at a high rate, one per epoch when they are far apart,
         so that the information per second of driving is the same at any GNSS rate.
         """
-        cfg = self.config
-        if cfg.error_correlation_time_s <= 0.0:
+        tau = self.config.error_correlation_time_s
+        if tau <= 0.0:
             return 1.0
-        return float(np.tanh(max(dt_s, 1e-3) / (2.0 * cfg.error_correlation_time_s)))
+        return float(np.tanh(max(dt_s, 1e-3) / (2.0 * tau)))
+
+    def _tempering_exponent(self, persisting: float) -> float:
+        """Tempering exponent of this epoch's GNSS log-likelihood, from what it is worth
+        if all of its error persists (``persisting``, :meth:`_persisting_tempering`).
+
+        Only the share ``s`` of the error that persists (measured from the snapshot
+        solutions, ``core.persistence``; 1 until measured) is correlated; the rest is new
+        at every epoch. With the error variance split so, an epoch is worth
+        ``1 / ((1 - s) + s / c)``: ``c`` when all of it persists, 1 when none does.
+        """
+        share = self.persistence.persistent_share
+        return 1.0 / ((1.0 - share) + share / persisting)

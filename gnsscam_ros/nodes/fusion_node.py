@@ -36,7 +36,9 @@ integrity verdict (level OK / ERROR / STALE as ``integrity_risk``, its message,
 protection level and alert limit) for diagnostic_aggregator and rqt_robot_monitor. The
 node status shows the consistency test of the cloud against the measurements
 (``consistency_statistic_nats``, ``snapshot_separation_m``, ``recoveries``;
-``core.consistency``) and is WARN while the cloud is inconsistent (integrity ERROR).
+``core.consistency``) and is WARN while the cloud is inconsistent (integrity ERROR), and
+the share of the GNSS error that persists (``persistent_error_share``,
+``core.persistence``).
 
 Every FilterConfig parameter (``FilterConfig.parameter_specs()``; all but
 ``extra_alert_limits_m``) is a node parameter of the same name;
@@ -471,6 +473,9 @@ class FusionNode(GnssCamNode):
             values['consistency_statistic_nats'] = consistency.statistic_nats
             values['snapshot_separation_m'] = consistency.separation_m
             values['recoveries'] = self.last_result.recoveries
+            # How much of the GNSS error persists (core.persistence): how much each epoch
+            # is worth in the likelihood.
+            values['persistent_error_share'] = self.engine.filter.persistence.persistent_share
         if since_gnss > self.param('gnss_timeout_s'):
             return WARN, f'stale input: no GNSS for {since_gnss:.1f} s', values
         if self.engine.reinitialising:

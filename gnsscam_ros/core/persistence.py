@@ -1,0 +1,109 @@
+"""How much of the snapshot solutions' error persists, measured without ground truth.
+
+The GNSS likelihood is tempered because its errors persist: an epoch counted as new
+evidence when its error is the last one's again makes the filter bold where it is wrong.
+How much of the error persists differs by receiver and street. Code noise is white: a
+drive in open sky gives snapshot solutions whose errors are new every second, and
+tempering them as if they persisted leaves the cloud several times wider than its errors.
+Multipath and NLOS in a canyon persist for tens of seconds. So the share that persists is
+measured, on the quantity the tempering is about: the position each epoch gives alone.
+
+The snapshot solution minus the dead-reckoned path (the filter's own motion prediction
+summed, never corrected by GNSS) is the snapshot error plus a slow drift. Its
+semivariogram ``gamma(L) = E |d(t) - d(t - L)|^2 / 2`` over the window gives, at a short
+lag, the part of the error that is new within ``SHORT_LAG_S`` and, at a long lag, nearly
+all of it; ``1 - gamma(short) / gamma(long)`` is the persisting share ``s``. For a white
+error it is 0; for a first-order Gauss-Markov error of correlation time 10 s it is 0.88.
+Both lags are in seconds, so ``s`` does not depend on the GNSS rate. Medians, not means,
+of the squared increments: one NLOS jump of a snapshot must not decide the share. The
+drift of the dead reckoning over the long lag can only add to ``gamma(long)``, that is to
+``s``: it errs towards tempering, never towards boldness. No feedback from the filter's
+GNSS corrections enters either term.
+
+Until ``MIN_PAIRS`` pairs at each lag are in the window the share is 1 (all of the error
+persists: the tempering of a fully correlated error).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: Lag at which the semivariogram holds the new part of the error [s].
+SHORT_LAG_S = 1.0
+#: Lag at which it holds nearly all of it [s] (several correlation times of code noise
+#: and short multipath; within the window).
+LONG_LAG_S = 16.0
+#: A pair is at a lag if its spacing is within this share of it.
+PAIR_TOLERANCE = 0.25
+#: Pairs at each lag before the measured share replaces the prior share of 1.
+MIN_PAIRS = 20
+
+
+class SnapshotPersistence:
+    """Persisting share of the snapshot solutions' horizontal error over a window.
+
+    Args:
+        window_s: Length of the window [s] (the error model's).
+    """
+
+    def __init__(self, window_s: float = 60.0):
+        self.window_s = float(window_s)
+        self._path_m = np.zeros(2)             # dead-reckoned path since the start
+        self._stamp_ns: list[int] = []
+        self._offset_m: list[np.ndarray] = []
+
+    def move(self, motion_xy_m: np.ndarray) -> None:
+        """Add the filter's predicted horizontal motion of one epoch [m]. A motion that is
+        not finite (a poisoned state, which the filter discards) starts the window again."""
+        step = np.asarray(motion_xy_m, dtype=float)[:2]
+        if not np.all(np.isfinite(step)):
+            self.reset()
+            return
+        self._path_m = self._path_m + step
+
+    def observe(self, stamp_ns: int, snapshot_xy_m: np.ndarray) -> None:
+        """Add one epoch's snapshot solution (horizontal, map frame) [m]; one that is not
+        finite is left out."""
+        offset = np.asarray(snapshot_xy_m, dtype=float)[:2] - self._path_m
+        if not np.all(np.isfinite(offset)):
+            return
+        horizon = stamp_ns - int(self.window_s * 1e9)
+        while self._stamp_ns and self._stamp_ns[0] < horizon:
+            self._stamp_ns.pop(0)
+            self._offset_m.pop(0)
+        self._stamp_ns.append(int(stamp_ns))
+        self._offset_m.append(offset)
+
+    def _median_increment_m2(self, lag_s: float) -> tuple[float, int]:
+        """Median squared increment of the offsets about ``lag_s`` apart, and the pairs."""
+        t = np.asarray(self._stamp_ns, dtype=np.int64)
+        d = np.asarray(self._offset_m).reshape(-1, 2)
+        lag_ns = int(lag_s * 1e9)
+        j = np.searchsorted(t, t - lag_ns)
+        # The nearer of the two neighbours of t - lag, if within PAIR_TOLERANCE of it.
+        before = np.clip(j - 1, 0, t.shape[0] - 1)
+        after = np.clip(j, 0, t.shape[0] - 1)
+        target = t - lag_ns
+        pick = np.where(np.abs(t[before] - target) < np.abs(t[after] - target), before, after)
+        ok = ((np.abs(t[pick] - target) <= PAIR_TOLERANCE * lag_ns)
+              & (pick < np.arange(t.shape[0])))
+        if not ok.any():
+            return float('nan'), 0
+        with np.errstate(over='ignore', invalid='ignore'):    # an absurd offset: inf
+            step = d[ok] - d[pick[ok]]
+            return float(np.median(np.sum(step * step, axis=1))), int(ok.sum())
+
+    @property
+    def persistent_share(self) -> float:
+        """Share of the snapshot error that persists beyond ``SHORT_LAG_S`` (0..1)."""
+        if len(self._stamp_ns) < 2:
+            return 1.0
+        short, n_short = self._median_increment_m2(SHORT_LAG_S)
+        long, n_long = self._median_increment_m2(LONG_LAG_S)
+        if n_short < MIN_PAIRS or n_long < MIN_PAIRS or not long > 0.0:
+            return 1.0
+        share = 1.0 - short / long
+        return float(np.clip(share, 0.0, 1.0)) if np.isfinite(share) else 1.0
+
+    def reset(self) -> None:
+        """Forget the window (a new drive or a reset filter)."""
+        self.__init__(self.window_s)
