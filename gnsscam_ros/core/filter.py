@@ -107,6 +107,9 @@ class EpochResult:
         recovered: The filter recovered this epoch (part of the cloud moved onto the
             snapshot solution).
         recoveries: Recoveries since the filter was made.
+        tempering: Exponent of this epoch's GNSS log-likelihood (what the epoch was worth
+            against an independent one; NaN: no GNSS update).
+        persistent_share: Share of the GNSS error taken to persist (``core.persistence``).
     """
 
     stamp_ns: int
@@ -133,6 +136,8 @@ class EpochResult:
     consistency: ConsistencyState = field(default_factory=ConsistencyState)
     recovered: bool = False
     recoveries: int = 0
+    tempering: float = float('nan')
+    persistent_share: float = 1.0
 
 
 class ParticleFilter:
@@ -450,6 +455,8 @@ class ParticleFilter:
                                                   cfg.outlier_range_m)
         result = self._finish(epoch, check, priors, post_log_w, chosen, total,
                               (prep, inlier, tempering, clock_w))
+        result.tempering = tempering
+        result.persistent_share = self.persistence.persistent_share
         if fusion is not None:
             result.camera_frame_ids = tuple(c.frame_id for c in camera)
             result.camera_alpha = fusion.alpha[:, chosen]

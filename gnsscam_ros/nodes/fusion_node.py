@@ -38,7 +38,8 @@ node status shows the consistency test of the cloud against the measurements
 (``consistency_statistic_nats``, ``snapshot_separation_m``, ``recoveries``;
 ``core.consistency``) and is WARN while the cloud is inconsistent (integrity ERROR), and
 the share of the GNSS error that persists (``persistent_error_share``,
-``core.persistence``).
+``core.persistence``) with what the last epoch was worth in the likelihood
+(``gnss_tempering``).
 
 Every FilterConfig parameter (``FilterConfig.parameter_specs()``; all but
 ``extra_alert_limits_m``) is a node parameter of the same name;
@@ -475,7 +476,8 @@ class FusionNode(GnssCamNode):
             values['recoveries'] = self.last_result.recoveries
             # How much of the GNSS error persists (core.persistence): how much each epoch
             # is worth in the likelihood.
-            values['persistent_error_share'] = self.engine.filter.persistence.persistent_share
+            values['persistent_error_share'] = self.last_result.persistent_share
+            values['gnss_tempering'] = self.last_result.tempering
         if since_gnss > self.param('gnss_timeout_s'):
             return WARN, f'stale input: no GNSS for {since_gnss:.1f} s', values
         if self.engine.reinitialising:
