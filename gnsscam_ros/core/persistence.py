@@ -25,6 +25,8 @@ persists: the tempering of a fully correlated error).
 """
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 
 #: Lag at which the semivariogram holds the new part of the error [s].
@@ -48,8 +50,9 @@ class SnapshotPersistence:
     def __init__(self, window_s: float = 60.0):
         self.window_s = float(window_s)
         self._path_m = np.zeros(2)             # dead-reckoned path since the start
-        self._stamp_ns: list[int] = []
-        self._offset_m: list[np.ndarray] = []
+        self._stamp_ns: deque[int] = deque()
+        self._offset_m: deque[np.ndarray] = deque()
+        self._share = 1.0                      # of the window as it stands
 
     def move(self, motion_xy_m: np.ndarray) -> None:
         """Add the filter's predicted horizontal motion of one epoch [m]. A motion that is
@@ -68,10 +71,11 @@ class SnapshotPersistence:
             return
         horizon = stamp_ns - int(self.window_s * 1e9)
         while self._stamp_ns and self._stamp_ns[0] < horizon:
-            self._stamp_ns.pop(0)
-            self._offset_m.pop(0)
+            self._stamp_ns.popleft()
+            self._offset_m.popleft()
         self._stamp_ns.append(int(stamp_ns))
         self._offset_m.append(offset)
+        self._share = self._measure()
 
     def _median_increment_m2(self, lag_s: float) -> tuple[float, int]:
         """Median squared increment of the offsets about ``lag_s`` apart, and the pairs."""
@@ -95,6 +99,9 @@ class SnapshotPersistence:
     @property
     def persistent_share(self) -> float:
         """Share of the snapshot error that persists beyond ``SHORT_LAG_S`` (0..1)."""
+        return self._share
+
+    def _measure(self) -> float:
         if len(self._stamp_ns) < 2:
             return 1.0
         short, n_short = self._median_increment_m2(SHORT_LAG_S)
