@@ -55,3 +55,21 @@ def test_a_failed_draw_ahead_is_raised_by_the_next_take():
     noise._draw_ahead(LARGE, None)
     with pytest.raises(MemoryError, match='no room'):
         noise.take(LARGE)
+
+
+def test_a_process_exiting_while_a_block_is_drawn_waits_for_it_and_exits_cleanly():
+    # The block ahead is drawn on a thread the interpreter joins before it finalises (a
+    # daemon thread still filling an array during finalisation can crash the process).
+    import subprocess
+    import sys
+    code = ('import numpy as np, threading\n'
+            'from gnsscam_ros.core.noise import ProcessNoise\n'
+            'noise = ProcessNoise(np.random.default_rng(0))\n'
+            'noise.take((10, 400_000, 4))\n'
+            'worker = [t for t in threading.enumerate() if t.name == "process-noise"]\n'
+            'assert worker and not worker[0].daemon, worker\n'
+            'print("exiting while drawing", worker[0].is_alive())\n')
+    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert 'exiting while drawing' in done.stdout

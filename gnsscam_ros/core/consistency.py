@@ -14,7 +14,8 @@ sequential test (Page's CUSUM, ``S <- max(0, S + d - allowance)``,
 :class:`ConsistencyMonitor`):
 
 * ``S >= suspect_nats``: inconsistent. The verdict is ERROR and the protection level
-  covers the separation between the estimate and the snapshot solution.
+  covers the separation between the estimate and the snapshot solution (as it does until
+  integrity has settled, whatever ``S``: ``core.filter``).
 * ``S >= recover_nats``: recovery, as augmented Monte Carlo localisation injects
   particles when the likelihood drops: a share of the cloud is moved by the smoothed
   separation onto the snapshot solutions (its spread kept), the likelihood decides

@@ -546,8 +546,11 @@ class ParticleFilter:
         settled_s = (-1.0 if self.acquired_stamp_ns is None
                      else (epoch.stamp_ns - self.acquired_stamp_ns) * 1e-9)
         consistency = self._consistency_state
-        if consistency.inconsistent and np.isfinite(consistency.separation_m):
-            # The estimate may be the wrong one of two places: the level covers the other.
+        # The estimate may be the wrong one of two places: while the test says so, and
+        # until integrity has settled (the cloud has not yet shown that it is consistent;
+        # the verdict is not OK then either), the level covers the other.
+        unsettled = settled_s < cfg.integrity_settling_s
+        if (consistency.inconsistent or unsettled) and np.isfinite(consistency.separation_m):
             level = max(level, consistency.separation_m)
         particles, log_w = priors[chosen], post_log_w[chosen]
         acquired = self.distance_since_init_m >= cfg.heading_acquisition_m

@@ -70,7 +70,11 @@ class ProcessNoise:
             except BaseException as err:    # noqa: BLE001 - raised again in take()
                 self._failure = err
 
-        self._worker = threading.Thread(target=fill, name='process-noise', daemon=True)
+        # Not a daemon: the interpreter joins it before it finalises. A daemon thread still
+        # filling an array while a node process exits (Ctrl-C right after an epoch) runs on
+        # in a half torn-down interpreter, which can crash the process (SIGSEGV) instead
+        # of exiting 0; the draw takes milliseconds, so the join never holds an exit up.
+        self._worker = threading.Thread(target=fill, name='process-noise', daemon=False)
         self._worker.start()
 
     def _wait(self) -> None:
