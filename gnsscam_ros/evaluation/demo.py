@@ -345,6 +345,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _caused_by_interrupt(err: BaseException) -> bool:
+    """Whether a KeyboardInterrupt is in ``err``'s chain of causes."""
+    seen = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, KeyboardInterrupt):
+            return True
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return False
+
+
 def main(argv: list[str] | None = None) -> int:
     """The demo; its exit status (0 done, 130 stopped by Ctrl-C)."""
     argv = sys.argv[1:] if argv is None else argv
@@ -360,7 +371,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f'[demo] writing into {out_dir}', file=sys.stderr)
     try:
         run_demo(args, out_dir, stages)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, SystemError) as err:
+        # A Ctrl-C that lands inside a compiled (numba) kernel comes out as a SystemError
+        # ("returned a result with an exception set") caused by the KeyboardInterrupt.
+        if isinstance(err, SystemError) and not _caused_by_interrupt(err):
+            raise
         stage = next(reversed(stages.started), 'the start')
         if not args.keep_bags:
             # An interrupted run keeps no bag, finished or partial (as a finished run
