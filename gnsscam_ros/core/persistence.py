@@ -77,10 +77,11 @@ class SnapshotPersistence:
         self._offset_m.append(offset)
         self._share = self._measure()
 
-    def _median_increment_m2(self, lag_s: float) -> tuple[float, int]:
-        """Median squared increment of the offsets about ``lag_s`` apart, and the pairs."""
-        t = np.asarray(self._stamp_ns, dtype=np.int64)
-        d = np.asarray(self._offset_m).reshape(-1, 2)
+    @staticmethod
+    def _median_increment_m2(t: np.ndarray, d: np.ndarray, lag_s: float
+                             ) -> tuple[float, int]:
+        """Median squared increment of the offsets ``d`` (n, 2) at times ``t`` (n,) about
+        ``lag_s`` apart, and the pairs."""
         lag_ns = int(lag_s * 1e9)
         j = np.searchsorted(t, t - lag_ns)
         # The nearer of the two neighbours of t - lag, if within PAIR_TOLERANCE of it.
@@ -104,8 +105,10 @@ class SnapshotPersistence:
     def _measure(self) -> float:
         if len(self._stamp_ns) < 2:
             return 1.0
-        short, n_short = self._median_increment_m2(SHORT_LAG_S)
-        long, n_long = self._median_increment_m2(LONG_LAG_S)
+        t = np.asarray(self._stamp_ns, dtype=np.int64)
+        d = np.asarray(self._offset_m).reshape(-1, 2)
+        short, n_short = self._median_increment_m2(t, d, SHORT_LAG_S)
+        long, n_long = self._median_increment_m2(t, d, LONG_LAG_S)
         if n_short < MIN_PAIRS or n_long < MIN_PAIRS or not long > 0.0:
             return 1.0
         share = 1.0 - short / long
