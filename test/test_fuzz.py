@@ -380,10 +380,14 @@ def test_messages_sample(tmp_path):
 def test_processes_sample(tmp_path):
     # At 2x real time: at 5x a loaded machine's nodes fall behind the replay and the
     # filter never settles, so no OK verdict would show that the check below can bite.
+    # The heading acquisition keeps its default set: with 1000 particles it left the cloud
+    # 4-10 m off in places, the consistency test flagged it for the rest of the drive, and
+    # whether an OK verdict came at all depended on where the kill's timing restarted the
+    # filter (none in one CI run; offline: none from a start at 20 s or 30 s of this drive,
+    # OK within 20 s from every start with the default set).
     cfg = ProcessesConfig(seed=2, duration_s=90.0, rate=2.0, warmup_s=10.0, gap_s=2.0,
                           down_s=2.0, nodes=['imu_node', 'fusion_node'], camera=False,
-                          particles=300, acquisition_particles=1000,
-                          domain=ros_domain_id(), work_dir=str(tmp_path))
+                          particles=300, domain=ros_domain_id(), work_dir=str(tmp_path))
     result = run_processes(cfg, log=lambda *a: None)
     assert [k['node'] for k in result['kills']] == ['imu_node', 'fusion_node']
     for kill in result['kills']:
