@@ -325,8 +325,11 @@ class ParticleFilter:
                            self.noise.take((distance.shape[0], self.particles.shape[0],
                                             STATE_DIM)))
         # The predicted motion of the estimate, for the dead-reckoned path the snapshot
-        # solutions are compared with (core.persistence).
-        self.persistence.move(np.exp(self.log_w) @ (priors[0, :, :2] - self.particles[:, :2]))
+        # solutions are compared with (core.persistence). A poisoned state gives NaN here,
+        # which restarts the window; the filter discards that state itself.
+        with np.errstate(invalid='ignore'):
+            moved = np.exp(self.log_w) @ (priors[0, :, :2] - self.particles[:, :2])
+        self.persistence.move(moved)
         self._motion_unknown_s = float(motion.unknown_s)
         if motion.unknown_s * cfg.max_yaw_rate_rps > HEADING_LOST_RAD:
             # Without dead reckoning the heading drifts by up to max_yaw_rate_rps: beyond
