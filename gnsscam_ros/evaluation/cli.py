@@ -42,6 +42,7 @@ from .campaign_summary import campaign_tables
 from .evaluate import evaluate_drive_record
 from .filter_options import (DEFAULT_ALERT_LIMITS_M, add_filter_arguments, add_n_particles,
                              config_from_args)
+from .interrupts import EXIT_INTERRUPTED, is_interrupt
 from .report import (INTEGRITY_HEADERS, integrity_rows, protection_level_headers,
                      protection_level_rows, stanford_line)
 from .robustness_cli import add_robustness_parser, run_robustness_command
@@ -49,7 +50,6 @@ from .robustness_cli import add_robustness_parser, run_robustness_command
 EXIT_OK, EXIT_USAGE, EXIT_INPUT, EXIT_OUTPUT = 0, 2, 3, 4
 #: Some campaign cases failed (the others are written; a rerun retries them).
 EXIT_CASES_FAILED = 1
-EXIT_INTERRUPTED = 130
 #: Filter seed of gnsscam_eval and of the demo (the same runs give the same figures).
 DEFAULT_SEED = 1
 
@@ -273,7 +273,9 @@ def run_campaign_command(args: argparse.Namespace) -> int:
     except ClusterError as err:
         print(f'gnsscam_eval: {err}', file=sys.stderr)
         return EXIT_INPUT
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, SystemError) as err:
+        if not is_interrupt(err):
+            raise
         print(f'\ngnsscam_eval: interrupted; the finished cases are in {args.out}/cases: '
               'the same command resumes the campaign', file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -331,6 +333,18 @@ def load_drive(args: argparse.Namespace):
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``gnsscam_eval``; its exit status (``EXIT_*``; 130 after Ctrl-C, wherever it
+    landed: nothing is written before a run has finished)."""
+    try:
+        return _command(argv)
+    except (KeyboardInterrupt, SystemError) as err:
+        if not is_interrupt(err):
+            raise
+        print('\ngnsscam_eval: interrupted; nothing written', file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _command(argv: list[str] | None) -> int:
     parser = build_parser()
     argv = sys.argv[1:] if argv is None else argv
     args = parser.parse_args(argv)

@@ -69,6 +69,7 @@ from ..nodes.camera_node import DEFAULTS as CAMERA_DEFAULTS
 from .bag_eval import evaluate_result_bag_epochs
 from .cli import DEFAULT_SEED
 from .filter_options import add_n_particles
+from .interrupts import EXIT_INTERRUPTED, is_interrupt
 from .plots import dataset_title, integrity_plots, risk_plot, trajectory_plot
 from .report import protection_level_headers, protection_level_rows, stanford_line
 from .runner import (RunRecord, accuracy, offline_camera_matches, run_epochs,
@@ -89,8 +90,6 @@ FAILURE_RATIO_NOTE = ('fail ratio: epochs whose risk bound is below the referenc
                       'from the result bag (particle cloud, else pose covariance); offline: '
                       'from the M posteriors, as in the risk figure. Two references, so two '
                       'ratios for the same estimates.')
-#: Exit status after Ctrl-C (128 + SIGINT, as a shell reports it).
-EXIT_INTERRUPTED = 130
 #: Marker file of a run folder whose run has not finished.
 INCOMPLETE = 'INCOMPLETE'
 
@@ -345,17 +344,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _caused_by_interrupt(err: BaseException) -> bool:
-    """Whether a KeyboardInterrupt is in ``err``'s chain of causes."""
-    seen = set()
-    while err is not None and id(err) not in seen:
-        if isinstance(err, KeyboardInterrupt):
-            return True
-        seen.add(id(err))
-        err = err.__cause__ or err.__context__
-    return False
-
-
 def main(argv: list[str] | None = None) -> int:
     """The demo; its exit status (0 done, 130 stopped by Ctrl-C)."""
     argv = sys.argv[1:] if argv is None else argv
@@ -372,9 +360,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         run_demo(args, out_dir, stages)
     except (KeyboardInterrupt, SystemError) as err:
-        # A Ctrl-C that lands inside a compiled (numba) kernel comes out as a SystemError
-        # ("returned a result with an exception set") caused by the KeyboardInterrupt.
-        if isinstance(err, SystemError) and not _caused_by_interrupt(err):
+        # A Ctrl-C inside a compiled kernel is a SystemError (evaluation.interrupts).
+        if not is_interrupt(err):
             raise
         stage = next(reversed(stages.started), 'the start')
         if not args.keep_bags:

@@ -29,12 +29,12 @@ from ..io.tables import format_table
 from .campaign import campaign_config
 from .campaign_cluster import ClusterError
 from .filter_options import add_n_particles
+from .interrupts import EXIT_INTERRUPTED, is_interrupt
 from .robustness import (DEFAULT_CELLS, DEFAULT_FAULT_SEED, DEFAULT_SEEDS, TARGETS,
                          RobustnessError, matrix_rows, run_robustness, select_cells)
 
 #: The exit codes of ``gnsscam_eval`` (``cli.EXIT_*``; a test keeps them equal).
 EXIT_OK, EXIT_RUNS_FAILED, EXIT_USAGE, EXIT_INPUT, EXIT_OUTPUT = 0, 1, 2, 3, 4
-EXIT_INTERRUPTED = 130
 
 
 def add_robustness_parser(sub) -> argparse.ArgumentParser:
@@ -188,7 +188,9 @@ def run_robustness_command(args: argparse.Namespace, argv) -> int:
                                 progress=not args.quiet)
     except (DatasetError, ClusterError) as err:
         return _error(str(err), EXIT_INPUT)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, SystemError) as err:
+        if not is_interrupt(err):
+            raise
         return _error('interrupted; nothing written', EXIT_INTERRUPTED)
     result = {'command': 'robustness', **info,
               'dataset': {'name': drive.name, 'gnss_epochs': len(drive.gnss),
