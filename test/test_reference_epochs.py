@@ -14,11 +14,12 @@ default), so the tolerance only absorbs a last-bit difference of another CPU's s
 order; a change of the algorithm or of its plumbing moves them by many orders more (1e-9
 of a 20 m protection level is 20 nm).
 
-The last bits depend on the numeric libraries, and a particle filter turns a last-bit
-difference into another resampling pick: the reference holds where it was recorded (its
-environment is stored with it: the default, newest tier). On another tier (Debian's or
-Ubuntu's numpy and numba) the comparison does not apply and says so; there the other
-tests of the suite check the behaviour.
+The last bits depend on the numeric libraries and on the CPU numba compiles for, and a
+particle filter turns a last-bit difference into another resampling pick: the reference
+holds where it was recorded (its environment is stored with it: the default, newest tier,
+and the host CPU). On another tier (Debian's or Ubuntu's numpy and numba) or another CPU
+the comparison does not apply and says so; there the other tests of the suite check the
+behaviour.
 
 When the algorithm changes these outputs on purpose, regenerate the reference (the command
 is in every failure message) and commit it with the change that explains it.

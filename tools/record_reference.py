@@ -30,6 +30,7 @@ import platform
 import sys
 from pathlib import Path
 
+import llvmlite.binding
 import numba
 import numpy as np
 import scipy
@@ -126,11 +127,15 @@ def record_drive(name: str) -> dict[str, np.ndarray]:
 
 
 def numeric_environment() -> str:
-    """The libraries whose arithmetic the reference's last bits depend on: a particle
-    filter turns a last-bit difference (another numpy's summation, another numba's
-    vectorisation) into another resampling pick, and the runs part."""
+    """The libraries and the CPU whose arithmetic the reference's last bits depend on: a
+    particle filter turns a last-bit difference (another numpy's summation, another
+    numba's vectorisation) into another resampling pick, and the runs part. numba compiles
+    for the host CPU: the same libraries on an AVX2 CPU (znver3) and on the one the
+    reference was recorded on before gave positions 1e-7 m apart on the smartLoc excerpt
+    and 4 m apart on the emulated drive."""
     return (f'python {platform.python_version()}, numpy {np.__version__}, '
-            f'scipy {scipy.__version__}, numba {numba.__version__}, {platform.machine()}')
+            f'scipy {scipy.__version__}, numba {numba.__version__}, {platform.machine()}, '
+            f'cpu {llvmlite.binding.get_host_cpu_name()}')
 
 
 def main(argv=None) -> int:
