@@ -35,6 +35,13 @@ def test_ctrl_c_in_any_stage_exits_130_and_marks_the_folder_incomplete(tmp_path,
     assert 'is incomplete' in capsys.readouterr().err
 
 
+def _as_from_a_terminal() -> None:
+    """Ctrl-C's default action in the demo, as a terminal starts it: a test runner started
+    in the background of a non-interactive shell (``nohup ./run test &``) ignores SIGINT,
+    its children inherit that, and the demo never saw the Ctrl-C (it played on)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.slow
 @pytest.mark.ros
 @pytest.mark.parametrize('delay_s', [1.0, 4.0])
@@ -48,7 +55,8 @@ def test_sigint_during_the_replay_stops_the_demo_with_130(tmp_path, delay_s):
     with open(err_path, 'w') as err:
         proc = subprocess.Popen(demo_command(out, '--duration-s', '120'), cwd=ROOT,
                                 env=ros_env(tmp_path, ros_domain_id()), stdout=subprocess.PIPE,
-                                stderr=err, text=True, start_new_session=True)
+                                stderr=err, text=True, start_new_session=True,
+                                preexec_fn=_as_from_a_terminal)
         try:
             deadline = time.monotonic() + 300
             while 'replay through the nodes' not in err_path.read_text():
