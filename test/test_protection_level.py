@@ -1,14 +1,16 @@
 """Protection level, bias hypotheses and unknown motion: known answers and properties."""
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from synthetic import FRAME, epoch_at
+from synthetic import FRAME, epoch_at, sky
 
 from gnsscam_ros.core import integrity
-from gnsscam_ros.core.bias import BiasHypotheses, BiasModel, projected_weights
+from gnsscam_ros.core.bias import (BiasHypotheses, BiasModel, hidden_fault_sizes, leverages,
+                                   projected_weights, with_hidden_faults)
 from gnsscam_ros.core.filter import UPDATED, FilterConfig, ParticleFilter
 from gnsscam_ros.core.motion import (ADDED, RESET, DeadReckoningState, MotionAccumulator)
 from gnsscam_ros.core.particles import MotionIncrement
@@ -149,6 +151,70 @@ def test_a_constant_bias_converges_to_the_least_squares_offset():
     solution = np.linalg.lstsq(design * np.sqrt(weights)[:, None],
                                bias[:, 0] * np.sqrt(weights), rcond=None)[0]
     assert hyp.offsets_m[0] == pytest.approx(solution[:3], rel=1e-3)
+
+
+def test_leverages_are_the_share_of_its_own_bias_the_estimate_absorbs():
+    """The hat matrix's diagonal: a bias b on one satellite leaves (1 - h) b in its own
+    least-squares residual; the leverages add up to the unknowns; a satellite of weight 0
+    has none, and with as many satellites as unknowns each has 1."""
+    los = geometry()
+    k = los.shape[0]
+    sys_index = np.array([0] * 5 + [1] * 3)
+    weights = np.linspace(0.05, 0.2, k)
+    h = leverages(los, weights, sys_index, 2)
+    design = np.hstack([-los, np.eye(2)[sys_index]])
+    for i in range(k):
+        bias = np.zeros(k)
+        bias[i] = 10.0
+        sol = np.linalg.lstsq(design * np.sqrt(weights)[:, None], bias * np.sqrt(weights),
+                              rcond=None)[0]
+        assert (bias - design @ sol)[i] == pytest.approx((1.0 - h[i]) * 10.0, rel=1e-9)
+    assert h.sum() == pytest.approx(5.0, rel=1e-9)
+    weights[0] = 0.0
+    assert leverages(los, weights, sys_index, 2)[0] == pytest.approx(0.0, abs=1e-12)
+    one_clock = leverages(los[:4], np.full(4, 0.1), np.zeros(4, int), 1)
+    assert one_clock == pytest.approx(np.ones(4), abs=1e-9)
+
+
+def test_hidden_faults_leave_their_residual_within_c_of_its_noise():
+    core = np.array([2.0, 5.0, 5.0, 8.0])
+    lev = np.array([0.0, 0.75, 0.96, 1.0])
+    sizes = hidden_fault_sizes(core, lev, 1.5, np.full(4, 60.0))
+    assert sizes[:3] == pytest.approx([3.0, 15.0, 37.5])
+    # (1 - h) b against the residual's spread sigma sqrt(1 - h): c exactly.
+    assert ((1 - lev[:3]) * sizes[:3] / (core[:3] * np.sqrt(1 - lev[:3]))
+            == pytest.approx([1.5] * 3))
+    assert sizes[3] == 60.0                 # no redundancy: the error model's largest error
+    biases = np.zeros((3, 7))
+    faulted = with_hidden_faults(biases, np.array([1.0, 2.0, 3.0]))
+    # Hypothesis m: satellite m mod 3, +size in the first round, -size in the second.
+    expected = np.zeros((3, 7))
+    for m in range(7):
+        expected[m % 3, m] = (1.0 if (m // 3) % 2 == 0 else -1.0) * (m % 3 + 1.0)
+    assert faulted == pytest.approx(expected)
+    assert not biases.any()                  # a copy
+
+
+def test_hidden_faults_widen_the_level_where_satellites_are_few():
+    """One satellite's unseen bias moves a five-satellite solution much more than a
+    twelve-satellite one: the level grows there, and little with twelve (2 m noise,
+    static, one clock)."""
+    def level(n_sv, core_sds):
+        rng = np.random.default_rng(5)
+        filt = ParticleFilter(small_config(hidden_fault_core_sds=core_sds), frame=FRAME,
+                              rng=np.random.default_rng(0))
+        sv = sky(n_sv, seed=2)
+        out = []
+        for i in range(40):
+            epoch = epoch_at(np.zeros(3), clock_m=100.0, sv_ecef=sv, stamp_ns=i * SECOND)
+            epoch = replace(epoch, pr_m=epoch.pr_m + rng.normal(0.0, 2.0, n_sv))
+            out.append(filt.step(epoch, None if i == 0 else MotionIncrement.stationary(1.0)))
+        return float(np.median([r.protection_level_m for r in out[20:]]))
+    few = level(5, 1.0), level(5, 0.0)
+    many = level(12, 1.0), level(12, 0.0)
+    # Measured: 16.0 against 5.7 m with five, 1.80 against 1.53 m with twelve.
+    assert few[0] > 2.0 * few[1], few
+    assert many[0] < 1.3 * many[1], many
 
 
 def test_information_from_elsewhere_shrinks_the_offsets():

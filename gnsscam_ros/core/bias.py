@@ -20,6 +20,13 @@ bound also carries one draw of a bias model, in the spirit of RAIM solution sepa
   converges to the weighted-least-squares offset ``(G^T Wp G)^-1 G^T Wp b``; information
   from elsewhere (the camera) shrinks it, exactly as it shrinks the posterior.
 
+Each hypothesis also carries one *hidden fault* (:func:`with_hidden_faults`): a bias on one
+satellite of the size its own residual cannot reveal. Spread over all satellites, biases
+average out in the estimate as the satellites grow in number; a single one does not, and
+where the satellites are few (one constellation, five to seven of them) the residuals
+show almost nothing of it (leverage ~0.8; smartLoc GLONASS only: errors of 25-45 m for
+minutes while every residual looked like noise).
+
 The estimate itself is unchanged; the offsets only displace the posteriors the bound sees
 (``integrity.PosteriorSet``).
 """
@@ -89,6 +96,48 @@ def projected_weights(weights: np.ndarray, sys_index: np.ndarray, n_systems: int
     ws = weights[:, None] * onehot                          # W S (k, S)
     per_system = np.maximum(onehot.T @ weights, 1e-300)     # diag(S^T W S)
     return np.diag(weights) - (ws / per_system) @ ws.T
+
+
+def leverages(line_of_sight: np.ndarray, weights: np.ndarray, sys_index: np.ndarray,
+              n_systems: int) -> np.ndarray:
+    """Diagonal of the weighted least-squares hat matrix, position and one clock per
+    constellation estimated: ``h_k``, the share of satellite k's own bias that the
+    estimate absorbs, (k,) in [0, 1]."""
+    k = line_of_sight.shape[0]
+    onehot = np.zeros((k, n_systems))
+    onehot[np.arange(k), sys_index] = 1.0
+    design = np.hstack([-line_of_sight, onehot])
+    cov = np.linalg.pinv(design.T @ (weights[:, None] * design))
+    return np.clip(np.einsum('ij,jk,ik->i', design, cov, design) * weights, 0.0, 1.0)
+
+
+def hidden_fault_sizes(core_sd_m: np.ndarray, leverage: np.ndarray, core_sds: float,
+                       largest_m: np.ndarray) -> np.ndarray:
+    """The bias each satellite can carry unseen, (k,) [m].
+
+    A bias ``b`` on satellite k leaves ``(1 - h_k) b`` in its own residual, whose noise
+    has the spread ``sigma_k sqrt(1 - h_k)`` (``sigma_k`` the core of its signal class):
+    ``b = c sigma_k / sqrt(1 - h_k)`` stays within ``c`` of that spread. Capped at
+    ``largest_m``, the largest error the error model knows (a satellite without
+    redundancy, ``h_k = 1``, would otherwise hide any bias).
+    """
+    unseen = core_sds * core_sd_m / np.sqrt(np.maximum(1.0 - leverage, 1e-12))
+    return np.minimum(unseen, largest_m)
+
+
+def with_hidden_faults(biases_m: np.ndarray, sizes_m: np.ndarray) -> np.ndarray:
+    """The biases (k, M) with one hidden fault per hypothesis added: hypothesis m biases
+    satellite ``m mod k`` by ``+size`` in its first round over the satellites, ``-size``
+    in the next, and so on (a copy; the Gauss-Markov draws are unchanged)."""
+    k, m = biases_m.shape
+    if k == 0:
+        return biases_m
+    which = np.arange(m)
+    satellite = which % k
+    sign = np.where((which // k) % 2 == 0, 1.0, -1.0)
+    out = biases_m.copy()
+    out[satellite, which] += sign * sizes_m[satellite]
+    return out
 
 
 def _information(cov_m2: np.ndarray) -> np.ndarray:

@@ -18,7 +18,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from . import gnss, integrity
-from .bias import BIAS_CN0, BIAS_LEARNED, BIAS_MODELS, BIAS_NONE, BiasHypotheses
+from .bias import (BIAS_CN0, BIAS_LEARNED, BIAS_MODELS, BIAS_NONE, BiasHypotheses,
+                   hidden_fault_sizes, leverages, with_hidden_faults)
 from .config import ERROR_ADAPTIVE, FilterConfig
 from .consistency import ConsistencyMonitor, ConsistencyState, snapshot_position
 from .error_model import AdaptiveErrorModel
@@ -629,9 +630,17 @@ class ParticleFilter:
             line = prep.sv_enu_m - mean
             line /= np.linalg.norm(line, axis=1, keepdims=True)
             _, prior_cov = weighted_mean_cov(pos[chosen], prior_log_w)
+            biases = self.bias.biases_at(stamp_ns, prep.sv_key, prep.cn0_dbhz, sigma, tau)
+            if cfg.bias_model == BIAS_LEARNED and cfg.hidden_fault_core_sds > 0.0:
+                # Plus one satellite's unseen bias per hypothesis (core.bias), at most the
+                # reach of its class's wide component (mean + 3 sd): the largest error the
+                # learned model gives any weight to.
+                core, _, wide_mean, wide_sd = self.errors.satellite_model(prep.cn0_dbhz)
+                biases = with_hidden_faults(biases, hidden_fault_sizes(
+                    core, leverages(line, weights, prep.sys_index, prep.n_systems),
+                    cfg.hidden_fault_core_sds, np.abs(wide_mean) + 3.0 * wide_sd))
             offsets = self.bias.update(
-                self.bias.biases_at(stamp_ns, prep.sv_key, prep.cn0_dbhz, sigma, tau),
-                line, weights,
+                biases, line, weights,
                 prep.sys_index, prep.n_systems, prior_cov, cov).copy()
         posteriors = integrity.PosteriorSet(pos, post_log_w, index, offsets,
                                             cfg.horizontal_risk)
