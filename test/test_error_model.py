@@ -7,8 +7,10 @@ import numpy as np
 import pytest
 from synthetic import FRAME, epoch_at
 
-from gnsscam_ros.core.error_model import (CN0_EDGES_DBHZ, N_CLASSES, UNKNOWN_CLASS,
-                                          AdaptiveErrorModel, ErrorPriors, signal_class)
+from gnsscam_ros.core import error_model
+from gnsscam_ros.core.error_model import (CN0_EDGES_DBHZ, MIN_WINDOW_RESIDUALS, N_CLASSES,
+                                          UNKNOWN_CLASS, AdaptiveErrorModel, ErrorPriors,
+                                          signal_class)
 from gnsscam_ros.core.filter import FilterConfig, ParticleFilter
 from gnsscam_ros.core.particles import MotionIncrement
 
@@ -60,6 +62,32 @@ def test_the_fit_follows_the_window_and_forgets_what_left_it():
     assert model.samples <= 61 * 50
     assert quiet == pytest.approx(2.0, rel=0.1)
     assert model.fit.core_sd_m[cls] == pytest.approx(6.0, rel=0.15)
+
+
+def test_a_slow_stream_is_learned_from_its_data_not_from_the_prior(monkeypatch):
+    # A static station at 30 s epochs: a 60 s window holds two epochs (20 residuals of
+    # a 1 m core against the prior's 30 pseudo-samples of a 5 m one). The window keeps
+    # the last MIN_WINDOW_RESIDUALS, and still follows a change of the errors.
+    cls = int(signal_class(np.array([47.0]))[0])
+
+    def slow_stream():
+        rng = np.random.default_rng(6)
+        model = AdaptiveErrorModel(window_s=60.0)
+        feed(model, rng.normal(0.0, 1.0, 400), 47.0, epochs=40, per_epoch=10,
+             period_s=30.0)
+        return model, rng
+
+    model, rng = slow_stream()
+    assert model.samples == MIN_WINDOW_RESIDUALS
+    assert model.fit.core_sd_m[cls] == pytest.approx(1.0, rel=0.15)
+    feed(model, rng.normal(0.0, 3.0, 400), 47.0, epochs=40, per_epoch=10, period_s=30.0,
+         start_s=1200.0)
+    assert model.fit.core_sd_m[cls] == pytest.approx(3.0, rel=0.15)
+    # The time window alone stays near the prior.
+    monkeypatch.setattr(error_model, 'MIN_WINDOW_RESIDUALS', 0)
+    alone, _ = slow_stream()
+    assert alone.samples == 30
+    assert alone.fit.core_sd_m[cls] > 2.0
 
 
 def test_fix_residuals_are_inflated_for_what_the_fix_absorbed():

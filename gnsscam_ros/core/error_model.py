@@ -10,7 +10,9 @@ estimated from the residuals over a sliding window):
 
 * every satellite falls into a **signal class** by its C/N0 (bins ``CN0_EDGES_DBHZ``;
   satellites without C/N0 form a class of their own);
-* per class, the residuals of the last ``window_s`` seconds are a two-component mixture
+* per class, the residuals of the last ``window_s`` seconds (at least the last
+  :data:`MIN_WINDOW_RESIDUALS`, so that a slow stream is learned from data too) are a
+  two-component mixture
   ``(1 - pi) N(r; 0, s0^2) + pi N(r; mu, s1^2)``: a line-of-sight core centred on zero
   (the per-constellation receiver clock takes the common offset) and a wide component
   for NLOS and multipath with a mean ``mu >= 0`` (a reflected signal arrives late);
@@ -63,6 +65,12 @@ N_CLASSES = UNKNOWN_CLASS + 1
 EM_ITERATIONS = 3
 #: Most residuals the window holds (60 s of 60 satellites at 5 Hz fit).
 MAX_SAMPLES = 20_000
+#: Fewest residuals the window keeps, however old: ten times the prior's pseudo-samples
+#: (``ErrorPriors.pooled_strength``), so that the data outweigh the prior. A 60 s window
+#: of a 30 s static station holds two epochs (some 20 residuals against 30 pseudo-samples
+#: of a 5 m core: the fit stayed near the prior, twice the station's errors); at 1 Hz and
+#: above a drive's 60 s hold more than this and the window is the time window.
+MIN_WINDOW_RESIDUALS = 300
 #: Lag at which the time correlation is measured [s]; a pair may be half of it off.
 CORRELATION_LAG_S = 2.0
 #: Residuals beyond this many core standard deviations of their class are clipped there
@@ -297,14 +305,17 @@ class AdaptiveErrorModel:
     def _append(self, stamp_ns: int, r: np.ndarray, cls: np.ndarray) -> None:
         horizon = stamp_ns - int(self.window_s * 1e9)
         n = self._count
-        # Drop what left the window (and, if still full, the oldest), then append.
+        k = min(r.shape[0], MAX_SAMPLES)
+        # Drop what left the window (and, if still full, the oldest), then append; while
+        # the window holds fewer than MIN_WINDOW_RESIDUALS, the newest of the older ones
+        # stay (residuals arrive in time order: they are the last in the buffer).
         live = self._stamp_ns[:n] >= horizon
-        start = max(0, int(live.sum()) + r.shape[0] - MAX_SAMPLES)
+        live[max(0, n - max(0, MIN_WINDOW_RESIDUALS - k)):] = True
+        start = max(0, int(live.sum()) + k - MAX_SAMPLES)
         idx = np.flatnonzero(live)[start:]
         m = idx.shape[0]
         for arr in (self._stamp_ns, self._class, self._residual_m):
             arr[:m] = arr[idx]
-        k = min(r.shape[0], MAX_SAMPLES)
         self._stamp_ns[m:m + k] = stamp_ns
         self._class[m:m + k] = cls[-k:]
         self._residual_m[m:m + k] = r[-k:]
