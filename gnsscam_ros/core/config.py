@@ -175,7 +175,9 @@ class GnssConfig(_Part):
         'measurement_var_m2 and the outlier constants below).', choices=ERROR_MODELS)
     error_window_s: float = parameter(
         60.0, 'Sliding window of residuals from which the adaptive error model is learned '
-        '(the horizon of the adaptive mixtures of libRSF).', 's', low=1.0)
+        '(the horizon of the adaptive mixtures of libRSF); it keeps at least the last 300 '
+        'residuals (core.error_model.MIN_WINDOW_RESIDUALS), so that a slow stream is '
+        'learned from its data.', 's', low=1.0)
     measurement_var_m2: float = parameter(
         10.0, "Pseudorange variance (paper Table 1: 10; error_model 'stated').", 'm^2',
         low=0.0, low_open=True)
