@@ -69,7 +69,9 @@ MAX_SAMPLES = 20_000
 #: (``ErrorPriors.pooled_strength``), so that the data outweigh the prior. A 60 s window
 #: of a 30 s static station holds two epochs (some 20 residuals against 30 pseudo-samples
 #: of a 5 m core: the fit stayed near the prior, twice the station's errors); at 1 Hz and
-#: above a drive's 60 s hold more than this and the window is the time window.
+#: above a drive's 60 s hold more than this and the window is the time window. After a
+#: GNSS outage the last residuals before it stay until new ones replace them: the same
+#: receiver's older errors say more than the prior does.
 MIN_WINDOW_RESIDUALS = 300
 #: Lag at which the time correlation is measured [s]; a pair may be half of it off.
 CORRELATION_LAG_S = 2.0
