@@ -65,14 +65,6 @@ N_CLASSES = UNKNOWN_CLASS + 1
 EM_ITERATIONS = 3
 #: Most residuals the window holds (60 s of 60 satellites at 5 Hz fit).
 MAX_SAMPLES = 20_000
-#: Fewest residuals the window keeps, however old: ten times the prior's pseudo-samples
-#: (``ErrorPriors.pooled_strength``), so that the data outweigh the prior. A 60 s window
-#: of a 30 s static station holds two epochs (some 20 residuals against 30 pseudo-samples
-#: of a 5 m core: the fit stayed near the prior, twice the station's errors); at 1 Hz and
-#: above a drive's 60 s hold more than this and the window is the time window. After a
-#: GNSS outage the last residuals before it stay until new ones replace them: the same
-#: receiver's older errors say more than the prior does.
-MIN_WINDOW_RESIDUALS = 300
 #: Lag at which the time correlation is measured [s]; a pair may be half of it off.
 CORRELATION_LAG_S = 2.0
 #: Residuals beyond this many core standard deviations of their class are clipped there
@@ -119,6 +111,16 @@ class ErrorPriors:
         deviation proportional to ``10^(-C/N0 / 20)``, at most ``max_shape``."""
         return np.minimum(10.0 ** (-(CLASS_CN0_DBHZ - REFERENCE_CN0_DBHZ) / 20.0),
                           self.max_shape)
+
+
+#: Fewest residuals the window keeps, however old: ten times the prior's pseudo-samples
+#: (``ErrorPriors.pooled_strength``), so that the data outweigh the prior. A 60 s window
+#: of a 30 s static station holds two epochs (some 20 residuals against 30 pseudo-samples
+#: of a 5 m core: the fit stayed near the prior, twice the station's errors); at 1 Hz and
+#: above a drive's 60 s hold more than this and the window is the time window. After a
+#: GNSS outage the last residuals before it stay until new ones replace them: the same
+#: receiver's older errors say more than the prior does.
+MIN_WINDOW_RESIDUALS = int(10 * ErrorPriors.pooled_strength)
 
 
 @dataclass(frozen=True)
