@@ -4,8 +4,9 @@ Prints, for each particle count N per posterior (M posteriors, 12 satellites), t
 wall time of a full filter epoch through the epoch engine (propagate, clock, likelihood,
 choice, risk bound and protection level, resampling), the same with 10 camera matches per
 epoch, and the bare arithmetic on the same number of likelihood evaluations (ranges plus a
-Gaussian log-sum-exp over satellites, plain numpy: the yardstick); then the package's
-default configuration alone; then the peak resident memory. Kernels are compiled (or
+Gaussian log-sum-exp over satellites, plain numpy: the yardstick), timed in turn with the
+epoch so that each ratio is the median of ratios taken in the same round; then the
+package's default configuration alone; then the peak resident memory. Kernels are compiled (or
 loaded from the cache) before anything is timed, and the time that took is printed.
 """
 from __future__ import annotations
@@ -35,18 +36,48 @@ DEFAULT_COUNTS = (120, 1000, 10000, 100000)
 #: Posteriors M of the rows (the issue's yardstick: M = 10) and camera matches per epoch.
 BENCH_POSTERIORS = 10
 CAMERA_MATCHES = 10
+#: Timed calls of one function per turn (after one untimed call), :func:`interleaved_times_ms`.
+BLOCK_CALLS = 2
 
 
 def median_ms(fn, repeats: int) -> float:
     """Median wall time of ``fn`` over ``repeats`` calls after a first one (warm-up:
     allocations, caches, kernel compilation or cache load) [ms]."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return float(np.median(times) * 1e3)
+    return interleaved_ms({'fn': fn}, repeats)['fn']
+
+
+def interleaved_times_ms(fns: dict, repeats: int, block: int = BLOCK_CALLS) -> dict:
+    """Wall times [ms] of each function of ``fns`` over ``repeats`` rounds, the functions
+    taking turns within each round: ``{name: (repeats,)}``, each entry the median of
+    ``block`` calls after one untimed call (its caches warm again after the others ran).
+
+    Timed in turn, the epoch and its yardstick see the same machine: a clock or cache
+    state that drifts over the run (seen here: the bare arithmetic at N = 10,000 took
+    26-42 ms in runs a minute apart) moves both, not one.
+    """
+    times = {name: np.empty(repeats) for name in fns}
+    for i in range(repeats):
+        for name, fn in fns.items():
+            fn()
+            calls = np.empty(block)
+            for j in range(block):
+                start = time.perf_counter()
+                fn()
+                calls[j] = time.perf_counter() - start
+            times[name][i] = float(np.median(calls)) * 1e3
+    return times
+
+
+def interleaved_ms(fns: dict, repeats: int) -> dict:
+    """Median wall time [ms] of each function of ``fns``, timed in turn
+    (:func:`interleaved_times_ms`)."""
+    return {name: float(np.median(t)) for name, t in interleaved_times_ms(fns, repeats).items()}
+
+
+def paired_ratio(times_ms: dict, numerator: str, denominator: str) -> float:
+    """Median over the rounds of ``numerator``'s time over ``denominator``'s in the same
+    round (:func:`interleaved_times_ms`)."""
+    return float(np.median(times_ms[numerator] / times_ms[denominator]))
 
 
 def bare_likelihood(positions_m: np.ndarray, prep) -> np.ndarray:
@@ -114,15 +145,14 @@ def _repeats(evaluations: int, repeats: int) -> int:
     return max(3, min(repeats, int(2e6 // evaluations) + 3))
 
 
-def _bare_ms(latest: list, epoch, frame: LocalFrame, config: FilterConfig,
-             evaluations: int, repeats: int) -> float:
+def _bare_fn(latest: list, epoch, frame: LocalFrame, config: FilterConfig,
+             evaluations: int):
     """The bare arithmetic over ``evaluations`` positions of the motion samples of the
-    latest report (``latest[-1]``, an update)."""
+    latest report (``latest[-1]``, an update), as a function to time."""
     positions = latest[-1].posterior_set.positions_m.reshape(-1, 3)
     positions = np.ascontiguousarray(np.resize(positions, (evaluations, 3)))
     prep = prepare_epoch(epoch, frame, positions.mean(0), config.measurement_var_m2, False)
-    reps = _repeats(evaluations, repeats)
-    return median_ms(lambda: bare_likelihood(positions, prep), reps)
+    return lambda: bare_likelihood(positions, prep)
 
 
 def bench(counts=DEFAULT_COUNTS, n_posteriors: int = BENCH_POSTERIORS,
@@ -152,16 +182,20 @@ def bench(counts=DEFAULT_COUNTS, n_posteriors: int = BENCH_POSTERIORS,
         evaluations = n * config.motion_sample_count
         reps = _repeats(evaluations, repeats)
         latest, one_epoch = _timed_engine(config, epochs, frame, seed, 0)
-        epoch_ms = median_ms(one_epoch, reps)
-        bare_ms = _bare_ms(latest, epochs[1], frame, config, evaluations, repeats)
-        camera_ms = float('nan')
+        # Epoch, camera epoch and yardstick in turn: each ratio pairs times of one round.
+        fns = {'epoch': one_epoch}
         if camera_matches:
-            _, one_camera_epoch = _timed_engine(config, epochs, frame, seed, camera_matches)
-            camera_ms = median_ms(one_camera_epoch, reps)
-        rows[n] = {'epoch_ms': epoch_ms, 'camera_epoch_ms': camera_ms,
-                   'bare_likelihood_ms': bare_ms, 'ratio': epoch_ms / bare_ms,
-                   'camera_ratio': camera_ms / bare_ms, 'evaluations': evaluations,
-                   'likelihood': config.likelihood}
+            fns['camera'] = _timed_engine(config, epochs, frame, seed, camera_matches)[1]
+        fns['bare'] = _bare_fn(latest, epochs[1], frame, config, evaluations)
+        times = interleaved_times_ms(fns, reps)
+        rows[n] = {'epoch_ms': float(np.median(times['epoch'])),
+                   'camera_epoch_ms': (float(np.median(times['camera']))
+                                       if camera_matches else float('nan')),
+                   'bare_likelihood_ms': float(np.median(times['bare'])),
+                   'ratio': paired_ratio(times, 'epoch', 'bare'),
+                   'camera_ratio': (paired_ratio(times, 'camera', 'bare')
+                                    if camera_matches else float('nan')),
+                   'evaluations': evaluations, 'likelihood': config.likelihood}
     result = {'epoch_ms_median': {str(n): r['epoch_ms'] for n, r in rows.items()},
               'camera_epoch_ms_median': {str(n): r['camera_epoch_ms']
                                          for n, r in rows.items()},
@@ -184,13 +218,16 @@ def _default_config(config: FilterConfig, epochs: list, frame: LocalFrame, seed:
     config = replace(config, acquisition_particles=0)
     n, m, s = config.n_particles, config.n_posteriors, config.motion_sample_count
     latest, one_epoch = _timed_engine(config, epochs, frame, seed, 0)
-    epoch_ms = median_ms(one_epoch, _repeats(n * s, repeats))
-    bare_mn = _bare_ms(latest, epochs[1], frame, config, m * n, repeats)
-    bare_sn = _bare_ms(latest, epochs[1], frame, config, s * n, repeats)
+    times = interleaved_times_ms(
+        {'epoch': one_epoch, 'mn': _bare_fn(latest, epochs[1], frame, config, m * n),
+         'sn': _bare_fn(latest, epochs[1], frame, config, s * n)},
+        _repeats(n * s, repeats))
     return {'n_particles': n, 'n_posteriors': m, 'motion_samples': s,
-            'epoch_ms_median': epoch_ms, 'bare_likelihood_ms_at_mn': bare_mn,
-            'bare_likelihood_ms_at_sn': bare_sn, 'ratio_at_mn': epoch_ms / bare_mn,
-            'ratio_at_sn': epoch_ms / bare_sn}
+            'epoch_ms_median': float(np.median(times['epoch'])),
+            'bare_likelihood_ms_at_mn': float(np.median(times['mn'])),
+            'bare_likelihood_ms_at_sn': float(np.median(times['sn'])),
+            'ratio_at_mn': paired_ratio(times, 'epoch', 'mn'),
+            'ratio_at_sn': paired_ratio(times, 'epoch', 'sn')}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,25 @@
+"""The benchmark's timing: the epoch and its yardstick take turns, and each ratio pairs
+the times of one round (``gnsscam_ros.bench.filter``)."""
+import numpy as np
+
+from gnsscam_ros.bench.filter import interleaved_times_ms, paired_ratio
+
+
+def test_functions_take_turns_and_each_turn_warms_up_before_it_is_timed():
+    calls = []
+    times = interleaved_times_ms({'a': lambda: calls.append('a'),
+                                  'b': lambda: calls.append('b')}, repeats=3, block=2)
+    # Per round: a untimed + 2 timed, then b untimed + 2 timed.
+    assert calls == ['a'] * 3 + ['b'] * 3 + ['a'] * 3 + ['b'] * 3 + ['a'] * 3 + ['b'] * 3
+    assert set(times) == {'a', 'b'}
+    assert all(t.shape == (3,) and np.all(t >= 0.0) for t in times.values())
+
+
+def test_the_ratio_is_taken_within_rounds_so_a_drifting_machine_cancels():
+    # The machine slows down 8x over the run; within each round the epoch costs 0.25 of
+    # the yardstick, and the paired ratio says so. Taken across rounds (the epoch's
+    # series rotated by one round) the same times give another figure.
+    slow = np.array([1.0, 2.0, 3.0, 4.0, 8.0])
+    assert paired_ratio({'epoch': 0.25 * slow, 'bare': slow}, 'epoch', 'bare') == 0.25
+    rotated = {'epoch': 0.25 * np.roll(slow, -1), 'bare': slow}
+    assert paired_ratio(rotated, 'epoch', 'bare') == 0.375
