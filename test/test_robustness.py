@@ -205,6 +205,26 @@ def test_bad_input_and_arguments_get_the_documented_exit_codes(tmp_path, capsys)
     assert eval_main(['robustness', '--list-cells']) == 0
     listed = capsys.readouterr().out
     assert all(c.name in listed for c in DEFAULT_CELLS)
+    rows = {line.split()[0]: line.split()[-1] for line in listed.splitlines()[2:]}
+    assert all(rows[c.name] == 'yes' for c in DEFAULT_CELLS)
+    assert all(rows[c.name] == 'no' for c in robustness.EXTRA_CELLS)
+
+
+def test_extra_cells_run_only_when_named_and_change_the_cn0_as_they_say(smartloc_excerpt):
+    extra = [c.name for c in robustness.EXTRA_CELLS]
+    assert set(extra) == {'cn0_-8db', 'cn0_+8db', 'cn0_unknown'}
+    assert not set(extra) & {c.name for c in select_cells()}
+    assert [c.name for c in select_cells(['cn0_unknown', 'baseline'])] == [
+        'baseline', 'cn0_unknown']
+    base = cell_drive(smartloc_excerpt, robustness.CELLS_BY_NAME['baseline'], 30.0)
+    cn0 = np.concatenate([e.cn0_dbhz for e in base.gnss])
+    for d in (-8.0, 8.0):
+        shifted = cell_drive(smartloc_excerpt, robustness.CELLS_BY_NAME[f'cn0_{d:+g}db'],
+                             30.0)
+        np.testing.assert_array_equal(np.concatenate([e.cn0_dbhz for e in shifted.gnss]),
+                                      cn0 + d)
+    unknown = cell_drive(smartloc_excerpt, robustness.CELLS_BY_NAME['cn0_unknown'], 30.0)
+    assert all(np.isnan(e.cn0_dbhz).all() for e in unknown.gnss)
 
 
 def test_exit_codes_are_gnsscam_evals():

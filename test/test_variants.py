@@ -8,9 +8,10 @@ import pytest
 from gnsscam_ros.core.types import GLONASS, GPS
 from gnsscam_ros.datasets.errors import DatasetError
 from gnsscam_ros.datasets.faults import FaultEpisodes, inject_pseudorange_faults
-from gnsscam_ros.datasets.variants import (decimate_gnss, drive_digest, gnss_rate_hz,
-                                           gnss_stamps_ns, scale_variances, select_systems,
-                                           set_variances, start_after)
+from gnsscam_ros.datasets.variants import (decimate_gnss, drive_digest, drop_cn0,
+                                           gnss_rate_hz, gnss_stamps_ns, scale_variances,
+                                           select_systems, set_variances, shift_cn0,
+                                           start_after)
 
 S = 1_000_000_000
 
@@ -49,6 +50,34 @@ def test_scale_variances_multiplies_every_stated_variance(drive, untouched, fact
         assert_same_except(a, b, ('var_m2',))
     assert out.odometry is drive.odometry and out.truth is drive.truth
     assert out.info['variants'][-1] == {'kind': 'scale_variances', 'factor': factor}
+
+
+@pytest.mark.parametrize('offset', [-8.0, 8.0])
+def test_shift_cn0_offsets_every_reported_cn0_and_keeps_unknown_ones_unknown(
+        drive, untouched, offset):
+    first = drive.gnss[0]
+    cn0 = first.cn0_dbhz.copy()
+    cn0[0] = np.nan                       # one satellite without C/N0
+    drive = dataclasses.replace(drive, gnss=[dataclasses.replace(first, cn0_dbhz=cn0),
+                                             *drive.gnss[1:]])
+    out = shift_cn0(drive, offset)
+    assert np.isnan(out.gnss[0].cn0_dbhz[0])
+    np.testing.assert_array_equal(out.gnss[0].cn0_dbhz[1:], cn0[1:] + offset)
+    for a, b in zip(drive.gnss[1:], out.gnss[1:]):
+        np.testing.assert_array_equal(b.cn0_dbhz, a.cn0_dbhz + offset)
+        assert_same_except(a, b, ('cn0_dbhz',))
+    assert out.info['variants'][-1] == {'kind': 'shift_cn0', 'offset_dbhz': offset}
+    with pytest.raises(ValueError, match='finite'):
+        shift_cn0(drive, float('nan'))
+
+
+def test_drop_cn0_leaves_no_cn0_and_nothing_else_changed(drive, untouched):
+    assert np.isfinite(np.concatenate([e.cn0_dbhz for e in drive.gnss])).all()
+    out = drop_cn0(drive)
+    for a, b in zip(drive.gnss, out.gnss):
+        assert b.cn0_dbhz.shape == a.cn0_dbhz.shape and np.isnan(b.cn0_dbhz).all()
+        assert_same_except(a, b, ('cn0_dbhz',))
+    assert out.info['variants'][-1] == {'kind': 'drop_cn0'}
 
 
 @pytest.mark.parametrize('var_m2', [25.0, 4.0])

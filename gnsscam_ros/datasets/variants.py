@@ -8,7 +8,9 @@ present it (pure functions: the drive given is left as it is, a new one is retur
 * :func:`select_systems`: only the satellites of some systems (GPS only, GLONASS only),
   epochs left with too few of them dropped;
 * :func:`start_after`: the drive joined some seconds after its start (GNSS, odometry and
-  IMU before that dropped; the ground truth kept whole: it is only used for scoring).
+  IMU before that dropped; the ground truth kept whole: it is only used for scoring);
+* :func:`shift_cn0`, :func:`drop_cn0`: the C/N0 on another receiver's scale (every value
+  offset by some dB-Hz: another antenna, front end or C/N0 estimator), or not reported.
 
 Each appends a record of what it did to ``drive.info['variants']`` and a tag to the name.
 :func:`drive_digest` names a drive's content, so that variations that leave a drive as it
@@ -70,6 +72,27 @@ def set_variances(drive: Drive, var_m2: float) -> Drive:
     epochs = [dataclasses.replace(e, var_m2=np.full(e.n_sv, var_m2)) for e in drive.gnss]
     return _with_variant(drive, f'var_{var_m2:g}m2', {'kind': 'set_variances',
                                                       'var_m2': var_m2}, gnss=epochs)
+
+
+def shift_cn0(drive: Drive, offset_dbhz: float) -> Drive:
+    """Every reported C/N0 plus ``offset_dbhz`` (unknown ones stay unknown).
+
+    Raises:
+        ValueError: ``offset_dbhz`` is not finite.
+    """
+    offset = float(offset_dbhz)
+    if not np.isfinite(offset):
+        raise ValueError(f'C/N0 offset must be finite, got {offset_dbhz!r}')
+    epochs = [dataclasses.replace(e, cn0_dbhz=e.cn0_dbhz + offset) for e in drive.gnss]
+    return _with_variant(drive, f'cn0_{offset:+g}dB', {'kind': 'shift_cn0',
+                                                       'offset_dbhz': offset}, gnss=epochs)
+
+
+def drop_cn0(drive: Drive) -> Drive:
+    """Every C/N0 unknown (NaN): a receiver or format that does not report it."""
+    epochs = [dataclasses.replace(e, cn0_dbhz=np.full(e.cn0_dbhz.shape, np.nan))
+              for e in drive.gnss]
+    return _with_variant(drive, 'no_cn0', {'kind': 'drop_cn0'}, gnss=epochs)
 
 
 def gnss_stamps_ns(drive: Drive) -> np.ndarray:

@@ -25,6 +25,15 @@ fault_ramp     the same episodes (same seed: same satellites and times) as ramps
                linearly from 0 to the bias over the episode
 ============== ==========================================================================
 
+Extra cells (:data:`EXTRA_CELLS`, run only when named with ``--cells``; the issue's
+matrix is the default one):
+
+============== ==========================================================================
+cn0_-8db ...   every C/N0 8 dB-Hz lower or higher: the same signals as another receiver
+               (antenna, front end, C/N0 estimator) reports them
+cn0_unknown    no C/N0 at all (a receiver or format that does not report it)
+============== ==========================================================================
+
 A cell's drive is made in this order: the start cut, then ``duration_s`` (quick runs: the
 first seconds after the start), then the cell's variation (faults are drawn over what
 is left, with the fault seed, the same for every filter seed: the filter seeds measure
@@ -64,8 +73,9 @@ from ..core.types import GLONASS, GPS, Drive
 from ..datasets.cut import cut_drive
 from ..datasets.errors import DatasetError
 from ..datasets.faults import RAMP, STEP, FaultEpisodes, inject_pseudorange_faults
-from ..datasets.variants import (decimate_gnss, drive_digest, gnss_rate_hz, scale_variances,
-                                 select_systems, set_variances, start_after)
+from ..datasets.variants import (decimate_gnss, drive_digest, drop_cn0, gnss_rate_hz,
+                                 scale_variances, select_systems, set_variances, shift_cn0,
+                                 start_after)
 from .campaign_cluster import CaseRunner
 from .evaluate import evaluate_drive_record
 from .intervals import between_seed_interval, mean_interval
@@ -100,9 +110,9 @@ class Cell:
     Attributes:
         name: Cell name (``--cells``).
         kind: ``'none'``, ``'scale_variances'``, ``'set_variances'``, ``'decimate'``,
-            ``'systems'``, ``'start'`` or ``'faults'``.
-        value: Its parameter: factor, variance [m^2], rate [Hz], systems, start [s] or the
-            fault profile (``'step'``, ``'ramp'``).
+            ``'systems'``, ``'start'``, ``'faults'``, ``'shift_cn0'`` or ``'drop_cn0'``.
+        value: Its parameter: factor, variance [m^2], rate [Hz], systems, start [s], the
+            fault profile (``'step'``, ``'ramp'``) or the C/N0 offset [dB-Hz].
         description: One line for tables and the JSON.
     """
 
@@ -133,7 +143,13 @@ DEFAULT_CELLS: tuple[Cell, ...] = (
     Cell('fault_ramp', 'faults', RAMP,
          f'the same episodes as ramps from 0 to {FAULT_BIAS_M[0]:g}-{FAULT_BIAS_M[1]:g} m'),
 )
-CELLS_BY_NAME = {c.name: c for c in DEFAULT_CELLS}
+#: Cells outside the default matrix, run when named (``--cells``).
+EXTRA_CELLS: tuple[Cell, ...] = (
+    *(Cell(f'cn0_{d:+g}db', 'shift_cn0', d, f'every C/N0 {d:+g} dB-Hz (another receiver)')
+      for d in (-8.0, 8.0)),
+    Cell('cn0_unknown', 'drop_cn0', None, 'no C/N0 reported'),
+)
+CELLS_BY_NAME = {c.name: c for c in (*DEFAULT_CELLS, *EXTRA_CELLS)}
 
 
 class RobustnessError(ValueError):
@@ -141,7 +157,8 @@ class RobustnessError(ValueError):
 
 
 def select_cells(names=None) -> list[Cell]:
-    """The cells named (in the matrix's order), or the whole matrix for None.
+    """The cells named (in the matrix's order, the extra cells after it), or the default
+    matrix for None.
 
     Raises:
         RobustnessError: An unknown name.
@@ -153,7 +170,7 @@ def select_cells(names=None) -> list[Cell]:
         raise RobustnessError(f'unknown cell {unknown[0]!r}; cells: '
                               + ', '.join(CELLS_BY_NAME))
     wanted = set(names)
-    return [c for c in DEFAULT_CELLS if c.name in wanted]
+    return [c for c in (*DEFAULT_CELLS, *EXTRA_CELLS) if c.name in wanted]
 
 
 def fault_episodes(drive: Drive, profile: str) -> FaultEpisodes:
@@ -186,6 +203,10 @@ def cell_drive(drive: Drive, cell: Cell, duration_s: float | None = None,
         return select_systems(drive, cell.value, SINGLE_SYSTEM_MIN_SATELLITES)
     if cell.kind == 'faults':
         return inject_pseudorange_faults(drive, fault_seed, fault_episodes(drive, cell.value))
+    if cell.kind == 'shift_cn0':
+        return shift_cn0(drive, cell.value)
+    if cell.kind == 'drop_cn0':
+        return drop_cn0(drive)
     if cell.kind in ('none', 'start'):
         return drive
     raise ValueError(f'unknown cell kind {cell.kind!r}')
@@ -401,5 +422,8 @@ def _plain(value):
 
 
 def matrix_rows() -> list[list]:
-    """``[name, kind, value, description]`` of every cell of the default matrix."""
-    return [[c.name, c.kind, _plain(c.value), c.description] for c in DEFAULT_CELLS]
+    """``[name, kind, value, description, default]`` of every cell: the default matrix,
+    then the extra cells."""
+    return [[c.name, c.kind, _plain(c.value), c.description, default]
+            for cells, default in ((DEFAULT_CELLS, 'yes'), (EXTRA_CELLS, 'no'))
+            for c in cells]

@@ -50,8 +50,8 @@ def add_robustness_parser(sub) -> argparse.ArgumentParser:
     rob.add_argument('--truth', type=Path, help='ground-truth file (point3 lines)')
     grid = rob.add_argument_group('matrix')
     grid.add_argument('--cells', nargs='+', metavar='CELL',
-                      help='run these cells only (default: the whole matrix; see '
-                           '--list-cells)')
+                      help='run these cells only (default: the whole default matrix; '
+                           'the extra cells run only when named; see --list-cells)')
     grid.add_argument('--list-cells', action='store_true',
                       help='print the matrix and exit')
     grid.add_argument('--seeds', type=int, default=DEFAULT_SEEDS,
@@ -153,8 +153,8 @@ def run_robustness_command(args: argparse.Namespace, argv) -> int:
         The exit code (module docstring).
     """
     if args.list_cells:
-        print(format_table(['cell', 'kind', 'value', 'the data, changed only in'],
-                           matrix_rows()))
+        print(format_table(['cell', 'kind', 'value', 'the data, changed only in',
+                            'default'], matrix_rows()))
         return EXIT_OK
     try:
         cells = select_cells(args.cells)
