@@ -217,14 +217,22 @@ def _variants_section(results: dict) -> list[str]:
                                        'PL p50 [m]', 'PL p95 [m]', 'avail 25 m'], rows))
 
 
-def _robustness_section(result: dict) -> list[str]:
+def robustness_results(results: dict[str, dict]) -> list[str]:
+    """The stems of the ``gnsscam_eval robustness`` result files: the default matrix
+    (``robustness``) first, then runs of extra cells (``robustness_*``)."""
+    return sorted((k for k, r in results.items() if r.get('command') == 'robustness'),
+                  key=lambda k: (k != 'robustness', k))
+
+
+def _robustness_section(name: str, result: dict) -> list[str]:
     rows = [[c['name'], _rate(c['mi_rate']['mean']), _rate(c['mi_rate']['upper']),
              c['rmse_ratio_to_wls'],
              c['pl_to_error_ratio'],
              'yes' if c['pass'] else 'no: ' + ', '.join(
                  k for k, t in c['targets'].items() if not t['pass'])]
             for c in result['cells']]
-    lines = ['## Robustness matrix (`docs/results/robustness.json`)', '',
+    title = 'Robustness matrix' if name == 'robustness' else 'Robustness, extra cells'
+    lines = [f'## {title} (`docs/results/{name}.json`)', '',
              f"{result['cells_passed']} of {len(result['cells'])} cells meet every target ("
              + '; '.join(f"`{k}`: {t['what']} <= {t['limit']:g}"
                          for k, t in result['targets'].items())
@@ -255,8 +263,8 @@ def render_results(results: dict[str, dict]) -> str:
             figures = sorted(f'figures/{Path(p).name}' for p in results[key].get('plots', []))
             lines += _evaluation_section(key, results[key], figures) + ['']
     lines += [''] + _variants_section(results)
-    if 'robustness' in results:
-        lines += [''] + _robustness_section(results['robustness'])
+    for name in robustness_results(results):
+        lines += [''] + _robustness_section(name, results[name])
     if 'rinex' in results:
         lines += ['', '## Reference stations from RINEX (`docs/results/rinex.json`)', '',
                   'Targets and context: [rinex.md](rinex.md).', '',
@@ -340,8 +348,9 @@ def figure_sources(results: dict[str, dict]) -> dict[str, str]:
         for key, figure in DEMO_FIGURES:
             if key in results['demo']['results']:
                 sources[f'figures/demo_{key}_{figure}'] = 'demo'
-    if results.get('robustness', {}).get('figure'):
-        sources['robustness.png'] = 'robustness'
+    for name in robustness_results(results):
+        if results[name].get('figure'):
+            sources[Path(results[name]['figure']).name] = name
     return sources
 
 
