@@ -6,8 +6,9 @@ choice, risk bound and protection level, resampling), the same with 10 camera ma
 epoch, and the bare arithmetic on the same number of likelihood evaluations (ranges plus a
 Gaussian log-sum-exp over satellites, plain numpy: the yardstick), timed in turn with the
 epoch so that each ratio is the median of ratios taken in the same round; then the
-package's default configuration alone; then the peak resident memory. Kernels are compiled (or
-loaded from the cache) before anything is timed, and the time that took is printed.
+package's default configuration, timed the same way; then the peak resident memory.
+Kernels are compiled (or loaded from the cache) before anything is timed, and the time
+that took is printed.
 """
 from __future__ import annotations
 
@@ -43,7 +44,13 @@ BLOCK_CALLS = 2
 def median_ms(fn, repeats: int) -> float:
     """Median wall time of ``fn`` over ``repeats`` calls after a first one (warm-up:
     allocations, caches, kernel compilation or cache load) [ms]."""
-    return interleaved_ms({'fn': fn}, repeats)['fn']
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return float(np.median(times) * 1e3)
 
 
 def interleaved_times_ms(fns: dict, repeats: int, block: int = BLOCK_CALLS) -> dict:
@@ -66,12 +73,6 @@ def interleaved_times_ms(fns: dict, repeats: int, block: int = BLOCK_CALLS) -> d
                 calls[j] = time.perf_counter() - start
             times[name][i] = float(np.median(calls)) * 1e3
     return times
-
-
-def interleaved_ms(fns: dict, repeats: int) -> dict:
-    """Median wall time [ms] of each function of ``fns``, timed in turn
-    (:func:`interleaved_times_ms`)."""
-    return {name: float(np.median(t)) for name, t in interleaved_times_ms(fns, repeats).items()}
 
 
 def paired_ratio(times_ms: dict, numerator: str, denominator: str) -> float:
