@@ -43,14 +43,9 @@ BLOCK_CALLS = 2
 
 def median_ms(fn, repeats: int) -> float:
     """Median wall time of ``fn`` over ``repeats`` calls after a first one (warm-up:
-    allocations, caches, kernel compilation or cache load) [ms]."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return float(np.median(times) * 1e3)
+    allocations, caches, kernel compilation or cache load) [ms]: one round of
+    :func:`interleaved_times_ms` with one function."""
+    return float(interleaved_times_ms({'fn': fn}, 1, block=repeats)['fn'][0])
 
 
 def interleaved_times_ms(fns: dict, repeats: int, block: int = BLOCK_CALLS) -> dict:
