@@ -40,6 +40,24 @@ def test_statistic_accumulates_evidence_beyond_the_allowance_only():
     assert held.statistic_nats == pytest.approx(0.9)
 
 
+def test_an_alarm_lasts_until_the_statistic_is_back_at_zero():
+    """Once the statistic reaches the suspect level, the cloud stays inconsistent while
+    the evidence drains away, not just while it stays above the threshold."""
+    monitor = ConsistencyMonitor(suspect_nats=2.0, recover_nats=6.0)
+    shift = np.array([30.0, 0.0])
+    states = [monitor.observe(k * S, 0.6, 0.1, shift) for k in range(5)]   # 0.5 per epoch
+    assert [s.inconsistent for s in states] == [False, False, False, True, True]
+    # Steps below the allowance: 2.5 -> 1.9 -> 1.3 ... still an alarm; back at 0: none.
+    draining = [monitor.observe(k * S, -0.5, 0.1, shift) for k in range(5, 13)]
+    stats = [s.statistic_nats for s in draining]
+    assert stats[0] < 2.0 and all(s.inconsistent for s, v in zip(draining, stats) if v > 0)
+    assert stats[-1] == 0.0 and not draining[-1].inconsistent
+    # Rising again below the suspect level is not an alarm.
+    assert not monitor.observe(13 * S, 1.0, 0.1, shift).inconsistent
+    monitor.reset()
+    assert not monitor.alarm
+
+
 def test_snapshot_position_recovers_a_position_from_far_away_despite_an_nlos_delay():
     truth = np.array([120.0, -40.0, 8.0])
     sv = FRAME.ecef_to_enu(sky(12, seed=5))

@@ -9,8 +9,8 @@ from hypothesis import strategies as st
 from synthetic import FRAME, epoch_at, sky
 
 from gnsscam_ros.core import integrity
-from gnsscam_ros.core.bias import (BiasHypotheses, BiasModel, hidden_fault_sizes, leverages,
-                                   projected_weights, with_hidden_faults)
+from gnsscam_ros.core.bias import (BiasHypotheses, BiasModel, beyond_cloud, hidden_fault_sizes,
+                                   leverages, projected_weights, with_hidden_faults)
 from gnsscam_ros.core.filter import UPDATED, FilterConfig, ParticleFilter
 from gnsscam_ros.core.motion import (ADDED, RESET, DeadReckoningState, MotionAccumulator)
 from gnsscam_ros.core.particles import MotionIncrement
@@ -234,6 +234,61 @@ def test_information_from_elsewhere_shrinks_the_offsets():
                   np.linalg.inv(np.linalg.inv(prior) + info + np.eye(3) * 5.0))
     assert (np.linalg.norm(helped.offsets_m, axis=1)
             < np.linalg.norm(alone.offsets_m, axis=1)).all()
+
+
+def test_beyond_cloud_keeps_the_faults_and_what_exceeds_the_spread():
+    """Known answers: the Gauss-Markov part's second moment becomes ``(O - C)_+``, the
+    hidden-fault part is kept as it is, the vertical is left alone in the horizontal
+    case."""
+    rng = np.random.default_rng(4)
+    m = 4000
+    gm = rng.standard_normal((m, 3)) * np.array([5.0, 2.0, 7.0])     # O = diag(25, 4, 49)
+    faults = np.zeros((m, 3))
+    faults[::10, 0] = 12.0
+    offsets = gm + faults
+    moment = gm[:, :2].T @ gm[:, :2] / m
+    cloud = np.diag([9.0, 9.0, 1.0])
+    out = beyond_cloud(offsets, faults, cloud, 2)
+    kept = out - faults
+    np.testing.assert_allclose(kept[:, :2].T @ kept[:, :2] / m,
+                               np.diag(np.maximum(np.diag(moment) - 9.0, 0.0)), atol=0.05)
+    np.testing.assert_array_equal(out[:, 2], offsets[:, 2])
+    # The shrink keeps each hypothesis's direction along a principal axis.
+    assert np.all(np.sign(kept[:, 0]) == np.sign(gm[:, 0]))
+    # 4 m^2 < 9 m^2 (the sample moment is not exactly diagonal: millimetres remain).
+    np.testing.assert_allclose(kept[:, 1], 0.0, atol=0.01)
+    # No cloud: everything stays; a cloud wider than every offset: only the faults stay.
+    np.testing.assert_allclose(beyond_cloud(offsets, faults, np.zeros((3, 3)), 3), offsets)
+    np.testing.assert_allclose(beyond_cloud(offsets, faults, np.eye(3) * 100.0, 3), faults,
+                               atol=1e-9)
+    # No Gauss-Markov part at all: nothing to shrink.
+    np.testing.assert_array_equal(beyond_cloud(faults, faults, cloud, 2), faults)
+
+
+def test_fault_offsets_are_the_update_of_the_faults_alone():
+    """The update is linear in the biases: the fault part of the offsets is what the
+    faults alone would have moved, the rest what the Gauss-Markov biases alone would."""
+    los = geometry()
+    k = los.shape[0]
+    sys_index = np.zeros(k, int)
+    weights = np.full(k, 0.1)
+    rng = np.random.default_rng(6)
+    prior = np.eye(3) * 4.0
+    posterior = np.eye(3) * 2.0
+    model = BiasModel(1.0, 0.0, 40.0, 50.0)
+    both, gm_only, faults_only = (BiasHypotheses(model, 30, np.random.default_rng(0))
+                                  for _ in range(3))
+    for _ in range(3):
+        gm = rng.normal(0.0, 5.0, (k, 30))
+        faults = with_hidden_faults(np.zeros((k, 30)), np.full(k, 9.0))
+        both.update(gm + faults, los, weights, sys_index, 1, prior, posterior, faults)
+        gm_only.update(gm, los, weights, sys_index, 1, prior, posterior)
+        faults_only.update(faults, los, weights, sys_index, 1, prior, posterior)
+    np.testing.assert_allclose(both.fault_offsets_m, faults_only.offsets_m, atol=1e-9)
+    np.testing.assert_allclose(both.offsets_m - both.fault_offsets_m, gm_only.offsets_m,
+                               atol=1e-9)
+    assert np.abs(both.fault_offsets_m).max() > 1.0
+    np.testing.assert_array_equal(gm_only.fault_offsets_m, 0.0)
 
 
 def test_biases_are_gauss_markov_with_the_model_size():

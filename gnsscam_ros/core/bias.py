@@ -27,6 +27,14 @@ where the satellites are few (one constellation, five to seven of them) the resi
 show almost nothing of it (leverage ~0.8; smartLoc GLONASS only: errors of 25-45 m for
 minutes while every residual looked like noise).
 
+The bound does not count twice what the particle set already holds
+(:func:`beyond_cloud`). The GNSS likelihood is tempered for the persisting part of the
+errors (``core.filter``), so the set's own spread already stands for the estimate error a
+Gauss-Markov bias of that size leaves; the Gauss-Markov part of the offsets adds only what
+exceeds that spread. The hidden faults are in no part of the likelihood and add in full;
+the hypotheses track their part of the offsets separately (:attr:`BiasHypotheses.
+fault_offsets_m`), which the update moves like the rest (it is linear in the biases).
+
 The estimate itself is unchanged; the offsets only displace the posteriors the bound sees
 (``integrity.PosteriorSet``).
 """
@@ -140,6 +148,44 @@ def with_hidden_faults(biases_m: np.ndarray, sizes_m: np.ndarray) -> np.ndarray:
     return out
 
 
+def beyond_cloud(offsets_m: np.ndarray, fault_offsets_m: np.ndarray,
+                 cloud_cov_m2: np.ndarray, dims: int) -> np.ndarray:
+    """The offsets the bound displaces the posteriors by, (M, 3) [m]: the hidden-fault
+    part in full, the Gauss-Markov part shrunk to what exceeds the particle set's spread
+    (module docstring).
+
+    With ``O`` the second moment of the Gauss-Markov offsets ``g_j = o_j - f_j`` and ``C``
+    the set's covariance (the first ``dims`` axes: east-north, or all three), the part
+    kept is ``g_j' = A g_j`` with ``A = (O - C)_+^(1/2) O^(-1/2)``, so that
+    ``E[g' g'^T] = (O - C)_+`` (the positive part): a set as wide as the biases' effect
+    takes no Gauss-Markov offset at all, a narrow one nearly the whole. The moment is
+    about zero, not the offsets' mean: the mean is an estimate error too.
+
+    Args:
+        offsets_m: (M, 3) the offsets of the hypotheses (:attr:`BiasHypotheses.offsets_m`).
+        fault_offsets_m: (M, 3) their hidden-fault part.
+        cloud_cov_m2: (3, 3) position covariance of the particle set.
+        dims: 2 (horizontal risk) or 3.
+    """
+    offsets = np.asarray(offsets_m, dtype=float)
+    faults = np.asarray(fault_offsets_m, dtype=float)
+    gm = (offsets - faults)[:, :dims]
+    moment = gm.T @ gm / max(gm.shape[0], 1)
+    values, vectors = np.linalg.eigh(moment)
+    if not values[-1] > 0.0:
+        return offsets.copy()                       # no Gauss-Markov part to shrink
+    # O^(-1/2) on the span of the offsets (a direction they never take stays at zero).
+    floor = values[-1] * 1e-12
+    inv_sqrt = (vectors * np.where(values > floor, 1.0 / np.sqrt(np.maximum(values, floor)),
+                                   0.0)) @ vectors.T
+    excess = _psd_part(moment - np.asarray(cloud_cov_m2, dtype=float)[:dims, :dims])
+    ex_values, ex_vectors = np.linalg.eigh(excess)
+    ex_sqrt = (ex_vectors * np.sqrt(np.maximum(ex_values, 0.0))) @ ex_vectors.T
+    out = offsets.copy()
+    out[:, :dims] = faults[:, :dims] + gm @ (ex_sqrt @ inv_sqrt).T
+    return out
+
+
 def _information(cov_m2: np.ndarray) -> np.ndarray:
     return np.linalg.inv(cov_m2 + COV_FLOOR_M2 * np.eye(cov_m2.shape[0]))
 
@@ -163,6 +209,8 @@ class BiasHypotheses:
         self.n = int(n_hypotheses)
         self.rng = rng
         self.offsets_m = np.zeros((self.n, 3))
+        # The hidden faults' part of ``offsets_m`` (module docstring) [m].
+        self.fault_offsets_m = np.zeros((self.n, 3))
         # Smoothed residual variance at the estimate [m^2] and its stamp (None: none yet).
         self.residual_var_m2: float | None = None
         self._residual_stamp_ns: int | None = None
@@ -267,17 +315,20 @@ class BiasHypotheses:
 
     def update(self, biases_m: np.ndarray, line_of_sight: np.ndarray, weights: np.ndarray,
                sys_index: np.ndarray, n_systems: int, prior_cov_m2: np.ndarray,
-               posterior_cov_m2: np.ndarray) -> np.ndarray:
+               posterior_cov_m2: np.ndarray, fault_biases_m: np.ndarray | None = None
+               ) -> np.ndarray:
         """Move the offsets through one GNSS update (see the module docstring).
 
         Args:
-            biases_m: (k, M) biases of the satellites used.
+            biases_m: (k, M) biases of the satellites used, hidden faults included.
             line_of_sight: (k, 3) unit vectors from the receiver to the satellites.
             weights: (k,) update weights ``tempering * inlier share / sigma^2`` [1/m^2].
             sys_index: (k,) constellation index (one clock each).
             n_systems: Number of constellations.
             prior_cov_m2: (3, 3) position covariance of the prior set.
             posterior_cov_m2: (3, 3) position covariance of the posterior set.
+            fault_biases_m: (k, M) the hidden faults' part of ``biases_m`` (None: none);
+                it moves :attr:`fault_offsets_m`.
 
         Returns:
             (M, 3) offsets after the update [m].
@@ -286,7 +337,8 @@ class BiasHypotheses:
         gained = _psd_part(_information(posterior_cov_m2) - prior_info)
         cov = np.linalg.inv(prior_info + gained)
         wp = projected_weights(weights, sys_index, n_systems)
-        g = -line_of_sight                                  # d pseudorange / d position
-        rhs = self.offsets_m @ prior_info + (g.T @ wp @ biases_m).T
-        self.offsets_m = rhs @ cov
+        gain = -line_of_sight.T @ wp                        # G^T Wp, G = -line of sight
+        self.offsets_m = (self.offsets_m @ prior_info + (gain @ biases_m).T) @ cov
+        faults = (np.zeros_like(biases_m) if fault_biases_m is None else fault_biases_m)
+        self.fault_offsets_m = (self.fault_offsets_m @ prior_info + (gain @ faults).T) @ cov
         return self.offsets_m

@@ -13,7 +13,9 @@ likelihood ratio between two hypotheses of equal spread, and its sum over epochs
 sequential test (Page's CUSUM, ``S <- max(0, S + d - allowance)``,
 :class:`ConsistencyMonitor`):
 
-* ``S >= suspect_nats``: inconsistent. The verdict is ERROR and the protection level
+* ``S >= suspect_nats``: inconsistent, and it stays so until ``S`` is back at zero (the
+  CUSUM's own end of an alarm: the evidence against the cloud has been spent, not merely
+  fallen below the threshold for an epoch). The verdict is ERROR and the protection level
   covers the separation between the estimate and the snapshot solution (as it does until
   integrity has settled, whatever ``S``: ``core.filter``).
 * ``S >= recover_nats``: recovery, as augmented Monte Carlo localisation injects
@@ -105,7 +107,7 @@ class ConsistencyState:
         step_nats: This epoch's log likelihood ratio ``d`` [nats] (NaN: not tested).
         separation_m: Horizontal distance from the cloud to the snapshot solution,
             smoothed [m] (NaN: none).
-        inconsistent: ``S >= suspect_nats``.
+        inconsistent: ``S`` has reached ``suspect_nats`` and not yet fallen back to 0.
         recover: ``S >= recover_nats``: the filter recovers this epoch.
         shift_m: (2,) the smoothed move from the cloud to the snapshot solution, east and
             north [m] (None: none).
@@ -143,6 +145,8 @@ class ConsistencyMonitor:
         self.recover_nats = float(recover_nats)
         self.statistic_nats = 0.0
         self.recoveries = 0
+        # S has reached suspect_nats and not yet fallen back to zero.
+        self.alarm = False
         self.shift_m: np.ndarray | None = None       # smoothed snapshot - cloud, E, N
         self._stamp_ns: int | None = None
 
@@ -170,13 +174,19 @@ class ConsistencyMonitor:
         separation = (float('nan') if self.shift_m is None
                       else float(np.hypot(*self.shift_m)))
         recover = self.statistic_nats >= self.recover_nats and self.shift_m is not None
+        if self.statistic_nats >= self.suspect_nats:
+            self.alarm = True
+        elif self.statistic_nats <= 0.0:
+            self.alarm = False
         state = ConsistencyState(
             statistic_nats=self.statistic_nats, step_nats=float(step_nats),
-            separation_m=separation, inconsistent=self.statistic_nats >= self.suspect_nats,
+            separation_m=separation, inconsistent=self.alarm,
             recover=recover,
             shift_m=None if self.shift_m is None else self.shift_m.copy())
         if recover:
+            # The cloud is moved and integrity settles again (core.filter): a new test.
             self.recoveries += 1
+            self.alarm = False
             self.statistic_nats = 0.0
             self.shift_m = None
         return state
@@ -184,5 +194,6 @@ class ConsistencyMonitor:
     def reset(self) -> None:
         """Start the test again (a new initialisation); the recovery count stays."""
         self.statistic_nats = 0.0
+        self.alarm = False
         self.shift_m = None
         self._stamp_ns = None

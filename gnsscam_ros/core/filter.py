@@ -19,7 +19,7 @@ import numpy as np
 
 from . import gnss, integrity
 from .bias import (BIAS_CN0, BIAS_LEARNED, BIAS_MODELS, BIAS_NONE, BiasHypotheses,
-                   hidden_fault_sizes, leverages, with_hidden_faults)
+                   beyond_cloud, hidden_fault_sizes, leverages, with_hidden_faults)
 from .config import ERROR_ADAPTIVE, FilterConfig
 from .consistency import ConsistencyMonitor, ConsistencyState, snapshot_position
 from .error_model import AdaptiveErrorModel
@@ -636,12 +636,22 @@ class ParticleFilter:
                 # reach of its class's wide component (mean + 3 sd): the largest error the
                 # learned model gives any weight to.
                 core, _, wide_mean, wide_sd = self.errors.satellite_model(prep.cn0_dbhz)
+                gauss_markov = biases
                 biases = with_hidden_faults(biases, hidden_fault_sizes(
                     core, leverages(line, weights, prep.sys_index, prep.n_systems),
                     cfg.hidden_fault_core_sds, np.abs(wide_mean) + 3.0 * wide_sd))
+                faults = biases - gauss_markov
+            else:
+                faults = None
+            prior_faults = self.bias.fault_offsets_m.copy()
             offsets = self.bias.update(
                 biases, line, weights,
-                prep.sys_index, prep.n_systems, prior_cov, cov).copy()
+                prep.sys_index, prep.n_systems, prior_cov, cov, faults).copy()
+            if cfg.bias_beyond_cloud:
+                # Only what the sets' spreads do not already hold (core.bias.beyond_cloud).
+                dims = 2 if cfg.horizontal_risk else 3
+                offsets = beyond_cloud(offsets, self.bias.fault_offsets_m, cov, dims)
+                prior_offsets = beyond_cloud(prior_offsets, prior_faults, prior_cov, dims)
         posteriors = integrity.PosteriorSet(pos, post_log_w, index, offsets,
                                             cfg.horizontal_risk)
         priors = integrity.PosteriorSet(pos, np.broadcast_to(prior_log_w, post_log_w.shape),
