@@ -142,8 +142,22 @@ def test_the_correlation_time_of_gauss_markov_errors_is_recovered_at_any_rate(ra
     phi = np.exp(-dt / tau)
     model = AdaptiveErrorModel(window_s=120.0, prior_correlation_time_s=30.0)
     assert model.correlation_time_s == 30.0                     # the prior before data
+    assert not model.correlation_measured
     e = rng.normal(0.0, 3.0, k)
     for i in range(int(120 * rate_hz)):
         e = phi * e + np.sqrt(1.0 - phi * phi) * rng.normal(0.0, 3.0, k)
         model.observe(int(i * dt * S), e, np.full(k, 47.0), 0, np.arange(k))
+    assert model.correlation_measured
     assert model.correlation_time_s == pytest.approx(tau, rel=0.25)
+
+
+def test_epochs_too_far_apart_leave_the_correlation_unmeasured():
+    """30 s epochs (a static RINEX file) give no pair at the correlation lag: the model
+    says so, and the filter then counts every bias offset in full (core.filter)."""
+    rng = np.random.default_rng(9)
+    model = AdaptiveErrorModel(window_s=600.0, prior_correlation_time_s=10.0)
+    for i in range(40):
+        model.observe(int(i * 30 * S), rng.normal(0.0, 3.0, 12), np.full(12, 47.0), 0,
+                      np.arange(12))
+    assert model.samples > 0 and not model.correlation_measured
+    assert model.correlation_time_s == 10.0

@@ -241,7 +241,9 @@ class BiasConfig(_Part):
         "Gauss-Markov part of the 'learned' and 'cn0' offsets adds only what exceeds the "
         "set's own spread (the likelihood is tempered for persisting errors, so that "
         'spread already stands for them), the hidden faults add in full (core.bias.'
-        'beyond_cloud). False: every offset in full, on top of the spread.',
+        'beyond_cloud), once the learned error model has measured how long the errors '
+        'persist (until then, and with epochs too far apart to measure it, every offset '
+        'counts in full). False: every offset in full, on top of the spread.',
         provenance='Chosen on the smartLoc Berlin drive, filter seeds 1-3 (unchanged, GPS '
         'only, GLONASS only, joined 120 s in, GNSS at 1 Hz, injected faults): median PL '
         '2.66-3.35x the error in full, 2.25-2.79x beyond the cloud, MI rate 0-0.031 and '

@@ -291,12 +291,20 @@ class AdaptiveErrorModel:
                             float(x.shape[0]))
 
     @property
+    def correlation_measured(self) -> bool:
+        """The window holds enough residual pairs ``CORRELATION_LAG_S`` apart for
+        :attr:`correlation_time_s` to be measured, not the prior (never, when the epochs
+        are further apart than that lag allows)."""
+        _, xx, yy, _, count = self._pairs
+        return bool(count >= CORRELATION_MIN_PAIRS and xx > 0.0 and yy > 0.0)
+
+    @property
     def correlation_time_s(self) -> float:
         """How long the errors persist [s]: ``-lag / ln rho`` of the residual pairs in the
-        window (the prior before ``CORRELATION_MIN_PAIRS``), between
+        window (the prior until :attr:`correlation_measured`), between
         ``MIN_CORRELATION_TIME_S`` and the window."""
         xy, xx, yy, lag, count = self._pairs
-        if count < CORRELATION_MIN_PAIRS or xx <= 0.0 or yy <= 0.0:
+        if not self.correlation_measured:
             return self.prior_correlation_time_s
         rho = xy / np.sqrt(xx * yy)
         if rho <= 0.0:

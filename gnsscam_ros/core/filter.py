@@ -647,8 +647,10 @@ class ParticleFilter:
             offsets = self.bias.update(
                 biases, line, weights,
                 prep.sys_index, prep.n_systems, prior_cov, cov, faults).copy()
-            if cfg.bias_beyond_cloud:
+            if cfg.bias_beyond_cloud and self.errors.correlation_measured:
                 # Only what the sets' spreads do not already hold (core.bias.beyond_cloud).
+                # That they hold the persisting errors rests on how long those persist:
+                # unmeasured (sparse epochs, a stated error model), every offset counts.
                 dims = 2 if cfg.horizontal_risk else 3
                 offsets = beyond_cloud(offsets, self.bias.fault_offsets_m, cov, dims)
                 prior_offsets = beyond_cloud(prior_offsets, prior_faults, prior_cov, dims)
