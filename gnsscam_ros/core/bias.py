@@ -34,6 +34,9 @@ Gauss-Markov bias of that size leaves; the Gauss-Markov part of the offsets adds
 exceeds that spread. The hidden faults are in no part of the likelihood and add in full;
 the hypotheses track their part of the offsets separately (:attr:`BiasHypotheses.
 fault_offsets_m`), which the update moves like the rest (it is linear in the biases).
+The filter shrinks only once the error model has measured how long the errors persist
+(``AdaptiveErrorModel.correlation_measured``): with epochs too far apart to measure it,
+nothing says the set holds them, and every offset counts in full.
 
 The estimate itself is unchanged; the offsets only displace the posteriors the bound sees
 (``integrity.PosteriorSet``).
