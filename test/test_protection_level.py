@@ -217,6 +217,35 @@ def test_hidden_faults_widen_the_level_where_satellites_are_few():
     assert many[0] < 1.3 * many[1], many
 
 
+def test_the_offsets_shrink_only_once_the_persistence_is_measured():
+    """Static, 12 satellites of 3 m Gauss-Markov errors: at 1 s epochs the error model
+    measures how long the errors persist and the level is narrower beyond the cloud; at
+    30 s epochs it cannot, and the level is the one with every offset in full, to the
+    bit."""
+    def levels(dt_s, beyond):
+        rng = np.random.default_rng(5)
+        filt = ParticleFilter(small_config(bias_beyond_cloud=beyond), frame=FRAME,
+                              rng=np.random.default_rng(0))
+        sv = sky(12, seed=2)
+        error = rng.normal(0.0, 3.0, 12)
+        phi = np.exp(-dt_s / 5.0)
+        out = []
+        for i in range(60):
+            error = phi * error + np.sqrt(1.0 - phi * phi) * rng.normal(0.0, 3.0, 12)
+            epoch = epoch_at(np.zeros(3), clock_m=100.0, sv_ecef=sv,
+                             stamp_ns=int(i * dt_s * SECOND))
+            epoch = replace(epoch, pr_m=epoch.pr_m + error)
+            out.append(filt.step(epoch, None if i == 0
+                                 else MotionIncrement.stationary(dt_s)).protection_level_m)
+        return np.array(out[20:]), filt.errors.correlation_measured
+    sparse, measured = levels(30.0, True)
+    assert not measured
+    np.testing.assert_array_equal(sparse, levels(30.0, False)[0])
+    dense, measured = levels(1.0, True)
+    full = levels(1.0, False)[0]
+    assert measured and (dense <= full + 1e-9).all() and np.median(dense) < np.median(full)
+
+
 def test_information_from_elsewhere_shrinks_the_offsets():
     los = geometry()
     k = los.shape[0]
