@@ -342,6 +342,8 @@ class BiasHypotheses:
         wp = projected_weights(weights, sys_index, n_systems)
         gain = -line_of_sight.T @ wp                        # G^T Wp, G = -line of sight
         self.offsets_m = (self.offsets_m @ prior_info + (gain @ biases_m).T) @ cov
-        faults = (np.zeros_like(biases_m) if fault_biases_m is None else fault_biases_m)
-        self.fault_offsets_m = (self.fault_offsets_m @ prior_info + (gain @ faults).T) @ cov
+        moved = self.fault_offsets_m @ prior_info
+        if fault_biases_m is not None:
+            moved = moved + (gain @ fault_biases_m).T
+        self.fault_offsets_m = moved @ cov
         return self.offsets_m
