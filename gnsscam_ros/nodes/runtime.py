@@ -3,6 +3,7 @@ starting and spinning one or several nodes, a clean stop on Ctrl-C or a failure,
 stopping a node's child process as Ctrl-C does."""
 from __future__ import annotations
 
+import _thread
 import os
 import signal
 import subprocess
@@ -146,13 +147,35 @@ def spin_node(node, executor=None) -> None:
             raise
 
 
+#: How long after the hook a Ctrl-C dropped in a ctypes callback is raised again in the main
+#: thread (:func:`_quiet_unraisable`): long enough for the hook to have returned.
+REDELIVER_INTERRUPT_AFTER_S = 0.05
+
+
 def _quiet_unraisable(unraisable) -> None:
-    """``sys.unraisablehook`` of the node processes: an rclpy object whose constructor a
-    Ctrl-C interrupted (an executor built while rclpy's signal handler shuts the context
-    down fails creating its guard condition) fails again in its ``__del__`` ("Exception
-    ignored in: Executor.__del__ ... AttributeError: ... '_sigint_gc'", 3 stops in 20
-    here): that is the stop, not an error worth a traceback on stderr. Everything else
-    goes to Python's hook."""
+    """``sys.unraisablehook`` of the node processes.
+
+    - An rclpy object whose constructor a Ctrl-C interrupted (an executor built while
+      rclpy's signal handler shuts the context down fails creating its guard condition)
+      fails again in its ``__del__`` ("Exception ignored in: Executor.__del__ ...
+      AttributeError: ... '_sigint_gc'", 3 stops in 20 here): that is the stop, not an
+      error worth a traceback on stderr.
+    - A Ctrl-C that lands inside a ctypes callback (llvmlite's object-cache callbacks
+      while numba compiles the kernels at start-up) cannot propagate from there: Python
+      prints "Exception ignored on calling ctypes callback function ... KeyboardInterrupt"
+      and drops it, and the compilation went on for tens of seconds. It is delivered again
+      to the main thread (``_thread.interrupt_main``), where it stops the start-up as any
+      other Ctrl-C does: from another thread, a moment later, because the main thread
+      checks for signals at once and would raise it inside this hook (and Python would
+      report that as ignored too). Landing in a callback again repeats this.
+
+    Everything else goes to Python's hook."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        later = threading.Timer(REDELIVER_INTERRUPT_AFTER_S, _thread.interrupt_main,
+                                args=(signal.SIGINT,))
+        later.daemon = True
+        later.start()
+        return
     where = getattr(unraisable.object, '__module__', None) or ''
     if (where.startswith('rclpy') and isinstance(unraisable.exc_value, AttributeError)
             and not rclpy.ok()):
