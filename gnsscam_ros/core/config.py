@@ -323,9 +323,8 @@ class IntegrityConfig(_Part):
     consistency_suspect_nats: float = parameter(
         2.0, 'The cloud counts as inconsistent with the measurements (ERROR, the protection '
         'level covering the snapshot solution) while the CUSUM of the log likelihood ratio '
-        '"cloud moved onto the snapshot solution" against "cloud" has reached this and '
-        'until it is back at zero (core.consistency): odds of e^2 = 7 to 1.', 'nats',
-        low=0.0, low_open=True)
+        '"cloud moved onto the snapshot solution" against "cloud" is at least this '
+        '(core.consistency): odds of e^2 = 7 to 1.', 'nats', low=0.0, low_open=True)
     consistency_recover_nats: float = parameter(
         6.0, 'At this statistic (odds of 400 to 1) the filter recovers: recovery_share of '
         'the cloud moves onto the snapshot solution and integrity settles again.', 'nats',

@@ -13,11 +13,15 @@ likelihood ratio between two hypotheses of equal spread, and its sum over epochs
 sequential test (Page's CUSUM, ``S <- max(0, S + d - allowance)``,
 :class:`ConsistencyMonitor`):
 
-* ``S >= suspect_nats``: inconsistent, and it stays so until ``S`` is back at zero (the
-  CUSUM's own end of an alarm: the evidence against the cloud has been spent, not merely
-  fallen below the threshold for an epoch). The verdict is ERROR and the protection level
+* ``S >= suspect_nats``: inconsistent. The verdict is ERROR and the protection level
   covers the separation between the estimate and the snapshot solution (as it does until
-  integrity has settled, whatever ``S``: ``core.filter``).
+  integrity has settled, whatever ``S``: ``core.filter``). The alarm ends when ``S``
+  falls below ``suspect_nats`` again, not when it is back at zero: the allowance is the
+  fitted snapshot's expected advantage, so under a consistent cloud ``S`` has almost no
+  drift and returns to zero only by chance. Held until zero, three epochs of a
+  snapshot pulled off by NLOS (the emulated drive, seed 1: steps of 18-20 times the
+  allowance) kept a cloud within 1-5 m of the truth "inconsistent" for 89 of 151
+  epochs; ended at the threshold, for 17.
 * ``S >= recover_nats``: recovery, as augmented Monte Carlo localisation injects
   particles when the likelihood drops: a share of the cloud is moved by the smoothed
   separation onto the snapshot solutions (its spread kept), the likelihood decides
@@ -107,7 +111,7 @@ class ConsistencyState:
         step_nats: This epoch's log likelihood ratio ``d`` [nats] (NaN: not tested).
         separation_m: Horizontal distance from the cloud to the snapshot solution,
             smoothed [m] (NaN: none).
-        inconsistent: ``S`` has reached ``suspect_nats`` and not yet fallen back to 0.
+        inconsistent: ``S >= suspect_nats``.
         recover: ``S >= recover_nats``: the filter recovers this epoch.
         shift_m: (2,) the smoothed move from the cloud to the snapshot solution, east and
             north [m] (None: none).
@@ -145,8 +149,6 @@ class ConsistencyMonitor:
         self.recover_nats = float(recover_nats)
         self.statistic_nats = 0.0
         self.recoveries = 0
-        # S has reached suspect_nats and not yet fallen back to zero.
-        self.alarm = False
         self.shift_m: np.ndarray | None = None       # smoothed snapshot - cloud, E, N
         self._stamp_ns: int | None = None
 
@@ -174,19 +176,14 @@ class ConsistencyMonitor:
         separation = (float('nan') if self.shift_m is None
                       else float(np.hypot(*self.shift_m)))
         recover = self.statistic_nats >= self.recover_nats and self.shift_m is not None
-        if self.statistic_nats >= self.suspect_nats:
-            self.alarm = True
-        elif self.statistic_nats <= 0.0:
-            self.alarm = False
         state = ConsistencyState(
             statistic_nats=self.statistic_nats, step_nats=float(step_nats),
-            separation_m=separation, inconsistent=self.alarm,
+            separation_m=separation, inconsistent=self.statistic_nats >= self.suspect_nats,
             recover=recover,
             shift_m=None if self.shift_m is None else self.shift_m.copy())
         if recover:
             # The cloud is moved and integrity settles again (core.filter): a new test.
             self.recoveries += 1
-            self.alarm = False
             self.statistic_nats = 0.0
             self.shift_m = None
         return state
@@ -194,6 +191,5 @@ class ConsistencyMonitor:
     def reset(self) -> None:
         """Start the test again (a new initialisation); the recovery count stays."""
         self.statistic_nats = 0.0
-        self.alarm = False
         self.shift_m = None
         self._stamp_ns = None
