@@ -306,7 +306,7 @@ def test_ctrl_c_while_the_kernels_compile_stops_with_status_0(tmp_path, module):
 
 
 CTRL_C_IN_A_CTYPES_CALLBACK = """
-import ctypes, sys, time
+import ctypes, time
 from gnsscam_ros.nodes.runtime import quiet_interrupted_rclpy_objects
 quiet_interrupted_rclpy_objects()
 callback = ctypes.CFUNCTYPE(None)(lambda: (_ for _ in ()).throw(KeyboardInterrupt))
@@ -321,7 +321,7 @@ except KeyboardInterrupt:
 
 
 def test_a_ctrl_c_inside_a_ctypes_callback_stops_the_process_without_a_traceback(tmp_path):
-    """The CI failure of the cold-start test below, made deterministic: Python cannot raise
+    """The CI failure of the cold-start test above, made deterministic: Python cannot raise
     a KeyboardInterrupt out of a ctypes callback, prints "Exception ignored on calling
     ctypes callback function ... Traceback ... KeyboardInterrupt" and drops it. The node
     processes' hook delivers it again to the main thread instead."""

@@ -171,9 +171,10 @@ def _quiet_unraisable(unraisable) -> None:
 
     Everything else goes to Python's hook."""
     if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        # Not a daemon (as core.noise's worker): the interpreter joins it before it
+        # finalises instead of leaving it to run in a half torn-down one; 50 ms at most.
         later = threading.Timer(REDELIVER_INTERRUPT_AFTER_S, _thread.interrupt_main,
                                 args=(signal.SIGINT,))
-        later.daemon = True
         later.start()
         return
     where = getattr(unraisable.object, '__module__', None) or ''
