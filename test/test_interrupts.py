@@ -1,9 +1,16 @@
 """Ctrl-C in the evaluation commands: numba's dispatcher turns a KeyboardInterrupt raised
 while a kernel runs into a SystemError caused by it; the commands stop with 130 all the
 same, and any other SystemError is a defect that propagates."""
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
+from gnsscam_ros.core.kernels import interrupts as kernel_interrupts
 from gnsscam_ros.evaluation import cli, interrupts
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def kernel_interrupt() -> SystemError:
@@ -44,3 +51,40 @@ def test_another_system_error_is_not_taken_for_an_interrupt(tmp_path, monkeypatc
     monkeypatch.setattr(cli, 'evaluate_drive_record', broken)
     with pytest.raises(SystemError, match='a real defect'):
         cli.main(['emulated', '--seed', '1', '--duration-s', '5'])
+
+
+CTRL_C_WHILE_NUMBA_COMPILES = """
+import ctypes, sys, time
+from gnsscam_ros.evaluation import cli
+
+def compiling(*args, **kwargs):
+    # As llvmlite calls back into Python while numba compiles a kernel: Python cannot
+    # raise out of a ctypes callback, so without the hook the Ctrl-C is printed and lost.
+    ctypes.CFUNCTYPE(None)(lambda: (_ for _ in ()).throw(KeyboardInterrupt))()
+    for _ in range(200):                    # the rest of the compilation
+        time.sleep(0.01)
+    print('the Ctrl-C was lost')
+    sys.exit(0)
+
+cli.evaluate_drive_record = compiling
+print('exit', cli.main(['emulated', '--seed', '1', '--duration-s', '5', '--json', sys.argv[1]]))
+"""
+
+
+def test_gnsscam_eval_stopped_while_numba_compiles_exits_130_without_a_traceback(tmp_path):
+    """A Ctrl-C that lands in one of llvmlite's ctypes callbacks stops the command as any
+    other (core.kernels.interrupts) instead of being printed as ignored and dropped."""
+    out = tmp_path / 'run.json'
+    result = subprocess.run([sys.executable, '-c', CTRL_C_WHILE_NUMBA_COMPILES, str(out)],
+                            cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert result.stdout.split() == ['exit', '130'], (result.stdout, result.stderr)
+    assert 'interrupted; nothing written' in result.stderr, result.stderr
+    assert 'Traceback' not in result.stderr and 'ignored' not in result.stderr, result.stderr
+    assert not out.exists()
+
+
+def test_the_redelivery_hook_is_removed_when_the_command_ends():
+    before = sys.unraisablehook
+    with kernel_interrupts.interrupts_redelivered():
+        assert sys.unraisablehook is not before
+    assert sys.unraisablehook is before

@@ -22,6 +22,7 @@ from pathlib import Path
 
 from ..bags.errors import BagError
 from ..core.filter import FilterConfig
+from ..core.kernels.interrupts import interrupts_redelivered
 from ..datasets.emulated.drive import make_emulated_drive
 from ..datasets.errors import DatasetError
 from ..datasets.faults import FaultEpisodes, inject_pseudorange_faults
@@ -336,7 +337,8 @@ def main(argv: list[str] | None = None) -> int:
     """``gnsscam_eval``; its exit status (``EXIT_*``; 130 after Ctrl-C, wherever it
     landed: nothing is written before a run has finished)."""
     try:
-        return _command(argv)
+        with interrupts_redelivered():      # a Ctrl-C while numba compiles is not lost
+            return _command(argv)
     except (KeyboardInterrupt, SystemError) as err:
         if not is_interrupt(err):
             raise

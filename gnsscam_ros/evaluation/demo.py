@@ -50,6 +50,7 @@ from ..bags.read import read_drive, read_results
 from ..core.filter import FilterConfig
 from ..core.frames import LocalFrame
 from ..core.fusion import CameraMeasurement
+from ..core.kernels.interrupts import interrupts_redelivered
 from ..core.motion import DeadReckoningConfig
 from ..core.types import Drive
 from ..core.warmup import warm_up_kernels
@@ -358,7 +359,8 @@ def main(argv: list[str] | None = None) -> int:
                      'complete (the file goes when summary.json is written).\n')
     print(f'[demo] writing into {out_dir}', file=sys.stderr)
     try:
-        run_demo(args, out_dir, stages)
+        with interrupts_redelivered():      # a Ctrl-C while numba compiles is not lost
+            run_demo(args, out_dir, stages)
     except (KeyboardInterrupt, SystemError) as err:
         # A Ctrl-C inside a compiled kernel is a SystemError (evaluation.interrupts).
         if not is_interrupt(err):

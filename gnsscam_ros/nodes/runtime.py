@@ -3,7 +3,6 @@ starting and spinning one or several nodes, a clean stop on Ctrl-C or a failure,
 stopping a node's child process as Ctrl-C does."""
 from __future__ import annotations
 
-import _thread
 import os
 import signal
 import subprocess
@@ -14,6 +13,8 @@ from typing import Callable
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+
+from gnsscam_ros.core.kernels.interrupts import redeliver_dropped_interrupt
 
 from .node_base import EXIT_FAILED, EXIT_OK, EXIT_PARAMETER, StartupError
 from .memory import configure_node_memory
@@ -147,11 +148,6 @@ def spin_node(node, executor=None) -> None:
             raise
 
 
-#: How long after the hook a Ctrl-C dropped in a ctypes callback is raised again in the main
-#: thread (:func:`_quiet_unraisable`): long enough for the hook to have returned.
-REDELIVER_INTERRUPT_AFTER_S = 0.05
-
-
 def _quiet_unraisable(unraisable) -> None:
     """``sys.unraisablehook`` of the node processes.
 
@@ -161,21 +157,11 @@ def _quiet_unraisable(unraisable) -> None:
       AttributeError: ... '_sigint_gc'", 3 stops in 20 here): that is the stop, not an
       error worth a traceback on stderr.
     - A Ctrl-C that lands inside a ctypes callback (llvmlite's object-cache callbacks
-      while numba compiles the kernels at start-up) cannot propagate from there: Python
-      prints "Exception ignored on calling ctypes callback function ... KeyboardInterrupt"
-      and drops it, and the compilation went on for tens of seconds. It is delivered again
-      to the main thread (``_thread.interrupt_main``), where it stops the start-up as any
-      other Ctrl-C does: from another thread, a moment later, because the main thread
-      checks for signals at once and would raise it inside this hook (and Python would
-      report that as ignored too). Landing in a callback again repeats this.
+      while numba compiles the kernels at start-up) is raised again in the main thread
+      (``core.kernels.interrupts``), where it stops the start-up as any other Ctrl-C.
 
     Everything else goes to Python's hook."""
-    if isinstance(unraisable.exc_value, KeyboardInterrupt):
-        # Not a daemon (as core.noise's worker): the interpreter joins it before it
-        # finalises instead of leaving it to run in a half torn-down one; 50 ms at most.
-        later = threading.Timer(REDELIVER_INTERRUPT_AFTER_S, _thread.interrupt_main,
-                                args=(signal.SIGINT,))
-        later.start()
+    if redeliver_dropped_interrupt(unraisable):
         return
     where = getattr(unraisable.object, '__module__', None) or ''
     if (where.startswith('rclpy') and isinstance(unraisable.exc_value, AttributeError)
