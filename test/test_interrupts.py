@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from gnsscam_ros.core.kernels import interrupts as kernel_interrupts
+from gnsscam_ros.core import interrupts as compile_interrupts
 from gnsscam_ros.evaluation import cli, interrupts
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -73,7 +73,7 @@ print('exit', cli.main(['emulated', '--seed', '1', '--duration-s', '5', '--json'
 
 def test_gnsscam_eval_stopped_while_numba_compiles_exits_130_without_a_traceback(tmp_path):
     """A Ctrl-C that lands in one of llvmlite's ctypes callbacks stops the command as any
-    other (core.kernels.interrupts) instead of being printed as ignored and dropped."""
+    other (core.interrupts) instead of being printed as ignored and dropped."""
     out = tmp_path / 'run.json'
     result = subprocess.run([sys.executable, '-c', CTRL_C_WHILE_NUMBA_COMPILES, str(out)],
                             cwd=ROOT, capture_output=True, text=True, timeout=120)
@@ -85,6 +85,6 @@ def test_gnsscam_eval_stopped_while_numba_compiles_exits_130_without_a_traceback
 
 def test_the_redelivery_hook_is_removed_when_the_command_ends():
     before = sys.unraisablehook
-    with kernel_interrupts.interrupts_redelivered():
+    with compile_interrupts.interrupts_redelivered():
         assert sys.unraisablehook is not before
     assert sys.unraisablehook is before

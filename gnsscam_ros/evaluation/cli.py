@@ -22,7 +22,7 @@ from pathlib import Path
 
 from ..bags.errors import BagError
 from ..core.filter import FilterConfig
-from ..core.kernels.interrupts import interrupts_redelivered
+from ..core.interrupts import interrupts_redelivered
 from ..datasets.emulated.drive import make_emulated_drive
 from ..datasets.errors import DatasetError
 from ..datasets.faults import FaultEpisodes, inject_pseudorange_faults

@@ -50,7 +50,7 @@ from ..bags.read import read_drive, read_results
 from ..core.filter import FilterConfig
 from ..core.frames import LocalFrame
 from ..core.fusion import CameraMeasurement
-from ..core.kernels.interrupts import interrupts_redelivered
+from ..core.interrupts import interrupts_redelivered
 from ..core.motion import DeadReckoningConfig
 from ..core.types import Drive
 from ..core.warmup import warm_up_kernels

@@ -14,7 +14,7 @@ from typing import Callable
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 
-from gnsscam_ros.core.kernels.interrupts import redeliver_dropped_interrupt
+from gnsscam_ros.core.interrupts import redeliver_dropped_interrupt
 
 from .node_base import EXIT_FAILED, EXIT_OK, EXIT_PARAMETER, StartupError
 from .memory import configure_node_memory
@@ -158,7 +158,7 @@ def _quiet_unraisable(unraisable) -> None:
       error worth a traceback on stderr.
     - A Ctrl-C that lands inside a ctypes callback (llvmlite's object-cache callbacks
       while numba compiles the kernels at start-up) is raised again in the main thread
-      (``core.kernels.interrupts``), where it stops the start-up as any other Ctrl-C.
+      (``core.interrupts``), where it stops the start-up as any other Ctrl-C.
 
     Everything else goes to Python's hook."""
     if redeliver_dropped_interrupt(unraisable):

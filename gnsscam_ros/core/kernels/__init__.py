@@ -14,7 +14,7 @@ source file only, not against the helpers it inlines from another module
 this package older than any of its sources, so an edited helper is compiled again.
 
 A Ctrl-C that lands in one of llvmlite's callbacks while a kernel compiles is raised again
-in the main thread (:mod:`.interrupts`) instead of being dropped.
+in the main thread (``core.interrupts``) instead of being dropped.
 
 Kernels run on the calling thread only (no numba threading layer, no BLAS), so an epoch
 costs the same whatever was imported before.

@@ -11,7 +11,8 @@ inside the unraisable hook itself (and Python would report that as ignored too).
 in a callback again repeats this.
 
 The node processes call it from their own unraisable hook (``nodes.runtime``); the
-evaluation commands run inside :func:`interrupts_redelivered`.
+evaluation commands run inside :func:`interrupts_redelivered`. Standard library only, and
+outside ``core.kernels`` (whose import loads numba): the light nodes import it too.
 """
 from __future__ import annotations
 
