@@ -15,6 +15,7 @@ from scipy.special import logsumexp
 from synthetic import FRAME, epoch_at, sky
 
 from gnsscam_ros.core import gnss
+from gnsscam_ros.core.consistency import snapshot_position
 from gnsscam_ros.core.kernels import gnss as gnss_kernels
 from gnsscam_ros.core.particles import propagate, weighted_mean_cov
 from gnsscam_ros.core.types import GLONASS, GPS
@@ -179,6 +180,31 @@ def test_propagation_is_the_oracle_to_rounding(rng):
     ref_mean, ref_cov = oracles.weighted_mean_cov(moved[0, :, :3], log_w)
     np.testing.assert_allclose(mean, ref_mean, atol=1e-9)
     np.testing.assert_allclose(cov, ref_cov, atol=1e-9)
+
+
+def test_snapshot_position_is_the_numpy_oracle():
+    # The kernel does numpy's arithmetic step for step with LAPACK's gelsd (numba's lstsq,
+    # numpy's cut-off): bit-identical where numba's LAPACK is numpy's (checked on this
+    # project's tier over these cases); 1e-6 m leaves room for another LAPACK build,
+    # whose last bits move a solution on 2e7 m ranges by nanometres.
+    rng = np.random.default_rng(4)
+    for trial in range(60):
+        n_systems = 1 + trial % 3
+        sys_index = np.arange(12) % n_systems
+        sv = FRAME.ecef_to_enu(sky(12, seed=trial))
+        truth = rng.normal(scale=200.0, size=3)
+        pr = (np.linalg.norm(sv - truth, axis=1) + 300.0 + 40.0 * sys_index
+              + rng.normal(scale=3.0, size=12))
+        pr[rng.integers(12)] += rng.uniform(0.0, 100.0)             # an NLOS delay
+        sigma = rng.uniform(2.0, 8.0, 12)
+        start = truth + rng.normal(scale=50.0, size=3)
+        got = snapshot_position(sv, pr, sigma, sys_index, n_systems, start)
+        want = oracles.snapshot_position(sv, pr, sigma, sys_index, n_systems, start)
+        np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-6)
+    # No solution: too few satellites, a poisoned start, a zero sigma.
+    assert snapshot_position(sv[:5], pr[:5], sigma[:5], sys_index[:5], 2, start) is None
+    assert snapshot_position(sv, pr, sigma, sys_index, n_systems, start * np.nan) is None
+    assert snapshot_position(sv, pr, sigma * 0.0, sys_index, n_systems, start) is None
 
 
 def test_satellite_checks_match_the_oracle():

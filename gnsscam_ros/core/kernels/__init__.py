@@ -13,8 +13,10 @@ source file only, not against the helpers it inlines from another module
 (``elementary.exp``): :func:`drop_stale_caches` removes, at import, every cached kernel of
 this package older than any of its sources, so an edited helper is compiled again.
 
-Kernels run on the calling thread only (no numba threading layer, no BLAS), so an epoch
-costs the same whatever was imported before.
+Kernels run on the calling thread only (no numba threading layer; BLAS/LAPACK only for the
+snapshot solution's least squares on a dozen rows, ``gnss.robust_snapshot``, far below
+any size that BLAS runs on threads), so an epoch costs the same whatever was imported
+before.
 """
 from __future__ import annotations
 
