@@ -97,6 +97,24 @@ def test_single_precision_robust_joint_is_within_1e4_nats_of_float64(spread_m):
     assert np.linalg.norm(sets[4, 100] - geometry.centre_m) > geometry.max_offset_m
 
 
+@pytest.mark.parametrize('model', [gnss.RobustLikelihood(0.3, 300.0),
+                                   gnss.RobustLikelihood(0.3, 300.0, single_precision=False),
+                                   gnss.ParticleRaimLikelihood(1.05)])
+def test_sets_with_clock_weights_of_their_own_are_weighed_as_alone(case, model):
+    # The consistency test weighs a cloud and the cloud moved 40 m in one call, each
+    # with the clock weights (and float32 centre) of its own place: to the bit what two
+    # calls give.
+    prep, sets, prior, clock_w, _ = case
+    moved = sets[0] + [40.0, -25.0, 0.0]
+    at_moved = gnss.clock_weights(prep, TRUTH_ENU + [45.0, -20.0, 0.0], 3.0)
+    both = model.joint(np.stack((sets[0], moved)), prep, np.stack((clock_w, at_moved)), 0.7,
+                       prior)
+    for row, (points, weights) in enumerate(((sets[0], clock_w), (moved, at_moved))):
+        alone = model.joint(points[None], prep, weights, 0.7, prior)
+        assert np.array_equal(both.joint[row], alone.joint[0])
+        assert both.total[row] == alone.total[0]
+
+
 def test_single_precision_is_not_used_where_a_density_leaves_its_range(case):
     """No outlier floor (eps = 0): a density underflows float32 long before float64, so
     the joint is the float64 one, bit for bit."""

@@ -143,7 +143,9 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
         pr: (k,) pseudoranges [m].
         inv_sigma: (k,) inverse measurement standard deviations [1/m].
         sys_index: (k,) constellation of each satellite.
-        clock_w: (k,) clock weights, summing to one per constellation.
+        clock_w: (G, k) clock weights, summing to one per constellation: one row for
+            every set (G = 1) or a row per set (G = S: sets weighed about places of
+            their own, as the consistency test's two in one call).
         n_systems: Number of constellations.
         log_scale: (k,) log of each satellite's Gaussian scale (above).
         floor: (k,) outlier floor of each satellite (above).
@@ -166,11 +168,13 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
     prod = np.empty(BLOCK)
     log_sum = np.empty(BLOCK)
     total = np.empty(s_count)
+    shared = clock_w.shape[0] == 1
     for s in range(s_count):
         points = sets[s]
+        clock_ws = clock_w[0] if shared else clock_w[s]
         for start in range(0, n, BLOCK):
             m = min(BLOCK, n - start)
-            _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems, xyz,
+            _block_residuals(points, start, m, sv, pr, sys_index, clock_ws, n_systems, xyz,
                              r, clock)
             for b in range(m):
                 prod[b] = 1.0
@@ -220,9 +224,9 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
             wide_log_scale, wide_low, wide_high, wide_inv_sigma, tempering, prior_log_w, joint: As
             :func:`robust_joint` (``floor`` and the densities within the float32 range,
             ``group`` for it).
-        centre: (3,) the centre c [m].
-        unit, base, half_inv_range: (k, 3), (k,), (k,) as above.
-        max_offset_m: Largest ``|d|`` of the float32 path [m].
+        centre: (G, 3) the centre c [m], one for every set or each set's (as ``clock_w``).
+        unit, base, half_inv_range: (G, k, 3), (G, k), (G, k) as above.
+        max_offset_m: (G,) largest ``|d|`` of the float32 path [m].
 
     Returns:
         (S,) log-sum-exp of each set's joint.
@@ -253,11 +257,12 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
     exact_r = np.empty((k, BLOCK))
     exact_clock = np.empty((max(n_systems, 1), BLOCK))
     total = np.empty(s_count)
-    cx, cy, cz = centre[0], centre[1], centre[2]
-    limit = f32(max_offset_m * max_offset_m)
     dx32, dy32, dz32, q32 = d[0], d[1], d[2], d[3]
     for s in range(s_count):
         points = sets[s]
+        g = 0 if centre.shape[0] == 1 else s
+        cx, cy, cz = centre[g, 0], centre[g, 1], centre[g, 2]
+        limit = f32(max_offset_m[g] * max_offset_m[g])
         for start in range(0, n, BLOCK):
             m = min(BLOCK, n - start)
             for b in range(m):
@@ -277,15 +282,15 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
                     clock_c[b] = zero
             if far:
                 # Residuals r - clock in float64, the clock already removed.
-                _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems,
+                _block_residuals(points, start, m, sv, pr, sys_index, clock_w[g], n_systems,
                                  exact_xyz, exact_r, exact_clock)
                 for j in range(k):
                     for b in range(m):
                         r[j, b] = f32(exact_r[j, b])
             else:
                 for j in range(k):
-                    ux, uy, uz = unit32[j, 0], unit32[j, 1], unit32[j, 2]
-                    p, h, w = base32[j], half32[j], clock_w32[j]
+                    ux, uy, uz = unit32[g, j, 0], unit32[g, j, 1], unit32[g, j, 2]
+                    p, h, w = base32[g, j], half32[g, j], clock_w32[g, j]
                     r_j, clock_c = r[j], clock[sys_index[j]]
                     for b in range(m):
                         a = ux * dx32[b] + uy * dy32[b] + uz * dz32[b]
@@ -331,7 +336,7 @@ def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
 
     Args:
         sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, tempering, prior_log_w,
-            joint: As :func:`robust_joint`.
+            joint: As :func:`robust_joint` (``clock_w`` one row or a row per set).
         dirichlet_alpha: Dirichlet concentration of the pooling.
         gamma: (S, k) written: the mixture weights of each set.
 
@@ -347,14 +352,16 @@ def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
     acc = np.empty(BLOCK)
     total = np.empty(s_count)
     norm = 1.0 + k * (dirichlet_alpha - 1.0)
+    shared = clock_w.shape[0] == 1
     for s in range(s_count):
         points = sets[s]
+        clock_ws = clock_w[0] if shared else clock_w[s]
         for j in range(k):
             gamma[s, j] = 0.0
         for second in range(2):
             for start in range(0, n, BLOCK):
                 m = min(BLOCK, n - start)
-                _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems,
+                _block_residuals(points, start, m, sv, pr, sys_index, clock_ws, n_systems,
                                  xyz, r, clock)
                 # a = -z^2 / 2 in place; the largest per particle is the shift.
                 for b in range(m):
