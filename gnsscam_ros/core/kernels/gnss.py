@@ -66,9 +66,11 @@ def _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems, xy
 def _fold_logs(prod, log_sum, m):
     """Add the log of each particle's running product of densities to its sum and start
     the product again (one log per group of satellites; a float32 product's log is taken
-    in float64, which adds no error to the product's own rounding)."""
+    in float64, which adds no error to the product's own rounding). ``elementary.log``,
+    not libm's: a call per particle kept this loop scalar and took a third of the
+    likelihood's time."""
     for b in range(m):
-        log_sum[b] += math.log(np.float64(prod[b]))
+        log_sum[b] += elementary.log(np.float64(prod[b]))
         prod[b] = 1.0
 
 
