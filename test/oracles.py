@@ -657,3 +657,24 @@ def integrity_epoch(posteriors, priors, mean: np.ndarray, limits: np.ndarray,
     bound = np.minimum(empirical + inverse_bernoulli_exact(empirical, eps), 1.0)
     q_max = max_empirical_risk_exact(target, eps)
     return bound, post.protection_level(mean, q_max, dist_w)
+
+
+# ---------------------------------------------------- persistence (core.kernels.persistence)
+def median_increment_m2(t: np.ndarray, d: np.ndarray, lag_s: float,
+                        tolerance: float = 0.25) -> tuple[float, int]:
+    """Median squared increment of the offsets ``d`` (n, 2) at times ``t`` (n,) about
+    ``lag_s`` apart (each epoch with the nearer epoch around ``t - lag``, if earlier and
+    within ``tolerance`` of the lag), and the pairs."""
+    lag_ns = int(lag_s * 1e9)
+    j = np.searchsorted(t, t - lag_ns)
+    before = np.clip(j - 1, 0, t.shape[0] - 1)
+    after = np.clip(j, 0, t.shape[0] - 1)
+    target = t - lag_ns
+    pick = np.where(np.abs(t[before] - target) < np.abs(t[after] - target), before, after)
+    ok = ((np.abs(t[pick] - target) <= tolerance * lag_ns)
+          & (pick < np.arange(t.shape[0])))
+    if not ok.any():
+        return float('nan'), 0
+    with np.errstate(over='ignore', invalid='ignore'):
+        step = d[ok] - d[pick[ok]]
+        return float(np.median(np.sum(step * step, axis=1))), int(ok.sum())
