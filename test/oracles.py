@@ -64,6 +64,41 @@ def ranges(positions_m: np.ndarray, sv_m: np.ndarray) -> np.ndarray:
     return np.sqrt(sq, out=sq)
 
 
+def snapshot_position(sv_enu_m: np.ndarray, pr_m: np.ndarray, sigma_m: np.ndarray,
+                      sys_index: np.ndarray, n_systems: int, start_enu_m: np.ndarray,
+                      plain_steps: int = 4, robust_steps: int = 5,
+                      cauchy_scale: float = 2.0) -> np.ndarray | None:
+    """The robust snapshot solution (``core.consistency.snapshot_position``) in numpy:
+    ``plain_steps`` Gauss-Newton steps of weighted least squares, then ``robust_steps``
+    of Cauchy IRLS, position and one clock per constellation, numpy's lstsq each step."""
+    k = pr_m.shape[0]
+    if k < 3 + n_systems + 1:
+        return None
+    if not (np.all(np.isfinite(start_enu_m)) and np.all(np.abs(start_enu_m) < 1e8)
+            and np.all(np.isfinite(sv_enu_m)) and np.all(np.isfinite(pr_m))
+            and np.all(np.isfinite(sigma_m)) and np.all(sigma_m > 0.0)):
+        return None
+    x = np.asarray(start_enu_m, dtype=float).copy()
+    clock_cols = np.zeros((k, n_systems))
+    clock_cols[np.arange(k), sys_index] = 1.0
+    robust_w = np.ones(k)
+    for step in range(plain_steps + robust_steps):
+        offset = sv_enu_m - x
+        rng = np.linalg.norm(offset, axis=1)
+        jac = np.hstack([-offset / rng[:, None], clock_cols])
+        resid = pr_m - rng
+        w = robust_w / sigma_m
+        a, b = jac * w[:, None], resid * w
+        if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+            return None
+        delta, *_ = np.linalg.lstsq(a, b, rcond=None)
+        x = x + delta[:3]
+        if step >= plain_steps - 1:
+            post = (resid - jac @ delta) / (cauchy_scale * sigma_m)
+            robust_w = 1.0 / np.sqrt(1.0 + post * post)
+    return x if np.all(np.isfinite(x)) else None
+
+
 def clock_inlier_weights(residual_m: np.ndarray, sigma_m: np.ndarray, sys_index: np.ndarray,
                          n_systems: int, spread_m: float, iterations: int = 3) -> np.ndarray:
     """Robust per-constellation clock at one reference point; returns satellite weights.
@@ -622,3 +657,24 @@ def integrity_epoch(posteriors, priors, mean: np.ndarray, limits: np.ndarray,
     bound = np.minimum(empirical + inverse_bernoulli_exact(empirical, eps), 1.0)
     q_max = max_empirical_risk_exact(target, eps)
     return bound, post.protection_level(mean, q_max, dist_w)
+
+
+# ---------------------------------------------------- persistence (core.kernels.persistence)
+def median_increment_m2(t: np.ndarray, d: np.ndarray, lag_s: float,
+                        tolerance: float = 0.25) -> tuple[float, int]:
+    """Median squared increment of the offsets ``d`` (n, 2) at times ``t`` (n,) about
+    ``lag_s`` apart (each epoch with the nearer epoch around ``t - lag``, if earlier and
+    within ``tolerance`` of the lag), and the pairs."""
+    lag_ns = int(lag_s * 1e9)
+    j = np.searchsorted(t, t - lag_ns)
+    before = np.clip(j - 1, 0, t.shape[0] - 1)
+    after = np.clip(j, 0, t.shape[0] - 1)
+    target = t - lag_ns
+    pick = np.where(np.abs(t[before] - target) < np.abs(t[after] - target), before, after)
+    ok = ((np.abs(t[pick] - target) <= tolerance * lag_ns)
+          & (pick < np.arange(t.shape[0])))
+    if not ok.any():
+        return float('nan'), 0
+    with np.errstate(over='ignore', invalid='ignore'):
+        step = d[ok] - d[pick[ok]]
+        return float(np.median(np.sum(step * step, axis=1))), int(ok.sum())

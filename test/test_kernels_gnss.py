@@ -15,6 +15,7 @@ from scipy.special import logsumexp
 from synthetic import FRAME, epoch_at, sky
 
 from gnsscam_ros.core import gnss
+from gnsscam_ros.core.consistency import snapshot_position
 from gnsscam_ros.core.kernels import gnss as gnss_kernels
 from gnsscam_ros.core.particles import propagate, weighted_mean_cov
 from gnsscam_ros.core.types import GLONASS, GPS
@@ -94,6 +95,24 @@ def test_single_precision_robust_joint_is_within_1e4_nats_of_float64(spread_m):
     geometry = gnss.relative_geometry(sets, prep, clock_w)
     assert geometry is not None and 500.0 < geometry.max_offset_m <= 1000.0
     assert np.linalg.norm(sets[4, 100] - geometry.centre_m) > geometry.max_offset_m
+
+
+@pytest.mark.parametrize('model', [gnss.RobustLikelihood(0.3, 300.0),
+                                   gnss.RobustLikelihood(0.3, 300.0, single_precision=False),
+                                   gnss.ParticleRaimLikelihood(1.05)])
+def test_sets_with_clock_weights_of_their_own_are_weighed_as_alone(case, model):
+    # The consistency test weighs a cloud and the cloud moved 40 m in one call, each
+    # with the clock weights (and float32 centre) of its own place: to the bit what two
+    # calls give.
+    prep, sets, prior, clock_w, _ = case
+    moved = sets[0] + [40.0, -25.0, 0.0]
+    at_moved = gnss.clock_weights(prep, TRUTH_ENU + [45.0, -20.0, 0.0], 3.0)
+    both = model.joint(np.stack((sets[0], moved)), prep, np.stack((clock_w, at_moved)), 0.7,
+                       prior)
+    for row, (points, weights) in enumerate(((sets[0], clock_w), (moved, at_moved))):
+        alone = model.joint(points[None], prep, weights, 0.7, prior)
+        assert np.array_equal(both.joint[row], alone.joint[0])
+        assert both.total[row] == alone.total[0]
 
 
 def test_single_precision_is_not_used_where_a_density_leaves_its_range(case):
@@ -179,6 +198,31 @@ def test_propagation_is_the_oracle_to_rounding(rng):
     ref_mean, ref_cov = oracles.weighted_mean_cov(moved[0, :, :3], log_w)
     np.testing.assert_allclose(mean, ref_mean, atol=1e-9)
     np.testing.assert_allclose(cov, ref_cov, atol=1e-9)
+
+
+def test_snapshot_position_is_the_numpy_oracle():
+    # The kernel does numpy's arithmetic step for step with LAPACK's gelsd (numba's lstsq,
+    # numpy's cut-off): bit-identical where numba's LAPACK is numpy's (checked on this
+    # project's tier over these cases); 1e-6 m leaves room for another LAPACK build,
+    # whose last bits move a solution on 2e7 m ranges by nanometres.
+    rng = np.random.default_rng(4)
+    for trial in range(60):
+        n_systems = 1 + trial % 3
+        sys_index = np.arange(12) % n_systems
+        sv = FRAME.ecef_to_enu(sky(12, seed=trial))
+        truth = rng.normal(scale=200.0, size=3)
+        pr = (np.linalg.norm(sv - truth, axis=1) + 300.0 + 40.0 * sys_index
+              + rng.normal(scale=3.0, size=12))
+        pr[rng.integers(12)] += rng.uniform(0.0, 100.0)             # an NLOS delay
+        sigma = rng.uniform(2.0, 8.0, 12)
+        start = truth + rng.normal(scale=50.0, size=3)
+        got = snapshot_position(sv, pr, sigma, sys_index, n_systems, start)
+        want = oracles.snapshot_position(sv, pr, sigma, sys_index, n_systems, start)
+        np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-6)
+    # No solution: too few satellites, a poisoned start, a zero sigma.
+    assert snapshot_position(sv[:5], pr[:5], sigma[:5], sys_index[:5], 2, start) is None
+    assert snapshot_position(sv, pr, sigma, sys_index, n_systems, start * np.nan) is None
+    assert snapshot_position(sv, pr, sigma * 0.0, sys_index, n_systems, start) is None
 
 
 def test_satellite_checks_match_the_oracle():

@@ -1,6 +1,7 @@
 """The compiled posterior statistics (``core.kernels.posterior``) against the numpy oracles:
 distances, hazard masses, protection level, pooled moments and their KL, the inverse
-Bernoulli; and the fast exponential they use (``core.kernels.elementary``)."""
+Bernoulli; and the fast exponential they use and the logarithm of the likelihood
+(``core.kernels.elementary``)."""
 import numpy as np
 import oracles
 import pytest
@@ -10,7 +11,7 @@ from gnsscam_ros.core import integrity
 from gnsscam_ros.core.filter import UPDATED, FilterConfig, ParticleFilter
 from gnsscam_ros.core.kernels import kernel
 from gnsscam_ros.core.kernels import posterior as posterior_kernels
-from gnsscam_ros.core.kernels.elementary import exp, exp32
+from gnsscam_ros.core.kernels.elementary import exp, exp32, log
 from gnsscam_ros.core.particles import MotionIncrement
 
 SECOND = 1_000_000_000
@@ -61,6 +62,35 @@ def test_single_precision_exp_is_within_two_ulp_and_flushes_below_the_normals():
     _exp32_array(special, out)
     np.testing.assert_array_equal(out[:5], [0.0, 0.0, 0.0, np.inf, np.inf])
     assert np.isnan(out[5])
+
+
+@kernel
+def _log_array(x, out):
+    for i in range(x.shape[0]):
+        out[i] = log(x[i])
+
+
+def test_fast_log_is_within_one_ulp_everywhere():
+    rng = np.random.default_rng(0)
+    x = np.concatenate([
+        np.exp(rng.uniform(-744.0, 709.7, 200_000)),          # every binade, subnormals
+        # The likelihood's inputs: float32 products of densities.
+        rng.integers(1, 0x7F800000, 200_000, dtype=np.int64).astype(np.uint32)
+        .view(np.float32).astype(np.float64),
+        1.0 + np.linspace(-0.3, 0.42, 2001),                  # about 1 (and sqrt 2)
+        [5e-324, 2.2250738585072014e-308, 0.5, 1.0, 2.0, 1.7976931348623157e308]])
+    out = np.empty_like(x)
+    _log_array(x, out)
+    exact = np.log(x.astype(np.longdouble))
+    # Within an ulp of the result (1 ulp: libm's own is within 0.52).
+    np.testing.assert_array_less(np.abs(out - exact), np.spacing(np.abs(out)) * 1.0001
+                                 + 1e-300)
+    assert out[-3] == 0.0
+    special = np.array([0.0, -0.0, np.inf, -1.0, -np.inf, np.nan])
+    out = np.empty_like(special)
+    _log_array(special, out)
+    np.testing.assert_array_equal(out[:3], [-np.inf, -np.inf, np.inf])
+    assert np.isnan(out[3:]).all()
 
 
 def cloud(rng, s, n, m, ties=False, zeros=False, horizontal=True, shared=False,

@@ -38,6 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .kernels import gnss as gnss_kernels
+
 #: Gauss-Newton steps of the plain least squares and of the robust (Cauchy) refinement.
 PLAIN_STEPS = 4
 ROBUST_STEPS = 5
@@ -68,38 +70,21 @@ def snapshot_position(sv_enu_m: np.ndarray, pr_m: np.ndarray, sigma_m: np.ndarra
         start_enu_m: (3,) linearisation point [m].
     """
     k = pr_m.shape[0]
-    n_unknowns = 3 + n_systems
-    if k < n_unknowns + 1:
+    if k < 3 + n_systems + 1:
         return None
-    # A poisoned state (a non-finite or absurd starting point) has no snapshot solution;
-    # numpy 1.24's lstsq turns one into a SystemError instead of a LinAlgError.
-    if not (np.all(np.isfinite(start_enu_m)) and np.all(np.abs(start_enu_m) < 1e8)
-            and np.all(np.isfinite(sv_enu_m)) and np.all(np.isfinite(pr_m))
-            and np.all(np.isfinite(sigma_m)) and np.all(sigma_m > 0.0)):
+    # One compiled pass (core.kernels.gnss.robust_snapshot): nine numpy lstsq calls on a
+    # dozen rows cost more in call overhead than in arithmetic.
+    x = np.empty(3)
+    try:
+        solved = gnss_kernels.robust_snapshot(
+            np.ascontiguousarray(sv_enu_m, dtype=float),
+            np.ascontiguousarray(pr_m, dtype=float), np.ascontiguousarray(sigma_m, dtype=float),
+            np.ascontiguousarray(sys_index, dtype=np.int64), int(n_systems),
+            np.ascontiguousarray(start_enu_m, dtype=float).reshape(3), PLAIN_STEPS,
+            ROBUST_STEPS, CAUCHY_SCALE, x)
+    except np.linalg.LinAlgError:                   # the SVD did not converge
         return None
-    x = np.asarray(start_enu_m, dtype=float).copy()
-    clock_cols = np.zeros((k, n_systems))
-    clock_cols[np.arange(k), sys_index] = 1.0
-    robust_w = np.ones(k)
-    for step in range(PLAIN_STEPS + ROBUST_STEPS):
-        offset = sv_enu_m - x
-        rng = np.linalg.norm(offset, axis=1)
-        jac = np.hstack([-offset / rng[:, None], clock_cols])
-        resid = pr_m - rng
-        # The clocks are re-estimated at every step: the residual is before them.
-        w = robust_w / sigma_m
-        a, b = jac * w[:, None], resid * w
-        if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
-            return None
-        try:
-            delta, *_ = np.linalg.lstsq(a, b, rcond=None)
-        except np.linalg.LinAlgError:
-            return None
-        x = x + delta[:3]
-        if step >= PLAIN_STEPS - 1:
-            post = (resid - jac @ delta) / (CAUCHY_SCALE * sigma_m)
-            robust_w = 1.0 / np.sqrt(1.0 + post * post)
-    return x if np.all(np.isfinite(x)) else None
+    return x if solved else None
 
 
 @dataclass(frozen=True)

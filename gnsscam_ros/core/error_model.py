@@ -79,7 +79,8 @@ MIN_CORRELATION_TIME_S = 0.1
 def signal_class(cn0_dbhz: np.ndarray) -> np.ndarray:
     """Signal class of each satellite (0 .. N_CLASSES - 1) from its C/N0 [dB-Hz]."""
     cn0 = np.asarray(cn0_dbhz, dtype=float)
-    classes = np.searchsorted(CN0_EDGES_DBHZ, np.nan_to_num(cn0, nan=0.0), side='right')
+    # A non-finite C/N0 lands anywhere here (NaN sorts last) and is UNKNOWN_CLASS below.
+    classes = np.searchsorted(CN0_EDGES_DBHZ, cn0, side='right')
     return np.where(np.isfinite(cn0), classes, UNKNOWN_CLASS).astype(np.int64)
 
 

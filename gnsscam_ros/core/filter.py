@@ -437,7 +437,7 @@ class ParticleFilter:
         lik = self.likelihood.joint(priors, prep, clock_w, tempering, self.log_w)
         joint, total = lik.joint, lik.total
         self._consistency_state = self._snapshot_step(epoch.stamp_ns, priors[0], prep,
-                                                      centre, spread_m, tempering,
+                                                      centre, spread_m, clock_w, tempering,
                                                       float(total[0]), persisting)
         fusion = None
         if camera and cfg.use_camera:
@@ -471,13 +471,14 @@ class ParticleFilter:
         return result
 
     def _snapshot_step(self, stamp_ns: int, cloud: np.ndarray, prep: gnss.PreparedEpoch,
-                       centre: np.ndarray, spread_m: float, tempering: float,
-                       cloud_total: float, persisting: float) -> ConsistencyState:
+                       centre: np.ndarray, spread_m: float, clock_w: np.ndarray,
+                       tempering: float, cloud_total: float, persisting: float
+                       ) -> ConsistencyState:
         """What the epoch's own robust snapshot solution tells: its residuals teach the
         error model (``core.error_model``; the snapshot depends on this epoch alone, so
         a filter locked onto a wrong place cannot teach the model that place), and the
         cloud moved onto it is the alternative of the consistency test
-        (``core.consistency``)."""
+        (``core.consistency``; ``clock_w``: the update's clock weights)."""
         cfg = self.config
         adaptive = cfg.error_model == ERROR_ADAPTIVE
         sigma = self.errors.total_sigma_m(prep.cn0_dbhz) if adaptive else prep.sigma_m
@@ -494,16 +495,17 @@ class ParticleFilter:
         shift = np.zeros(cloud.shape[1])
         shift[:2] = snap[:2] - centre[:2]
         log_w = self.log_w
+        at_moved = gnss.clock_weights(prep, centre + shift[:3], spread_m)
         if cloud.shape[0] > CONSISTENCY_PARTICLES:
+            # Thinned cloud and moved cloud in one call, each with its own clock weights.
             thin = SYSTEMATIC.thin(cloud.shape[0], CONSISTENCY_PARTICLES)
             cloud, log_w = cloud[thin], normalize_log_weights(log_w[thin])
-            cloud_total = float(self.likelihood.joint(
-                cloud[None], prep, gnss.clock_weights(prep, centre, spread_m), tempering,
-                log_w).total[0])
-        moved = (cloud + shift)[None]
-        clock_w = gnss.clock_weights(prep, centre + shift[:3], spread_m)
-        moved_total = float(self.likelihood.joint(moved, prep, clock_w, tempering,
-                                                  log_w).total[0])
+            cloud_total, moved_total = (float(t) for t in self.likelihood.joint(
+                np.stack((cloud, cloud + shift)), prep, np.stack((clock_w, at_moved)),
+                tempering, log_w).total)
+        else:                                   # the update weighed the cloud itself
+            moved_total = float(self.likelihood.joint((cloud + shift)[None], prep, at_moved,
+                                                      tempering, log_w).total[0])
         # The test weighs the epoch as if all of its error persisted: a snapshot solution
         # pulled off by an NLOS episode stays off for as long as the episode, and must not
         # outweigh the cloud sooner because the rest of the error is white. The ratio of

@@ -315,7 +315,11 @@ class Likelihood(Protocol):
     def joint(self, sets: np.ndarray, prep: PreparedEpoch, clock_weights: np.ndarray,
               tempering: float, prior_log_w: np.ndarray) -> GnssLikelihood:
         """Joint log-weights of the (S, N, >= 3) sets: ``prior_log_w`` (N,) plus
-        ``tempering`` times each particle's log-likelihood, its clock profiled out."""
+        ``tempering`` times each particle's log-likelihood, its clock profiled out.
+
+        ``clock_weights``: (k,) for every set, or (S, k), a row per set: sets about
+        places of their own in one call (the consistency test's cloud and the cloud
+        moved onto the snapshot solution), each weighed as a call on it alone would."""
 
     def mixture_weights(self, lik: GnssLikelihood, chosen: int,
                         inlier_share: np.ndarray) -> np.ndarray:
@@ -325,6 +329,11 @@ class Likelihood(Protocol):
 
 def _sets(sets: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(sets, dtype=float)
+
+
+def _clock_rows(clock_weights: np.ndarray) -> np.ndarray:
+    """Clock weights as the kernels take them: (1, k) for every set or (S, k)."""
+    return np.ascontiguousarray(np.atleast_2d(clock_weights), dtype=float)
 
 
 @dataclass(frozen=True)
@@ -352,8 +361,8 @@ class ParticleRaimLikelihood:
         gamma = np.empty((sets.shape[0], prep.pr_m.shape[0]))
         total = gnss_kernels.particle_raim_joint(
             sets, prep.sv_enu_m, prep.pr_m, 1.0 / prep.sigma_m, prep.sys_index,
-            clock_weights, prep.n_systems, float(self.dirichlet_alpha), float(tempering),
-            np.ascontiguousarray(prior_log_w, dtype=float), joint, gamma)
+            _clock_rows(clock_weights), prep.n_systems, float(self.dirichlet_alpha),
+            float(tempering), np.ascontiguousarray(prior_log_w, dtype=float), joint, gamma)
         return GnssLikelihood(joint=joint, total=total, gamma=gamma)
 
     def mixture_weights(self, lik, chosen, inlier_share) -> np.ndarray:
@@ -385,23 +394,33 @@ class RobustLikelihood:
         """The joint in float32 (relative coordinates) where that is exact enough: densities
         within the float32 range and a finite cloud centre; else in float64."""
         sets = _sets(sets)
+        clock_w = _clock_rows(clock_weights)
         joint = np.empty(sets.shape[:2])
         prior_log_w = np.ascontiguousarray(prior_log_w, dtype=float)
         inv_sigma = 1.0 / prep.sigma_m
         terms = robust_terms(prep, self.outlier_prob, self.outlier_range_m, SINGLE_LOG_RANGE)
-        geometry = (relative_geometry(sets, prep, clock_weights)
-                    if self.single_precision and terms.group >= 1 else None)
+        geometry = None
+        if self.single_precision and terms.group >= 1:
+            # One view for every set, or each set its own with its own clock weights.
+            geometry = ([relative_geometry(sets, prep, clock_w[0])]
+                        if clock_w.shape[0] == 1 else
+                        [relative_geometry(sets[s:s + 1], prep, clock_w[s])
+                         for s in range(sets.shape[0])])
+            if any(g is None for g in geometry):
+                geometry = None
         if geometry is not None:
             total = gnss_kernels.robust_joint_single(
-                sets, geometry.centre_m, geometry.unit, geometry.base_m,
-                geometry.half_inv_range, geometry.max_offset_m, prep.sv_enu_m, prep.pr_m,
-                inv_sigma, prep.sys_index, clock_weights, prep.n_systems, *terms.arrays,
+                sets, np.array([g.centre_m for g in geometry]),
+                np.array([g.unit for g in geometry]), np.array([g.base_m for g in geometry]),
+                np.array([g.half_inv_range for g in geometry]),
+                np.array([g.max_offset_m for g in geometry]), prep.sv_enu_m, prep.pr_m,
+                inv_sigma, prep.sys_index, clock_w, prep.n_systems, *terms.arrays,
                 terms.group, float(tempering), prior_log_w, joint)
             return GnssLikelihood(joint=joint, total=total)
         terms = robust_terms(prep, self.outlier_prob, self.outlier_range_m)
         total = gnss_kernels.robust_joint(
             sets, prep.sv_enu_m, prep.pr_m, inv_sigma, prep.sys_index,
-            clock_weights, prep.n_systems, *terms.arrays, max(terms.group, 1),
+            clock_w, prep.n_systems, *terms.arrays, max(terms.group, 1),
             float(tempering), prior_log_w, joint)
         return GnssLikelihood(joint=joint, total=total)
 

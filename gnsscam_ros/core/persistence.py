@@ -29,6 +29,8 @@ from collections import deque
 
 import numpy as np
 
+from .kernels import persistence as persistence_kernels
+
 #: Lag at which the semivariogram holds the new part of the error [s].
 SHORT_LAG_S = 1.0
 #: Lag at which it holds nearly all of it [s] (several correlation times of code noise
@@ -81,21 +83,10 @@ class SnapshotPersistence:
     def _median_increment_m2(t: np.ndarray, d: np.ndarray, lag_s: float
                              ) -> tuple[float, int]:
         """Median squared increment of the offsets ``d`` (n, 2) at times ``t`` (n,) about
-        ``lag_s`` apart, and the pairs."""
-        lag_ns = int(lag_s * 1e9)
-        j = np.searchsorted(t, t - lag_ns)
-        # The nearer of the two neighbours of t - lag, if within PAIR_TOLERANCE of it.
-        before = np.clip(j - 1, 0, t.shape[0] - 1)
-        after = np.clip(j, 0, t.shape[0] - 1)
-        target = t - lag_ns
-        pick = np.where(np.abs(t[before] - target) < np.abs(t[after] - target), before, after)
-        ok = ((np.abs(t[pick] - target) <= PAIR_TOLERANCE * lag_ns)
-              & (pick < np.arange(t.shape[0])))
-        if not ok.any():
-            return float('nan'), 0
-        with np.errstate(over='ignore', invalid='ignore'):    # an absurd offset: inf
-            step = d[ok] - d[pick[ok]]
-            return float(np.median(np.sum(step * step, axis=1))), int(ok.sum())
+        ``lag_s`` apart, and the pairs (a compiled pass: ``core.kernels.persistence``)."""
+        median, pairs = persistence_kernels.median_increment_m2(
+            t, np.ascontiguousarray(d, dtype=float), int(lag_s * 1e9), PAIR_TOLERANCE)
+        return float(median), int(pairs)
 
     @property
     def persistent_share(self) -> float:

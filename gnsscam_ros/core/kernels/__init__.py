@@ -16,8 +16,10 @@ this package older than any of its sources, so an edited helper is compiled agai
 A Ctrl-C that lands in one of llvmlite's callbacks while a kernel compiles is raised again
 in the main thread (``core.interrupts``) instead of being dropped.
 
-Kernels run on the calling thread only (no numba threading layer, no BLAS), so an epoch
-costs the same whatever was imported before.
+Kernels run on the calling thread only (no numba threading layer; BLAS/LAPACK only for the
+snapshot solution's least squares on a dozen rows, ``gnss.robust_snapshot``, far below
+any size that BLAS runs on threads), so an epoch costs the same whatever was imported
+before.
 """
 from __future__ import annotations
 

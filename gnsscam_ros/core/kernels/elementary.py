@@ -1,4 +1,5 @@
-"""Elementary functions for the kernels' inner loops: exponentials that vectorise.
+"""Elementary functions for the kernels' inner loops: exponentials and a logarithm that
+vectorise.
 
 A loop calling ``math.exp`` stays scalar (a libm call per element, 6-20 ns, slowest where
 the result underflows). :func:`exp` is branch-free arithmetic that LLVM turns into SIMD
@@ -12,6 +13,11 @@ form (short dependency chains), and ``2^k`` built from its bits. Relative error 
 polynomial, within 2 float32 ulp of the exact value; 0 below ``exp(-87)``, where float32
 results stop being normal numbers, inf from ``exp(88)``): twice the SIMD lanes of
 :func:`exp`.
+
+:func:`log` is the logarithm of the same kind (a loop calling ``math.log`` stays scalar
+too: the likelihood takes one per particle and group of satellites), within 1 ulp of the
+exact value (libm's is within 0.52): libm's value, or its neighbour in 3 inputs in a
+thousand (2e8 random inputs, float32 products and every binade).
 
 :func:`largest` is the maximum of an array in four partial results (a loop into one
 scalar waits on each comparison; these chains run side by side).
@@ -83,6 +89,43 @@ def exp(x):
     out = out if x > _LOWEST else 0.0
     out = out if x < _HIGHEST else np.inf
     return out if x == x else x
+
+
+_SQRT_HALF_BITS = 0x3FE6A09E667F3BCD       # the bits of sqrt(1/2)
+_SMALLEST_NORMAL = 2.2250738585072014e-308
+_TWO_54 = 18014398509481984.0
+#: ``2 / (2 n + 1)``, n = 1 .. 10: the series ``log(1 + f) = 2 atanh(s)``,
+#: ``s = f / (2 + f)``, ``|s| <= 0.1716``: the first term left out is below 2^-60 of s.
+_ATANH = tuple(2.0 / (2 * n + 1) for n in range(1, 11))
+
+
+@inline_kernel
+def log(x):
+    """``log(x)`` (float64), vectorisable; within 1 ulp of libm's. -inf at 0, inf at
+    inf, NaN below 0 and at NaN.
+
+    ``x = 2^k m``, ``m`` in ``[sqrt(1/2), sqrt(2))`` from the bits (no float-to-integer
+    conversion of the exponent); ``f = m - 1`` is exact, and
+    ``log(1 + f) = f - f^2 / 2 + s (f^2 / 2 + R(s^2))`` with ``s = f / (2 + f)`` and
+    ``R`` the rest of the atanh series: its rounding only enters a term ~f^3 / 12."""
+    tiny = x < _SMALLEST_NORMAL
+    y = x * _TWO_54 if tiny else x
+    bits = _float_to_bits(y)
+    k = (bits - _SQRT_HALF_BITS) >> 52
+    m = _bits_to_float(bits - (k << 52))
+    kf = np.float64(k) - (54.0 if tiny else 0.0)
+    f = m - 1.0
+    s = f / (2.0 + f)
+    z = s * s
+    z2 = z * z
+    z4 = z2 * z2
+    c1, c2, c3, c4, c5, c6, c7, c8, c9, c10 = _ATANH
+    r = z * (((c1 + z * c2) + z2 * (c3 + z * c4))
+             + z4 * ((c5 + z * c6) + z2 * (c7 + z * c8) + z4 * (c9 + z * c10)))
+    hfsq = 0.5 * f * f
+    out = kf * _LN2_HI + (f - (hfsq - (s * (hfsq + r) + kf * _LN2_LO)))
+    out = out if x > 0.0 else (-np.inf if x == 0.0 else np.nan)
+    return out if x < np.inf else x
 
 
 # ----------------------------------------------------------------------- float32

@@ -22,6 +22,8 @@ from . import contracted_kernel, elementary, inline_kernel, kernel
 
 #: Particles per block (see the module docstring).
 BLOCK = 64
+#: float64 machine epsilon (numpy's lstsq cut-off is ``eps * max(rows, columns)``).
+_EPS = float(np.finfo(np.float64).eps)
 LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 
 
@@ -64,9 +66,11 @@ def _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems, xy
 def _fold_logs(prod, log_sum, m):
     """Add the log of each particle's running product of densities to its sum and start
     the product again (one log per group of satellites; a float32 product's log is taken
-    in float64, which adds no error to the product's own rounding)."""
+    in float64, which adds no error to the product's own rounding). ``elementary.log``,
+    not libm's: a call per particle kept this loop scalar and took a third of the
+    likelihood's time."""
     for b in range(m):
-        log_sum[b] += math.log(np.float64(prod[b]))
+        log_sum[b] += elementary.log(np.float64(prod[b]))
         prod[b] = 1.0
 
 
@@ -141,7 +145,9 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
         pr: (k,) pseudoranges [m].
         inv_sigma: (k,) inverse measurement standard deviations [1/m].
         sys_index: (k,) constellation of each satellite.
-        clock_w: (k,) clock weights, summing to one per constellation.
+        clock_w: (G, k) clock weights, summing to one per constellation: one row for
+            every set (G = 1) or a row per set (G = S: sets weighed about places of
+            their own, as the consistency test's two in one call).
         n_systems: Number of constellations.
         log_scale: (k,) log of each satellite's Gaussian scale (above).
         floor: (k,) outlier floor of each satellite (above).
@@ -164,11 +170,13 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
     prod = np.empty(BLOCK)
     log_sum = np.empty(BLOCK)
     total = np.empty(s_count)
+    shared = clock_w.shape[0] == 1
     for s in range(s_count):
         points = sets[s]
+        clock_ws = clock_w[0] if shared else clock_w[s]
         for start in range(0, n, BLOCK):
             m = min(BLOCK, n - start)
-            _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems, xyz,
+            _block_residuals(points, start, m, sv, pr, sys_index, clock_ws, n_systems, xyz,
                              r, clock)
             for b in range(m):
                 prod[b] = 1.0
@@ -218,9 +226,9 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
             wide_log_scale, wide_low, wide_high, wide_inv_sigma, tempering, prior_log_w, joint: As
             :func:`robust_joint` (``floor`` and the densities within the float32 range,
             ``group`` for it).
-        centre: (3,) the centre c [m].
-        unit, base, half_inv_range: (k, 3), (k,), (k,) as above.
-        max_offset_m: Largest ``|d|`` of the float32 path [m].
+        centre: (G, 3) the centre c [m], one for every set or each set's (as ``clock_w``).
+        unit, base, half_inv_range: (G, k, 3), (G, k), (G, k) as above.
+        max_offset_m: (G,) largest ``|d|`` of the float32 path [m].
 
     Returns:
         (S,) log-sum-exp of each set's joint.
@@ -251,11 +259,12 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
     exact_r = np.empty((k, BLOCK))
     exact_clock = np.empty((max(n_systems, 1), BLOCK))
     total = np.empty(s_count)
-    cx, cy, cz = centre[0], centre[1], centre[2]
-    limit = f32(max_offset_m * max_offset_m)
     dx32, dy32, dz32, q32 = d[0], d[1], d[2], d[3]
     for s in range(s_count):
         points = sets[s]
+        g = 0 if centre.shape[0] == 1 else s
+        cx, cy, cz = centre[g, 0], centre[g, 1], centre[g, 2]
+        limit = f32(max_offset_m[g] * max_offset_m[g])
         for start in range(0, n, BLOCK):
             m = min(BLOCK, n - start)
             for b in range(m):
@@ -275,15 +284,15 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
                     clock_c[b] = zero
             if far:
                 # Residuals r - clock in float64, the clock already removed.
-                _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems,
+                _block_residuals(points, start, m, sv, pr, sys_index, clock_w[g], n_systems,
                                  exact_xyz, exact_r, exact_clock)
                 for j in range(k):
                     for b in range(m):
                         r[j, b] = f32(exact_r[j, b])
             else:
                 for j in range(k):
-                    ux, uy, uz = unit32[j, 0], unit32[j, 1], unit32[j, 2]
-                    p, h, w = base32[j], half32[j], clock_w32[j]
+                    ux, uy, uz = unit32[g, j, 0], unit32[g, j, 1], unit32[g, j, 2]
+                    p, h, w = base32[g, j], half32[g, j], clock_w32[g, j]
                     r_j, clock_c = r[j], clock[sys_index[j]]
                     for b in range(m):
                         a = ux * dx32[b] + uy * dy32[b] + uz * dz32[b]
@@ -329,7 +338,7 @@ def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
 
     Args:
         sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, tempering, prior_log_w,
-            joint: As :func:`robust_joint`.
+            joint: As :func:`robust_joint` (``clock_w`` one row or a row per set).
         dirichlet_alpha: Dirichlet concentration of the pooling.
         gamma: (S, k) written: the mixture weights of each set.
 
@@ -345,14 +354,16 @@ def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
     acc = np.empty(BLOCK)
     total = np.empty(s_count)
     norm = 1.0 + k * (dirichlet_alpha - 1.0)
+    shared = clock_w.shape[0] == 1
     for s in range(s_count):
         points = sets[s]
+        clock_ws = clock_w[0] if shared else clock_w[s]
         for j in range(k):
             gamma[s, j] = 0.0
         for second in range(2):
             for start in range(0, n, BLOCK):
                 m = min(BLOCK, n - start)
-                _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems,
+                _block_residuals(points, start, m, sv, pr, sys_index, clock_ws, n_systems,
                                  xyz, r, clock)
                 # a = -z^2 / 2 in place; the largest per particle is the shift.
                 for b in range(m):
@@ -514,3 +525,79 @@ def constellation_index(system):
             n_systems += 1
         a = b + 1
     return index, n_systems
+
+
+@kernel
+def robust_snapshot(sv, pr, sigma, sys_index, n_systems, start, plain_steps, robust_steps,
+                    cauchy_scale, x):
+    """Snapshot position of one epoch: ``plain_steps`` Gauss-Newton steps of weighted
+    least squares, then ``robust_steps`` of iteratively reweighted least squares with a
+    Cauchy loss of scale ``cauchy_scale * sigma`` (``core.consistency.snapshot_position``
+    says why). The unknowns are the position and one clock per constellation, the clocks
+    estimated afresh at every step. Writes the position into ``x`` (3,); returns False
+    where there is none (non-finite or absurd input, a non-finite system, a non-finite
+    result).
+
+    Each step is numpy's arithmetic, operation for operation, and its least squares is
+    LAPACK's ``gelsd`` as numpy's ``lstsq`` calls it (numba's ``np.linalg.lstsq``, the
+    same cut-off ``rcond = eps * max(k, n)``): the solution is numpy's to the bit. That
+    matters: ranges of 2e7 m round to 4e-9 m, so a solver that differed in the last bits
+    moved the solution by nanometres, and through the error model that learns from its
+    residuals, the filter's estimate by 1e-7 m (the reference epochs, which hold it to
+    1e-9). The least squares is the one BLAS/LAPACK use of the kernels; a system of a
+    dozen rows runs on the calling thread.
+
+    Args:
+        sv: (k, 3) satellite positions [m].
+        pr: (k,) pseudoranges [m].
+        sigma: (k,) error standard deviations [m].
+        sys_index: (k,) constellation of each satellite.
+        n_systems: Number of constellations.
+        start: (3,) linearisation point [m].
+    """
+    k = pr.shape[0]
+    n = 3 + n_systems
+    # A poisoned state (a non-finite or absurd starting point) has no snapshot solution.
+    for a in range(3):
+        if not (np.isfinite(start[a]) and abs(start[a]) < 1e8):
+            return False
+    for j in range(k):
+        if not (np.isfinite(sv[j, 0]) and np.isfinite(sv[j, 1]) and np.isfinite(sv[j, 2])
+                and np.isfinite(pr[j]) and np.isfinite(sigma[j]) and sigma[j] > 0.0):
+            return False
+    rcond = _EPS * max(k, n)
+    jac = np.zeros((k, n))
+    a_w = np.empty((k, n))
+    b_w = np.empty(k)
+    resid = np.empty(k)
+    robust_w = np.ones(k)
+    for a in range(3):
+        x[a] = start[a]
+    for j in range(k):
+        jac[j, 3 + sys_index[j]] = 1.0
+    for step in range(plain_steps + robust_steps):
+        for j in range(k):
+            ox, oy, oz = sv[j, 0] - x[0], sv[j, 1] - x[1], sv[j, 2] - x[2]
+            rng = math.sqrt((ox * ox + oy * oy) + oz * oz)
+            jac[j, 0] = -ox / rng
+            jac[j, 1] = -oy / rng
+            jac[j, 2] = -oz / rng
+            resid[j] = pr[j] - rng
+            # The clocks are re-estimated at every step: the residual is before them.
+            w = robust_w[j] / sigma[j]
+            for c in range(n):
+                a_w[j, c] = jac[j, c] * w
+                if not np.isfinite(a_w[j, c]):
+                    return False
+            b_w[j] = resid[j] * w
+            if not np.isfinite(b_w[j]):
+                return False
+        delta = np.linalg.lstsq(a_w, b_w, rcond)[0]
+        for a in range(3):
+            x[a] = x[a] + delta[a]
+        if step >= plain_steps - 1:
+            fit = np.dot(jac, delta)
+            for j in range(k):
+                post = (resid[j] - fit[j]) / (cauchy_scale * sigma[j])
+                robust_w[j] = 1.0 / math.sqrt(1.0 + post * post)
+    return np.isfinite(x[0]) and np.isfinite(x[1]) and np.isfinite(x[2])

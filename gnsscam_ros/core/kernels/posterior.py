@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 
-from . import kernel
+from . import inline_kernel, kernel
 from .elementary import exp, largest
 
 #: Bins of the tail-mass histogram of the protection level.
@@ -49,41 +49,62 @@ def exp_weights(log_w, out):
 def _set_sums(x, y, z, w_a, w_b, pair, ref, sums_a, sums_b):
     """Per sample s and weights a (and b when ``pair``): ``sums[s] = (W, sum w r (3),
     sum w r r^T (xx, xy, xz, yy, yz, zz))`` with ``r = x - ref``; weights have S rows or
-    one shared row. One pass over the positions for both."""
+    one shared row. One pass over the positions for both (each sum adds in particle
+    order, as two passes would)."""
     shared_a, shared_b = w_a.shape[0] == 1, w_b.shape[0] == 1
-    n_sets, n = x.shape
-    r0, r1, r2 = np.empty(n), np.empty(n), np.empty(n)
+    n_sets = x.shape[0]
     for s in range(n_sets):
-        xs, ys, zs = x[s], y[s], z[s]
-        for i in range(n):
-            r0[i] = xs[i] - ref[0]
-            r1[i] = ys[i] - ref[1]
-            r2[i] = zs[i] - ref[2]
-        _moment_sums(r0, r1, r2, w_a[0] if shared_a else w_a[s], sums_a[s])
         if pair:
-            _moment_sums(r0, r1, r2, w_b[0] if shared_b else w_b[s], sums_b[s])
+            _moment_sums(x[s], y[s], z[s], ref, w_a[0] if shared_a else w_a[s], sums_a[s],
+                         w_b[0] if shared_b else w_b[s], sums_b[s], True)
+        else:
+            _moment_sums(x[s], y[s], z[s], ref, w_a[0] if shared_a else w_a[s], sums_a[s],
+                         w_a[0] if shared_a else w_a[s], sums_b[s], False)
 
 
-@kernel
-def _moment_sums(r0, r1, r2, w, out):
-    """``out = (sum w, sum w r (3), sum w r r^T (6))`` of relative positions."""
+@inline_kernel
+def _moment_sums(xs, ys, zs, ref, w, out, v, out_v, pair):
+    """``out = (sum w, sum w r (3), sum w r r^T (6))`` of the positions relative to
+    ``ref``, ``r = (xs, ys, zs) - ref``; the same under the weights ``v`` into ``out_v``
+    when ``pair``."""
     s_w = s0 = s1 = s2 = 0.0
     e00 = e01 = e02 = e11 = e12 = e22 = 0.0
-    for i in range(r0.shape[0]):
+    t_w = t0 = t1 = t2 = 0.0
+    f00 = f01 = f02 = f11 = f12 = f22 = 0.0
+    ref0, ref1, ref2 = ref[0], ref[1], ref[2]
+    for i in range(xs.shape[0]):
+        r0, r1, r2 = xs[i] - ref0, ys[i] - ref1, zs[i] - ref2
         wi = w[i]
-        w0, w1, w2 = wi * r0[i], wi * r1[i], wi * r2[i]
+        w0, w1, w2 = wi * r0, wi * r1, wi * r2
         s_w += wi
         s0 += w0
         s1 += w1
         s2 += w2
-        e00 += w0 * r0[i]
-        e01 += w0 * r1[i]
-        e02 += w0 * r2[i]
-        e11 += w1 * r1[i]
-        e12 += w1 * r2[i]
-        e22 += w2 * r2[i]
+        e00 += w0 * r0
+        e01 += w0 * r1
+        e02 += w0 * r2
+        e11 += w1 * r1
+        e12 += w1 * r2
+        e22 += w2 * r2
+        if pair:
+            vi = v[i]
+            v0, v1, v2 = vi * r0, vi * r1, vi * r2
+            t_w += vi
+            t0 += v0
+            t1 += v1
+            t2 += v2
+            f00 += v0 * r0
+            f01 += v0 * r1
+            f02 += v0 * r2
+            f11 += v1 * r1
+            f12 += v1 * r2
+            f22 += v2 * r2
     out[0], out[1], out[2], out[3] = s_w, s0, s1, s2
     out[4], out[5], out[6], out[7], out[8], out[9] = e00, e01, e02, e11, e12, e22
+    if pair:
+        out_v[0], out_v[1], out_v[2], out_v[3] = t_w, t0, t1, t2
+        out_v[4], out_v[5], out_v[6], out_v[7], out_v[8], out_v[9] = (f00, f01, f02, f11,
+                                                                      f12, f22)
 
 
 @kernel
