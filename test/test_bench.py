@@ -1,6 +1,11 @@
 """The benchmark's timing: the epoch and its yardstick take turns, and each ratio pairs
 the times of one round (``gnsscam_ros.bench.filter``)."""
+import os
+import subprocess
+import sys
+
 import numpy as np
+import pytest
 
 from gnsscam_ros.bench.filter import interleaved_times_ms, paired_ratio
 
@@ -23,3 +28,19 @@ def test_the_ratio_is_taken_within_rounds_so_a_drifting_machine_cancels():
     assert paired_ratio({'epoch': 0.25 * slow, 'bare': slow}, 'epoch', 'bare') == 0.25
     rotated = {'epoch': 0.25 * np.roll(slow, -1), 'bare': slow}
     assert paired_ratio(rotated, 'epoch', 'bare') == 0.375
+
+
+@pytest.mark.parametrize('given, expected', [(None, '1'), ('4', '4')])
+def test_the_bench_runs_openblas_as_the_nodes_do_unless_told_otherwise(given, expected):
+    """One OpenBLAS thread, as the node executables use, set before numpy is imported: with
+    its default threads the yardstick leaves a thread spinning that slows the epoch timed
+    after it. A value in the environment is kept."""
+    env = {k: v for k, v in os.environ.items() if k != 'OPENBLAS_NUM_THREADS'}
+    if given is not None:
+        env['OPENBLAS_NUM_THREADS'] = given
+    code = ('import os, sys, gnsscam_ros; numpy_first = "numpy" in sys.modules; '
+            'import gnsscam_ros.bench.filter; '
+            'print(numpy_first, os.environ["OPENBLAS_NUM_THREADS"])')
+    out = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True,
+                         text=True, timeout=120, check=True).stdout.split()
+    assert out == ['False', expected]
