@@ -54,6 +54,8 @@ def _set_sums(x, y, z, w_a, w_b, pair, ref, sums_a, sums_b):
     shared_a, shared_b = w_a.shape[0] == 1, w_b.shape[0] == 1
     n_sets = x.shape[0]
     for s in range(n_sets):
+        # ``pair`` is passed as a constant so that the inlined loop is compiled without the
+        # second set of sums when it is not wanted.
         if pair:
             _moment_sums(x[s], y[s], z[s], ref, w_a[0] if shared_a else w_a[s], sums_a[s],
                          w_b[0] if shared_b else w_b[s], sums_b[s], True)
@@ -66,7 +68,10 @@ def _set_sums(x, y, z, w_a, w_b, pair, ref, sums_a, sums_b):
 def _moment_sums(xs, ys, zs, ref, w, out, v, out_v, pair):
     """``out = (sum w, sum w r (3), sum w r r^T (6))`` of the positions relative to
     ``ref``, ``r = (xs, ys, zs) - ref``; the same under the weights ``v`` into ``out_v``
-    when ``pair``."""
+    when ``pair``.
+
+    The two sets of accumulators are written out, not a loop over the weights: scalars
+    stay in registers, and one pass over the positions serves both."""
     s_w = s0 = s1 = s2 = 0.0
     e00 = e01 = e02 = e11 = e12 = e22 = 0.0
     t_w = t0 = t1 = t2 = 0.0
