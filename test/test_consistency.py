@@ -1,6 +1,8 @@
 """The consistency test of the cloud against the measurements (core.consistency): the
 test statistic, a forced wrong lock detected and recovered from, and the same integrity
 at 1 and 5 Hz."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from synthetic import FRAME, sky
@@ -9,6 +11,7 @@ from gnsscam_ros.core.consistency import (SHIFT_DOF, ConsistencyMonitor,
                                           snapshot_position)
 from gnsscam_ros.core.engine import ERROR, EpochEngine, InputTiming
 from gnsscam_ros.core.filter import UPDATED, FilterConfig
+from gnsscam_ros.core.frames import LocalFrame
 from gnsscam_ros.core.motion import dead_reckon
 from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
 from gnsscam_ros.evaluation.runner import engine_reports, run_epochs, truth_at
@@ -138,3 +141,49 @@ def test_the_same_drive_at_1_and_5_hz_gives_the_same_integrity():
     ratio = figures[5.0][:, 1].mean() / figures[1.0][:, 1].mean()
     assert 0.8 <= ratio <= 1.25, ratio
     assert abs(figures[5.0][:, 2].sum() - figures[1.0][:, 2].sum()) <= 2
+
+
+@pytest.mark.slow
+def test_after_a_recovery_onto_wrong_measurements_the_level_covers_where_the_cloud_was():
+    """A recovery follows the snapshot solutions; when they are the ones in error (here
+    every pseudorange from the recovery on points 40 m east of the truth) the likelihood
+    pulls the whole cloud after them. Until integrity has settled again the level still
+    covers the place the cloud was moved from, so it bounds the error throughout."""
+    at_s, shift = 60.0, np.array([40.0, 0.0, 0.0])
+    drive = make_emulated_drive(5, duration_s=110)
+    frame = LocalFrame(*drive.origin_llh)
+    t0 = drive.gnss[0].stamp_ns
+    truth = truth_at(drive, frame, np.array([e.stamp_ns for e in drive.gnss]))
+    epochs = []
+    for epoch, x in zip(drive.gnss, truth):
+        if (epoch.stamp_ns - t0) * 1e-9 >= at_s:
+            sv = epoch.sv_pos_ecef_m
+            epoch = replace(epoch, pr_m=epoch.pr_m
+                            + np.linalg.norm(sv - frame.enu_to_ecef(x + shift), axis=1)
+                            - np.linalg.norm(sv - frame.enu_to_ecef(x), axis=1))
+        epochs.append(epoch)
+    engine = EpochEngine(FilterConfig(), rng=np.random.default_rng(4),
+                         timing=InputTiming(gnss_queue_size=None))
+    reports, forced = [], False
+    for report in engine_reports(engine, epochs, dead_reckon(drive.imu, drive.odometry),
+                                 None):
+        reports.append(report)
+        nxt = len(reports)
+        if not forced and nxt < len(epochs) and (epochs[nxt].stamp_ns - t0) * 1e-9 >= at_s:
+            assert report.result.settling_s >= 30.0            # settled before the move
+            # The test decides to recover at the first wrong epoch, toward the wrong place.
+            engine.filter.consistency.statistic_nats = 100.0
+            engine.filter.consistency.shift_m = shift[:2].copy()
+            forced = True
+    after = [r for r in reports if r.result.stamp_ns >= epochs[0].stamp_ns
+             and (r.result.stamp_ns - t0) * 1e-9 >= at_s]
+    assert after[0].result.recovered
+    after = after[1:]                        # the epochs after the move
+    stamps = np.array([r.result.stamp_ns for r in after], dtype=np.int64)
+    est = np.array([r.result.position_enu_m for r in after])
+    err = np.hypot(*(est - truth_at(drive, engine.frame, stamps))[:, :2].T)
+    pl = np.array([r.result.protection_level_m for r in after])
+    settling = np.array([r.result.settling_s < 30.0 for r in after])
+    assert settling[:20].all() and err[settling].max() > 30.0      # the cloud followed
+    assert np.all(err[settling] <= pl[settling]), (err - pl)[settling].max()
+    assert all(r.verdict.level == ERROR for r in np.array(after)[settling])
