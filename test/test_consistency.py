@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from synthetic import FRAME, sky
 
-from gnsscam_ros.core.consistency import (SHIFT_DOF, ConsistencyMonitor,
+from gnsscam_ros.core.consistency import (SHIFT_DOF, ConsistencyMonitor, MovedFrom,
                                           snapshot_position)
 from gnsscam_ros.core.engine import ERROR, EpochEngine, InputTiming
 from gnsscam_ros.core.filter import UPDATED, FilterConfig
@@ -187,3 +187,16 @@ def test_after_a_recovery_onto_wrong_measurements_the_level_covers_where_the_clo
     assert settling[:20].all() and err[settling].max() > 30.0      # the cloud followed
     assert np.all(err[settling] <= pl[settling]), (err - pl)[settling].max()
     assert all(r.verdict.level == ERROR for r in np.array(after)[settling])
+
+
+def test_the_place_a_recovery_left_is_carried_with_the_motion_and_forgotten_once_settled():
+    moved_from = MovedFrom()
+    assert moved_from.cover(np.zeros(3), 5.0, unsettled=True) == 5.0   # no recovery yet
+    moved_from.start(np.array([10.0, 0.0, 2.0]), 4.0)
+    moved_from.move(np.array([0.0, 3.0]))
+    # The estimate at the origin: the place is 10.44 m off, its own level 4 m on top.
+    assert moved_from.cover(np.zeros(3), 5.0, unsettled=True) == pytest.approx(
+        np.hypot(10.0, 3.0) + 4.0)
+    assert moved_from.cover(np.zeros(3), 30.0, unsettled=True) == 30.0
+    assert moved_from.cover(np.zeros(3), 5.0, unsettled=False) == 5.0   # settled: gone
+    assert moved_from.cover(np.zeros(3), 5.0, unsettled=True) == 5.0

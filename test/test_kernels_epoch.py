@@ -20,6 +20,7 @@ from gnsscam_ros.core import gnss
 from gnsscam_ros.core.filter import UPDATED, FilterConfig, ParticleFilter
 from gnsscam_ros.core.fusion import CameraMeasurement
 from gnsscam_ros.core.particles import MotionIncrement, motion_samples
+from gnsscam_ros.core.persistence import persisting_worth, tempering_exponent
 from gnsscam_ros.core.types import GLONASS, GPS
 
 S_NS = 1_000_000_000
@@ -69,7 +70,8 @@ def oracle_choice(filt: ParticleFilter, epoch, motion, camera):
         log_lik = oracles.mixture_log_likelihood(e, prep.sigma_m, prep.wide_share,
                                                  prep.wide_mean_m, prep.wide_sd_m,
                                                  gnss.FAULT_SHARE, cfg.outlier_range_m)
-    tempering = filt._tempering_exponent(filt._persisting_tempering(motion.dt_s))
+    tempering = tempering_exponent(filt.persistence.persistent_share,
+                                   persisting_worth(motion.dt_s, cfg.error_correlation_time_s))
     joint = filt.log_w + tempering * log_lik
     if camera:
         total = np.log(np.exp(joint).sum(axis=1))

@@ -11,7 +11,8 @@ from synthetic import FRAME, epoch_at
 from gnsscam_ros.core.filter import FilterConfig, ParticleFilter
 from gnsscam_ros.core.particles import MotionIncrement
 from gnsscam_ros.core.persistence import (LONG_LAG_S, MIN_PAIRS, PAIR_TOLERANCE, SHORT_LAG_S,
-                                          SnapshotPersistence)
+                                          SnapshotPersistence, persisting_worth,
+                                          tempering_exponent)
 
 S = 1_000_000_000
 
@@ -90,7 +91,8 @@ def tempering_after(errors_m, dt_s=1.0):
                         rng=np.random.default_rng(0))
     for k, e in enumerate(errors_m):
         pf.persistence.observe(int(k * dt_s * S), e)
-    return pf._tempering_exponent(pf._persisting_tempering(dt_s))
+    return tempering_exponent(pf.persistence.persistent_share,
+                              persisting_worth(dt_s, pf.config.error_correlation_time_s))
 
 
 def test_the_tempering_counts_white_errors_as_new_and_persisting_ones_as_before():

@@ -21,7 +21,8 @@ from . import gnss, integrity
 from .bias import (BIAS_CN0, BIAS_LEARNED, BIAS_MODELS, BIAS_NONE, BiasHypotheses,
                    beyond_cloud, hidden_fault_sizes, leverages, with_hidden_faults)
 from .config import ERROR_ADAPTIVE, FilterConfig
-from .consistency import ConsistencyMonitor, ConsistencyState, snapshot_position
+from .consistency import (ConsistencyMonitor, ConsistencyState, MovedFrom,
+                          snapshot_position)
 from .error_model import AdaptiveErrorModel
 from .fusion import MAX_CAMERA_MATCHES, CameraMeasurement, camera_fusion
 from .frames import LocalFrame
@@ -30,7 +31,7 @@ from .kernels import weights as weight_kernels
 from .noise import ProcessNoise
 from .particles import (POS, STATE_DIM, SYSTEMATIC, YAW, MotionIncrement,
                         motion_samples, normalize_log_weights, propagate, weighted_mean_cov)
-from .persistence import SnapshotPersistence
+from .persistence import SnapshotPersistence, persisting_worth, tempering_exponent
 from .rng import spawn
 from .snapshot import solve_snapshot
 # Epoch outcomes (``core.types``, so that the verdict needs no filter to read them).
@@ -177,10 +178,7 @@ class ParticleFilter:
         self._settled_stationary = False                # settling while not yet moved
         self._motion_seen = False                       # known motion since the start
         self._motion_unknown_s = 0.0                    # of the epoch being processed
-        # Where the last recovery moved the cloud from (horizontal, carried with the
-        # predicted motion) and the level the cloud had there, until integrity settles.
-        self._moved_from_m: np.ndarray | None = None
-        self._moved_from_level_m = 0.0
+        self.moved_from = MovedFrom()                    # the last recovery's origin
         self.last_result: EpochResult | None = None
 
     @property
@@ -214,7 +212,7 @@ class ParticleFilter:
         self.acquired_stamp_ns = None
         self._settled_stationary = False
         self._motion_unknown_s = 0.0
-        self._moved_from_m = None
+        self.moved_from = MovedFrom()
         self.last_result = None
 
     def state_problem(self, result: EpochResult | None = None) -> str | None:
@@ -336,8 +334,7 @@ class ParticleFilter:
         with np.errstate(invalid='ignore'):
             moved = np.exp(self.log_w) @ (priors[0, :, :2] - self.particles[:, :2])
         self.persistence.move(moved)
-        if self._moved_from_m is not None:
-            self._moved_from_m = self._moved_from_m + moved
+        self.moved_from.move(moved)
         self._motion_unknown_s = float(motion.unknown_s)
         if motion.unknown_s * cfg.max_yaw_rate_rps > HEADING_LOST_RAD:
             # Without dead reckoning the heading drifts by up to max_yaw_rate_rps: beyond
@@ -439,8 +436,8 @@ class ParticleFilter:
         # (profiled out inside the likelihood kernel).
         spread_m = min(float(np.sqrt(max(np.trace(cov), 0.0))), cfg.clock_kernel_max_m)
         clock_w = gnss.clock_weights(prep, centre, spread_m)
-        persisting = self._persisting_tempering(dt_s)
-        tempering = self._tempering_exponent(persisting)
+        persisting = persisting_worth(dt_s, cfg.error_correlation_time_s)
+        tempering = tempering_exponent(self.persistence.persistent_share, persisting)
         lik = self.likelihood.joint(priors, prep, clock_w, tempering, self.log_w)
         joint, total = lik.joint, lik.total
         self._consistency_state = self._snapshot_step(epoch.stamp_ns, priors[0], prep,
@@ -566,19 +563,8 @@ class ParticleFilter:
         own_level = level
         if (consistency.inconsistent or unsettled) and np.isfinite(consistency.separation_m):
             level = max(level, consistency.separation_m)
-        if self._moved_from_m is not None:
-            if unsettled:
-                # A recovery is a decision the measurements have not confirmed yet: the
-                # snapshot solutions it followed may be the ones in error (persistent NLOS
-                # pulls them tens of metres off for minutes), and the likelihood may then
-                # thin out the half of the cloud that stayed where it was. Until integrity
-                # has settled again the level covers that place too, with the level the
-                # cloud had there (smartLoc GPS only, development seeds 1-6: 149 of the 188
-                # missed epochs came in the minute after a recovery, none with this cover).
-                level = max(level, float(np.hypot(*(mean[:2] - self._moved_from_m)))
-                            + self._moved_from_level_m)
-            else:
-                self._moved_from_m = None
+        # After a recovery, until integrity has settled again, the place it left too.
+        level = self.moved_from.cover(mean, level, unsettled)
         particles, log_w = priors[chosen], post_log_w[chosen]
         acquired = self.distance_since_init_m >= cfg.heading_acquisition_m
         n_out = cfg.n_particles if acquired else n
@@ -589,8 +575,7 @@ class ParticleFilter:
             log_w = np.full(n_out, -np.log(n_out))
         self.particles, self.log_w = particles, normalize_log_weights(log_w)
         if consistency.recover:
-            self._moved_from_m = mean[:2].copy()
-            self._moved_from_level_m = own_level
+            self.moved_from.start(mean, own_level)
             self._recover(epoch.stamp_ns)
         self.sample_particles, self.sample_log_w = priors, post_log_w
         result = EpochResult(
@@ -694,30 +679,3 @@ class ParticleFilter:
                                     cfg.inverse_bernoulli, limits)
         self.posterior_set = posteriors
         return risk, level
-
-    def _persisting_tempering(self, dt_s: float) -> float:
-        """What an epoch is worth if all of its error persists.
-
-        Errors that follow a first-order Gauss-Markov process with correlation time
-        ``tau = error_correlation_time_s`` make a new epoch ``dt`` after the last worth
-        ``c = (1 - phi) / (1 + phi) = tanh(dt / (2 tau))`` of an independent one,
-        ``phi = exp(-dt / tau)`` (the information an AR(1) sample adds about a constant):
-        ``dt / (2 tau)`` per epoch at a high rate, one per epoch when they are far apart,
-        so that the information per second of driving is the same at any GNSS rate.
-        """
-        tau = self.config.error_correlation_time_s
-        if tau <= 0.0:
-            return 1.0
-        return float(np.tanh(max(dt_s, 1e-3) / (2.0 * tau)))
-
-    def _tempering_exponent(self, persisting: float) -> float:
-        """Tempering exponent of this epoch's GNSS log-likelihood, from what it is worth
-        if all of its error persists (``persisting``, :meth:`_persisting_tempering`).
-
-        Only the share ``s`` of the error that persists (measured from the snapshot
-        solutions, ``core.persistence``; 1 until measured) is correlated; the rest is new
-        at every epoch. With the error variance split so, an epoch is worth
-        ``1 / ((1 - s) + s / c)``: ``c`` when all of it persists, 1 when none does.
-        """
-        share = self.persistence.persistent_share
-        return 1.0 / ((1.0 - share) + share / persisting)

@@ -108,3 +108,30 @@ class SnapshotPersistence:
     def reset(self) -> None:
         """Forget the window (a new drive or a reset filter)."""
         self.__init__(self.window_s)
+
+
+def persisting_worth(dt_s: float, correlation_time_s: float) -> float:
+    """What an epoch ``dt_s`` after the last is worth if all of its error persists.
+
+    Errors that follow a first-order Gauss-Markov process with correlation time ``tau``
+    make a new epoch worth ``c = (1 - phi) / (1 + phi) = tanh(dt / (2 tau))`` of an
+    independent one, ``phi = exp(-dt / tau)`` (the information an AR(1) sample adds about
+    a constant): ``dt / (2 tau)`` per epoch at a high rate, one per epoch when they are far
+    apart, so that the information per second of driving is the same at any GNSS rate.
+    ``tau <= 0``: every epoch independent (1).
+    """
+    if correlation_time_s <= 0.0:
+        return 1.0
+    return float(np.tanh(max(dt_s, 1e-3) / (2.0 * correlation_time_s)))
+
+
+def tempering_exponent(persistent_share: float, persisting: float) -> float:
+    """Tempering exponent of an epoch's GNSS log-likelihood, from what it is worth if all
+    of its error persists (``persisting``, :func:`persisting_worth`).
+
+    Only the share ``s`` of the error that persists (measured from the snapshot solutions,
+    :class:`SnapshotPersistence`; 1 until measured) is correlated; the rest is new at
+    every epoch. With the error variance split so, an epoch is worth
+    ``1 / ((1 - s) + s / c)``: ``c`` when all of it persists, 1 when none does.
+    """
+    return 1.0 / ((1.0 - persistent_share) + persistent_share / persisting)
