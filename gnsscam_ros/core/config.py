@@ -325,7 +325,8 @@ class IntegrityConfig(_Part):
         2.0, 'The cloud counts as inconsistent with the measurements (ERROR, the protection '
         'level covering the snapshot solution) while the CUSUM of the log likelihood ratio '
         '"cloud moved onto the snapshot solution" against "cloud" is at least this '
-        '(core.consistency): odds of e^2 = 7 to 1.', 'nats', low=0.0, low_open=True)
+        '(core.consistency): odds of e^2 = 7 to 1; and the snapshot solution is beyond '
+        "the cloud's own protection level.", 'nats', low=0.0, low_open=True)
     consistency_recover_nats: float = parameter(
         6.0, 'At this statistic (odds of 400 to 1) the filter recovers: recovery_share of '
         'the cloud moves onto the snapshot solution and integrity settles again.', 'nats',
