@@ -123,9 +123,10 @@ def _reasons_against(result: EpochResult, config: FilterConfig) -> tuple[list[st
         reasons.append('settling after the first fix or a lost heading (heading '
                        f'acquisition, then {config.integrity_settling_s:g} s)')
     elif not met:
-        reasons.append('settling: the snapshot solution (smoothed, '
-                       f'{consistency.separation_m:.0f} m away) has not yet been within the '
-                       'protection level since the heading was acquired or the filter '
+        where = (f'smoothed, {consistency.separation_m:.0f} m away'
+                 if math.isfinite(consistency.separation_m) else 'none yet')
+        reasons.append(f'settling: the snapshot solution ({where}) has not yet been within '
+                       'the protection level since the heading was acquired or the filter '
                        'recovered')
     if not level <= limit:
         reasons.append(f'protection level {level:.1f} m above the alert limit {limit:g} m')
