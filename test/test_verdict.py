@@ -16,7 +16,7 @@ CONFIG = FilterConfig(alert_limit_m=10.0, extra_alert_limits_m=(20.0,), target_r
 
 
 def _result(bound=0.05, level_m=6.0, settling_s=40.0, motion_unknown_s=0.0,
-            inconsistent=False, status=UPDATED, met_measurements=True, separation_m=4.0):
+            inconsistent=False, status=UPDATED):
     risk = RiskBound(alert_limits_m=np.array([10.0, 20.0]),
                      empirical_risk=np.array([bound / 2, 0.0]),
                      divergence_risk=np.array([bound / 2, 0.01]),
@@ -25,10 +25,9 @@ def _result(bound=0.05, level_m=6.0, settling_s=40.0, motion_unknown_s=0.0,
                        position_enu_m=np.zeros(3), covariance_m2=np.eye(3), yaw_rad=0.0,
                        risk=risk if status == UPDATED else None,
                        protection_level_m=level_m if status == UPDATED else None,
-                       settling_s=settling_s, met_measurements=met_measurements,
-                       motion_unknown_s=motion_unknown_s,
+                       settling_s=settling_s, motion_unknown_s=motion_unknown_s,
                        consistency=ConsistencyState(statistic_nats=3.0 if inconsistent
-                                                    else 0.0, separation_m=separation_m,
+                                                    else 0.0, separation_m=4.0,
                                                     inconsistent=inconsistent))
 
 
@@ -48,10 +47,6 @@ def test_every_finding_for_ok_gives_ok_with_its_figures():
     ({'inconsistent': True}, 'inconsistent', False),
     ({'settling_s': 29.9}, 'settling', False),
     ({'settling_s': -1.0}, 'settling', False),
-    ({'met_measurements': False}, 'snapshot solution (smoothed, 4 m away) has not yet been',
-     False),
-    ({'met_measurements': False, 'separation_m': math.nan},
-     'snapshot solution (none yet) has not yet been', False),
     ({'level_m': 10.5}, 'protection level 10.5 m above the alert limit 10 m', True),
     ({'level_m': math.inf}, 'protection level inf m above', True),
     ({'bound': 0.15}, 'risk bound 0.15 > target 0.1', True),

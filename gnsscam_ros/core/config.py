@@ -318,8 +318,7 @@ class IntegrityConfig(_Part):
         'set starts on a snapshot fix, which carries the whole effect of the biases, while '
         "the bias hypotheses start from none and need the filter's own memory to grow into "
         'it (measured: the level fell below the error at the end of acquisition on the '
-        'emulated drive); and not before the cloud has then met the measurements once (the '
-        'smoothed snapshot solution within its protection level).', 's', low=0.0)
+        'emulated drive).', 's', low=0.0)
 
     consistency_suspect_nats: float = parameter(
         2.0, 'The cloud counts as inconsistent with the measurements (ERROR, the protection '

@@ -94,8 +94,6 @@ class EpochResult:
         settling_s: Time since the heading was acquired (or since the start of a
             vehicle seen not to move) [s]; -1 while it is not: integrity settles for
             ``integrity_settling_s`` from then (``core.verdict``).
-        met_measurements: The smoothed snapshot solution has been within the protection
-            level since ``integrity_settling_s`` passed (else integrity has not settled).
         motion_unknown_s: Part of the interval without dead reckoning [s].
         n_satellites: Satellites used in the update.
         rejected: ``{reason: count}`` of satellites dropped by the checks.
@@ -127,7 +125,6 @@ class EpochResult:
     risk: integrity.RiskBound | None = None
     protection_level_m: float | None = None
     settling_s: float = -1.0
-    met_measurements: bool = False
     motion_unknown_s: float = 0.0
     n_satellites: int = 0
     rejected: dict = field(default_factory=dict)
@@ -179,7 +176,6 @@ class ParticleFilter:
         self.distance_since_init_m = 0.0
         self.acquired_stamp_ns: int | None = None      # end of heading acquisition
         self._settled_stationary = False                # settling while not yet moved
-        self._met_since_ns: int | None = None           # acquisition the cloud has met
         self._motion_seen = False                       # known motion since the start
         self._motion_unknown_s = 0.0                    # of the epoch being processed
         self.moved_from = MovedFrom()                    # the last recovery's origin
@@ -215,7 +211,6 @@ class ParticleFilter:
         self.distance_since_init_m = 0.0
         self.acquired_stamp_ns = None
         self._settled_stationary = False
-        self._met_since_ns = None
         self._motion_unknown_s = 0.0
         self.moved_from = MovedFrom()
         self.last_result = None
@@ -566,18 +561,10 @@ class ParticleFilter:
             # alarm (correlated snapshot errors held the statistic at 2-4 nats for minutes
             # with them 3-7 m off: emulated bags 3 and 4 were ERROR in half their epochs).
             consistency = replace(consistency, inconsistent=False)
-        # Time alone does not settle integrity: the cloud must also have met the
-        # measurements since (the smoothed snapshot solution within its level); settled by
-        # time 30-50 m from them, clouds were OK beyond the alert limit (smartLoc cells).
-        if (settled_s >= cfg.integrity_settling_s
-                and self._met_since_ns != self.acquired_stamp_ns
-                and consistency.separation_m <= level):
-            self._met_since_ns = self.acquired_stamp_ns
-        met = self.acquired_stamp_ns is not None and self._met_since_ns == self.acquired_stamp_ns
         # The estimate may be the wrong one of two places: while the test says so, and
         # until integrity has settled (the cloud has not yet shown that it is consistent;
         # the verdict is not OK then either), the level covers the other.
-        unsettled = settled_s < cfg.integrity_settling_s or not met
+        unsettled = settled_s < cfg.integrity_settling_s
         own_level = level
         if (consistency.inconsistent or unsettled) and np.isfinite(consistency.separation_m):
             level = max(level, consistency.separation_m)
@@ -600,8 +587,7 @@ class ParticleFilter:
             stamp_ns=epoch.stamp_ns, status=UPDATED, position_enu_m=mean, covariance_m2=cov,
             yaw_rad=float(yaw),
             chosen_sample=chosen, total_log_lik=total, risk=risk, protection_level_m=level,
-            settling_s=settled_s, met_measurements=met,
-            motion_unknown_s=self._motion_unknown_s,
+            settling_s=settled_s, motion_unknown_s=self._motion_unknown_s,
             rejected=check.rejected, ess=float(ess), resampled=bool(resampled),
             consistency=consistency, recovered=consistency.recover,
             recoveries=self.consistency.recoveries)

@@ -9,10 +9,8 @@ encodes this type), and the evaluation scores it. Nothing else decides OK.
 
 OK needs all of these, in this order of the reasons against it: a GNSS update
 (else STALE), motion known over the whole interval, a cloud consistent with the
-measurements, the settling time after the heading acquisition (and the cloud having met
-the measurements since: the snapshot solution once within its protection level), the
-protection level within the alert limit and the risk bound at the alert limit within the
-target.
+measurements, the settling time after the heading acquisition, the protection level
+within the alert limit and the risk bound at the alert limit within the target.
 """
 from __future__ import annotations
 
@@ -110,7 +108,6 @@ def _reasons_against(result: EpochResult, config: FilterConfig) -> tuple[list[st
     bound = float(risk.risk_bound[0])
     motion_known = result.motion_unknown_s == 0.0
     settled = result.settling_s >= config.integrity_settling_s
-    met = result.met_measurements
     reasons = []
     if not motion_known:
         reasons.append(f'dead reckoning missing for {result.motion_unknown_s:.2f} s of this '
@@ -122,17 +119,11 @@ def _reasons_against(result: EpochResult, config: FilterConfig) -> tuple[list[st
     if not settled:
         reasons.append('settling after the first fix or a lost heading (heading '
                        f'acquisition, then {config.integrity_settling_s:g} s)')
-    elif not met:
-        where = (f'smoothed, {consistency.separation_m:.0f} m away'
-                 if math.isfinite(consistency.separation_m) else 'none yet')
-        reasons.append(f'settling: the snapshot solution ({where}) has not yet been within '
-                       'the protection level since the heading was acquired or the filter '
-                       'recovered')
     if not level <= limit:
         reasons.append(f'protection level {level:.1f} m above the alert limit {limit:g} m')
     if not bound <= config.target_risk:
         reasons.append(f'risk bound {bound:.3g} > target {config.target_risk:g}')
-    return reasons, motion_known and settled and met and not consistency.inconsistent
+    return reasons, motion_known and settled and not consistency.inconsistent
 
 
 def integrity_verdict(result: EpochResult, config: FilterConfig,
