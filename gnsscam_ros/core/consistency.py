@@ -100,7 +100,8 @@ class ConsistencyState:
         step_nats: This epoch's log likelihood ratio ``d`` [nats] (NaN: not tested).
         separation_m: Horizontal distance from the cloud to the snapshot solution,
             smoothed [m] (NaN: none).
-        inconsistent: ``S >= suspect_nats``.
+        inconsistent: ``S >= suspect_nats`` (the filter's result also needs the
+            separation beyond the cloud's own protection level).
         recover: ``S >= recover_nats``: the filter recovers this epoch.
         shift_m: (2,) the smoothed move from the cloud to the snapshot solution, east and
             north [m] (None: none).
