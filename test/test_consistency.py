@@ -175,8 +175,7 @@ def test_after_a_recovery_onto_wrong_measurements_the_level_covers_where_the_clo
             engine.filter.consistency.statistic_nats = 100.0
             engine.filter.consistency.shift_m = shift[:2].copy()
             forced = True
-    after = [r for r in reports if r.result.stamp_ns >= epochs[0].stamp_ns
-             and (r.result.stamp_ns - t0) * 1e-9 >= at_s]
+    after = [r for r in reports if (r.result.stamp_ns - t0) * 1e-9 >= at_s]
     assert after[0].result.recovered
     after = after[1:]                        # the epochs after the move
     stamps = np.array([r.result.stamp_ns for r in after], dtype=np.int64)
