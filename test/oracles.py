@@ -247,14 +247,14 @@ def robust_log_likelihood(z: np.ndarray, log_sigma: np.ndarray, outlier_prob: fl
     return OracleLikelihood(log_lik=log_lik, gamma=gamma)
 
 
-def mixture_log_likelihood(e: np.ndarray, core_sd: np.ndarray, wide_share: np.ndarray,
-                           wide_mean: np.ndarray, wide_sd: np.ndarray, fault_share: float,
-                           outlier_range_m: float) -> np.ndarray:
-    """Log-likelihood (..., ) of residuals e (..., k) under the learned error mixture,
-    written from its definition (core.gnss.robust_terms): a line-of-sight core
-    ``(1 - pi - eps) N(0, s0)``; an NLOS component of weight pi, flat over the delays
-    ``[0, mu + 2 s1]`` with half-Gaussian ends of deviation s0 (total mass pi); a flat
-    floor ``eps / range``."""
+def mixture_densities(e: np.ndarray, core_sd: np.ndarray, wide_share: np.ndarray,
+                      wide_mean: np.ndarray, wide_sd: np.ndarray, fault_share: float,
+                      outlier_range_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The line-of-sight core and the whole density (..., k) of residuals e (..., k)
+    under the learned error mixture, written from its definition (core.gnss.robust_terms):
+    a core ``(1 - pi - eps) N(0, s0)``; an NLOS component of weight pi, flat over the
+    delays ``[0, mu + 2 s1]`` with half-Gaussian ends of deviation s0 (total mass pi); a
+    flat floor ``eps / range``."""
     core = ((1.0 - wide_share - fault_share) / (core_sd * np.sqrt(2.0 * np.pi))
             * np.exp(-0.5 * (e / core_sd) ** 2))
     top = wide_mean + 2.0 * wide_sd
@@ -262,7 +262,58 @@ def mixture_log_likelihood(e: np.ndarray, core_sd: np.ndarray, wide_share: np.nd
     below = np.where(e < 0.0, e, 0.0)
     above = np.where(e > top, e - top, 0.0)
     wide = height * np.exp(-0.5 * ((below + above) / core_sd) ** 2)
-    return np.log(core + wide + fault_share / outlier_range_m).sum(axis=-1)
+    return core, core + wide + fault_share / outlier_range_m
+
+
+def mixture_log_likelihood(e: np.ndarray, core_sd: np.ndarray, wide_share: np.ndarray,
+                           wide_mean: np.ndarray, wide_sd: np.ndarray, fault_share: float,
+                           outlier_range_m: float) -> np.ndarray:
+    """Log-likelihood (..., ) of residuals e (..., k) under the learned error mixture
+    (:func:`mixture_densities`)."""
+    return np.log(mixture_densities(e, core_sd, wide_share, wide_mean, wide_sd, fault_share,
+                                    outlier_range_m)[1]).sum(axis=-1)
+
+
+# ------------------------------------------- error model EM (core.kernels.mixture)
+def em_step(r: np.ndarray, w: np.ndarray, cls: np.ndarray, n_classes: int,
+            fit: tuple[np.ndarray, ...], prior: tuple[np.ndarray, ...],
+            strength: float, min_core_sd_m: float) -> tuple[np.ndarray, ...]:
+    """One MAP EM iteration of every class at once (``np.bincount`` over the classes):
+    the numpy form ``core.kernels.mixture.em_fit`` replaced.
+
+    Args:
+        r: (n,) residuals [m]; w: (n,) their weights; cls: (n,) their classes.
+        n_classes: Number of classes.
+        fit: ``(s0, pi, mu, s1)`` per class, the current estimate.
+        prior: ``(s0, pi, mu, s1)`` per class, the prior's centre.
+        strength: Pseudo-samples of the prior.
+        min_core_sd_m: Floor of s0 [m].
+    """
+    def pdf(x, mean, sd):
+        z = (x - mean) / sd
+        return np.exp(-0.5 * z * z) / (sd * np.sqrt(2.0 * np.pi))
+
+    s0, pi, mu, s1 = (f[cls] for f in fit)
+    core = (1.0 - pi) * pdf(r, 0.0, s0)
+    wide = pi * pdf(r, mu, s1)
+    resp = wide / np.maximum(core + wide, 1e-300)       # E-step: P(NLOS | r)
+    w1 = w * resp
+    w0 = w - w1
+
+    def total(values):
+        return np.bincount(cls, weights=values, minlength=n_classes)
+
+    p_s0, p_pi, p_mu, p_s1 = prior
+    n0, n1 = total(w0), total(w1)
+    a0, a1 = strength * (1.0 - p_pi), strength * p_pi
+    new_pi = (n1 + a1) / (n0 + n1 + a0 + a1)
+    new_mu = np.maximum((total(w1 * r) + a1 * p_mu) / (n1 + a1), 0.0)
+    new_s0 = np.sqrt((total(w0 * r * r) + a0 * p_s0 ** 2) / (n0 + a0))
+    dev = r - new_mu[cls]
+    new_s1 = np.sqrt((total(w1 * dev * dev) + a1 * p_s1 ** 2) / (n1 + a1))
+    new_s0 = np.maximum(new_s0, min_core_sd_m)
+    new_s1 = np.maximum(new_s1, 2.0 * new_s0)
+    return new_s0, new_pi, new_mu, new_s1
 
 
 # --------------------------------------------------------- motion (core.kernels.motion)

@@ -4,6 +4,7 @@ variances)."""
 from dataclasses import replace
 
 import numpy as np
+import oracles
 import pytest
 from synthetic import FRAME, epoch_at
 
@@ -12,6 +13,7 @@ from gnsscam_ros.core.error_model import (CN0_EDGES_DBHZ, MIN_WINDOW_RESIDUALS, 
                                           UNKNOWN_CLASS, AdaptiveErrorModel, ErrorPriors,
                                           signal_class)
 from gnsscam_ros.core.filter import FilterConfig, ParticleFilter
+from gnsscam_ros.core.kernels import mixture as mixture_kernels
 from gnsscam_ros.core.particles import MotionIncrement
 
 S = 1_000_000_000
@@ -23,6 +25,27 @@ def feed(model, residuals, cn0, epochs, per_epoch, period_s=0.5, start_s=0.0):
     for k in range(epochs):
         r = residuals[k * per_epoch:(k + 1) * per_epoch]
         model.observe(int((start_s + k * period_s) * S), r, np.full(r.shape, cn0), 0)
+
+
+@pytest.mark.parametrize('n_classes', [1, N_CLASSES])
+def test_the_compiled_em_iterations_are_the_numpy_oracle(n_classes):
+    """Residuals of a core and a delayed component over the classes (one of them
+    empty), weighted, three iterations from a fit away from the answer."""
+    rng = np.random.default_rng(n_classes)
+    n = 900
+    r = np.where(rng.random(n) < 0.3, rng.normal(25.0, 12.0, n), rng.normal(0.0, 3.0, n))
+    w = rng.uniform(0.5, 1.5, n)
+    cls = rng.integers(0, max(n_classes - 1, 1), n).astype(np.int64)
+    ones = np.ones(n_classes)
+    fit = (4.0 * ones, 0.1 * ones, 5.0 * ones, 20.0 * ones)
+    prior = (5.0 * ones, 0.2 * ones, 0.0 * ones, 30.0 * ones)
+    expected = fit
+    for _ in range(3):
+        expected = oracles.em_step(r, w, cls, n_classes, expected, prior, 30.0, 0.5)
+    got = mixture_kernels.em_fit(r, w, cls, n_classes, *fit, *prior, 30.0, 0.5, 3)
+    for value, oracle in zip(got, expected):
+        np.testing.assert_allclose(value, oracle, rtol=1e-12)
+    assert got[1][0] > 0.2 and got[2][0] > 10.0      # the fit moved towards the data
 
 
 def test_signal_classes_follow_the_cn0_bins_and_unknown_has_its_own():

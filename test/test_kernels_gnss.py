@@ -161,6 +161,48 @@ def test_robust_inlier_shares_match_the_oracle(case):
         atol=1e-9)
 
 
+def with_learned_mixture(prep):
+    """The epoch under a learned error mixture: NLOS components of 0.05-0.4 weight whose
+    flat tops end 8-40 m out, so a 30 m cloud puts residuals below 0, on the tops and
+    beyond them."""
+    k = prep.pr_m.shape[0]
+    rng = np.random.default_rng(k)
+    return replace(prep, wide_share=rng.uniform(0.05, 0.4, k),
+                   wide_mean_m=rng.uniform(0.0, 20.0, k), wide_sd_m=rng.uniform(4.0, 10.0, k))
+
+
+@pytest.mark.parametrize('single, tolerance', [(False, 1e-6), (True, 1e-4)])
+def test_robust_joint_under_a_learned_mixture_matches_the_oracle(case, single, tolerance):
+    prep, sets, prior, clock_w, z = case
+    prep = with_learned_mixture(prep)
+    e = z * prep.sigma_m
+    lik = gnss.RobustLikelihood(0.3, 300.0, single_precision=single).joint(
+        sets, prep, clock_w, 0.4, prior)
+    expected = prior + 0.4 * oracles.mixture_log_likelihood(
+        e, prep.sigma_m, prep.wide_share, prep.wide_mean_m, prep.wide_sd_m,
+        gnss.FAULT_SHARE, 300.0)
+    # Every region of the density is in the test: below 0, on the flat top, beyond it.
+    top = prep.wide_mean_m + 2.0 * prep.wide_sd_m
+    assert (e < 0).mean() > 0.2 and ((e > 0) & (e < top)).mean() > 0.2
+    assert (e > top).mean() > 0.05
+    np.testing.assert_allclose(lik.joint, expected, atol=tolerance)
+    np.testing.assert_allclose(lik.total, np.log(np.exp(expected).sum(axis=1)),
+                               atol=tolerance)
+
+
+def test_robust_inlier_shares_under_a_learned_mixture_match_the_oracle(case):
+    prep, sets, prior, clock_w, z = case
+    prep = with_learned_mixture(prep)
+    probability, share = gnss.robust_inlier_shares(sets[1], prior, prep, clock_w, 0.3, 300.0)
+    core, whole = oracles.mixture_densities(z[1] * prep.sigma_m, prep.sigma_m,
+                                            prep.wide_share, prep.wide_mean_m, prep.wide_sd_m,
+                                            gnss.FAULT_SHARE, 300.0)
+    inlier = core / whole
+    np.testing.assert_allclose(probability, np.exp(prior) @ inlier, atol=1e-9)
+    np.testing.assert_allclose(share, inlier.mean(axis=0) / inlier.mean(axis=0).sum(),
+                               atol=1e-9)
+
+
 @pytest.mark.parametrize('single', [False, True])
 def test_robust_joint_keeps_a_tiny_outlier_floor_finite(single):
     # eps / range of 1e-12 over 64 satellites: the product of the floors (1e-768) would

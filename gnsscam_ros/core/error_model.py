@@ -49,6 +49,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .kernels import mixture as mixture_kernels
+
 #: C/N0 bin edges of the signal classes [dB-Hz]: 5 dB-Hz bins over the range where code
 #: tracking errors change most (below 25 a signal is mostly reflected, above 45 mostly
 #: direct). A generic discretisation, not a fit.
@@ -153,45 +155,6 @@ class MixtureFit:
 def _normal_pdf(r: np.ndarray, mean, sd) -> np.ndarray:
     z = (r - mean) / sd
     return np.exp(-0.5 * z * z) / (sd * np.sqrt(2.0 * np.pi))
-
-
-def _em_step(r: np.ndarray, w: np.ndarray, cls: np.ndarray, n_classes: int,
-             fit: tuple[np.ndarray, ...], prior: tuple[np.ndarray, ...],
-             strength: float, min_core_sd_m: float) -> tuple[np.ndarray, ...]:
-    """One MAP EM iteration of every class at once (``np.bincount`` over the classes).
-
-    Args:
-        r: (n,) residuals [m]; w: (n,) their weights; cls: (n,) their classes.
-        n_classes: Number of classes.
-        fit: ``(s0, pi, mu, s1)`` per class, the current estimate.
-        prior: ``(s0, pi, mu, s1)`` per class, the prior's centre.
-        strength: Pseudo-samples of the prior.
-        min_core_sd_m: Floor of s0 [m].
-    """
-    s0, pi, mu, s1 = (f[cls] for f in fit)
-    core = (1.0 - pi) * _normal_pdf(r, 0.0, s0)
-    wide = pi * _normal_pdf(r, mu, s1)
-    resp = wide / np.maximum(core + wide, 1e-300)       # E-step: P(NLOS | r)
-    w1 = w * resp
-    w0 = w - w1
-
-    def total(values):
-        return np.bincount(cls, weights=values, minlength=n_classes)
-
-    p_s0, p_pi, p_mu, p_s1 = prior
-    n0, n1 = total(w0), total(w1)
-    # M-step with conjugate pseudo-samples at the prior's centre: strength * (1 - pi0)
-    # core samples of variance s0^2, strength * pi0 wide ones at mu0 with variance s1^2.
-    a0, a1 = strength * (1.0 - p_pi), strength * p_pi
-    new_pi = (n1 + a1) / (n0 + n1 + a0 + a1)
-    new_mu = np.maximum((total(w1 * r) + a1 * p_mu) / (n1 + a1), 0.0)
-    new_s0 = np.sqrt((total(w0 * r * r) + a0 * p_s0 ** 2) / (n0 + a0))
-    dev = r - new_mu[cls]
-    new_s1 = np.sqrt((total(w1 * dev * dev) + a1 * p_s1 ** 2) / (n1 + a1))
-    new_s0 = np.maximum(new_s0, min_core_sd_m)
-    # The wide component stays the wide one: at least twice the core.
-    new_s1 = np.maximum(new_s1, 2.0 * new_s0)
-    return new_s0, new_pi, new_mu, new_s1
 
 
 class AdaptiveErrorModel:
@@ -343,8 +306,8 @@ class AdaptiveErrorModel:
         fit = (self.pooled.core_sd_m, self.pooled.wide_share, self.pooled.wide_mean_m,
                self.pooled.wide_sd_m)
         zeros = np.zeros(n, dtype=np.int64)
-        for _ in range(EM_ITERATIONS):
-            fit = _em_step(r, w, zeros, 1, fit, pooled, p.pooled_strength, p.min_core_sd_m)
+        fit = mixture_kernels.em_fit(r, w, zeros, 1, *fit, *pooled, p.pooled_strength,
+                                     p.min_core_sd_m, EM_ITERATIONS)
         self.pooled = MixtureFit(*fit, samples=np.array([float(n)]))
         # The classes' prior: the pooled fit, its spreads shaped by C/N0 about their
         # sample-weighted mean (so that the shape moves spreads between classes only).
@@ -355,9 +318,8 @@ class AdaptiveErrorModel:
         centre = (s0 * shape, np.repeat(pi, N_CLASSES), np.repeat(mu, N_CLASSES), s1 * shape)
         fit = (self.fit.core_sd_m, self.fit.wide_share, self.fit.wide_mean_m,
                self.fit.wide_sd_m)
-        for _ in range(EM_ITERATIONS):
-            fit = _em_step(r, w, cls, N_CLASSES, fit, centre, p.class_strength,
-                           p.min_core_sd_m)
+        fit = mixture_kernels.em_fit(r, w, cls, N_CLASSES, *fit, *centre, p.class_strength,
+                                     p.min_core_sd_m, EM_ITERATIONS)
         self.fit = MixtureFit(*fit, samples=counts)
 
     def satellite_model(self, cn0_dbhz: np.ndarray) -> tuple[np.ndarray, ...]:

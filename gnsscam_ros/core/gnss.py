@@ -72,22 +72,19 @@ class PreparedEpoch:
 @dataclass(frozen=True)
 class RobustTerms:
     """Per-satellite terms of the robust density as the kernels take them (see
-    :func:`robust_terms`): ``log_scale``, ``floor``, ``wide_log_scale``, ``wide_low``,
-    ``wide_high``, ``wide_inv_sigma`` (k,) and ``group`` (satellites per log)."""
+    :func:`robust_terms`): ``log_scale``, ``floor``, ``wide_log_scale``, ``wide_high``
+    (k,) and ``group`` (satellites per log)."""
 
     log_scale: np.ndarray
     floor: np.ndarray
     wide_log_scale: np.ndarray
-    wide_low: np.ndarray
     wide_high: np.ndarray
-    wide_inv_sigma: np.ndarray
     group: int
 
     @property
     def arrays(self) -> tuple:
         """The arrays in the kernels' argument order."""
-        return (self.log_scale, self.floor, self.wide_log_scale, self.wide_low,
-                self.wide_high, self.wide_inv_sigma)
+        return (self.log_scale, self.floor, self.wide_log_scale, self.wide_high)
 
 
 #: Share of the flat floor under the learned mixture: what neither the line-of-sight
@@ -180,9 +177,11 @@ def robust_terms(prep: PreparedEpoch, outlier_prob: float, outlier_range_m: floa
     the NLOS / multipath component of weight ``pi_k``, flat over the delays it produces
     (``0 .. mu_k + 2 s1_k``: a reflection only ever delays a signal, by any amount, so
     within that range it pulls the position nowhere) and falling off beyond it like the
-    core (a large *negative* residual is no reflection: the asymmetry that tells a wrong
-    position from NLOS); and ``FAULT_SHARE`` flat over ``outlier_range_m``. With the
-    stated model: ``(1 - eps) N(0, sigma_k)`` and ``eps`` over ``outlier_range_m``.
+    core, with the core's sigma (a large *negative* residual is no reflection: the
+    asymmetry that tells a wrong position from NLOS; the kernels take its fall below 0 as
+    the core's own, ``core.kernels.gnss._robust_densities``); and ``FAULT_SHARE`` flat
+    over ``outlier_range_m``. With the stated model: ``(1 - eps) N(0, sigma_k)`` and
+    ``eps`` over ``outlier_range_m``.
     ``group`` is the number of densities whose product stays within ``exp(+-log_range)``
     (the kernel takes one log per group; 690: float64, 87: float32); 0 when a single
     density may already lie outside it (a zero floor).
@@ -192,17 +191,13 @@ def robust_terms(prep: PreparedEpoch, outlier_prob: float, outlier_range_m: floa
         core = np.full(k, 1.0 - outlier_prob)
         floor_share = outlier_prob
         wide_log = np.full(k, ABSENT_LOG)
-        low = high = np.zeros(k)
-        wide_inv = np.ones(k)
+        high = np.zeros(k)
     else:
         core = 1.0 - prep.wide_share - FAULT_SHARE
         floor_share = FAULT_SHARE
-        low = np.zeros(k)
         high = np.asarray(prep.wide_mean_m, dtype=float) + 2.0 * prep.wide_sd_m
         # Flat part plus the two half-Gaussian ends carry the component's weight.
-        wide_log = np.log(prep.wide_share) - np.log(
-            high - low + np.sqrt(2.0 * np.pi) * prep.sigma_m)
-        wide_inv = 1.0 / prep.sigma_m
+        wide_log = np.log(prep.wide_share) - np.log(high + np.sqrt(2.0 * np.pi) * prep.sigma_m)
     log_scale = np.log(core) - np.log(prep.sigma_m) - LOG_SQRT_2PI
     floor = np.full(k, floor_share / outlier_range_m)
     # Every density lies between its floor and the sum of its scales and its floor.
@@ -212,7 +207,7 @@ def robust_terms(prep: PreparedEpoch, outlier_prob: float, outlier_range_m: floa
     per_term = max(float(np.abs(log_floor).max(initial=0.0)),
                    float(np.abs(log_largest).max(initial=0.0)), 1e-3)
     group = int(log_range / per_term) if np.isfinite(per_term) else 0
-    return RobustTerms(log_scale, floor, wide_log, low, high, wide_inv, group)
+    return RobustTerms(log_scale, floor, wide_log, high, group)
 
 
 #: Largest distance of a particle from the cloud centre of the float32 likelihood [m]:

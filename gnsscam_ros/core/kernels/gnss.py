@@ -74,6 +74,63 @@ def _fold_logs(prod, log_sum, m):
         prod[b] = 1.0
 
 
+#: ``log`` of a wide component at or below this is absent (``core.gnss.ABSENT_LOG``): its
+#: part beyond the flat top is not computed.
+_WIDE_ABSENT_LOG = -700.0
+
+
+@inline_kernel
+def _robust_densities(r_j, m, ls, isg, fl, wl, hi, dens, cores):
+    """Each particle's density of one satellite under the robust model, for residuals
+    ``r_j`` (float64): ``core + wide + floor`` into ``dens``, the core into ``cores``.
+
+    The wide component is flat from 0 to ``hi`` and falls off on both sides like the core
+    (``core.gnss.robust_terms``). Below 0 it is the core times ``e^(wl - ls)``, on the
+    flat top the constant ``e^wl``: one exponential per particle and satellite, not two.
+    Only a residual beyond the flat top needs its own, and a block computes it only when
+    one of its residuals lies there (a satellite delayed beyond its component's top)."""
+    ratio = math.exp(wl - ls) if wl > _WIDE_ABSENT_LOG else 0.0
+    plateau = math.exp(wl) if wl > _WIDE_ABSENT_LOG else 0.0
+    above = False
+    for b in range(m):
+        e = r_j[b]
+        z = e * isg
+        core = elementary.exp(ls - 0.5 * z * z)
+        wide = core * ratio if e < 0.0 else (plateau if e <= hi else 0.0)
+        cores[b] = core
+        dens[b] = core + wide + fl
+        above |= e > hi
+    if above and wl > _WIDE_ABSENT_LOG:
+        for b in range(m):
+            e = r_j[b]
+            t = (e - hi) * isg
+            tail = elementary.exp(wl - 0.5 * t * t)
+            dens[b] += tail if e > hi else 0.0
+
+
+@inline_kernel
+def _robust_densities32(r_j, clock_c, m, ls, isg, fl, wl, ratio, plateau, hi, dens):
+    """:func:`_robust_densities` in float32, for residuals ``r_j - clock_c`` (the
+    constants ``ratio = e^(wl - ls)`` and ``plateau = e^wl`` given, 0 for an absent
+    component)."""
+    half = np.float32(0.5)
+    zero = np.float32(0.0)
+    above = False
+    for b in range(m):
+        e = r_j[b] - clock_c[b]
+        z = e * isg
+        core = elementary.exp32(ls - half * z * z)
+        wide = core * ratio if e < zero else (plateau if e <= hi else zero)
+        dens[b] = core + wide + fl
+        above |= e > hi
+    if above and plateau > zero:
+        for b in range(m):
+            e = r_j[b] - clock_c[b]
+            t = (e - hi) * isg
+            tail = elementary.exp32(wl - half * t * t)
+            dens[b] += tail if e > hi else zero
+
+
 @kernel
 def _log_sum_exp(values):
     """``log sum exp(values)`` of a (N,) array, shifted by its maximum.
@@ -126,18 +183,18 @@ def residuals_of_points(points, sv, pr, sys_index, clock_w, n_systems):
 
 @contracted_kernel
 def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_scale, floor,
-                 wide_log_scale, wide_low, wide_high, wide_inv_sigma, group, tempering,
-                 prior_log_w, joint):
+                 wide_log_scale, wide_high, group, tempering, prior_log_w, joint):
     """Joint log-weights under the robust likelihood, for S sets of N particles.
 
     ``log L = sum_k log(scale_k exp(-z_k^2 / 2) + wide_k exp(-w_k^2 / 2) + floor_k)``
     with ``z_k = e_k / sigma_k`` (the line-of-sight core),
-    ``w_k = (min(e_k - lo_k, 0) + max(e_k - hi_k, 0)) / s_k`` (the NLOS / multipath
-    component of the learned error model, flat between ``lo_k`` and ``hi_k``,
-    ``core.gnss.robust_terms``; ``log wide_k`` below ``-708``: none) and a flat floor per
-    satellite: two
-    ``exp`` per satellite, one ``log`` per ``group`` satellites (the product of that many
-    densities stays within the floating-point range; ``core.gnss.robust_scale``).
+    ``w_k = (min(e_k, 0) + max(e_k - hi_k, 0)) / sigma_k`` (the NLOS / multipath
+    component of the learned error model, flat between 0 and ``hi_k``,
+    ``core.gnss.robust_terms``; ``log wide_k`` at or below ``-700``: none) and a flat
+    floor per satellite: one ``exp`` per satellite where the residual is not beyond the
+    flat top (:func:`_robust_densities`), one ``log`` per ``group`` satellites (the
+    product of that many densities stays within the floating-point range;
+    ``core.gnss.robust_terms``).
 
     Args:
         sets: (S, N, >= 3) particle positions [m].
@@ -152,8 +209,7 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
         log_scale: (k,) log of each satellite's Gaussian scale (above).
         floor: (k,) outlier floor of each satellite (above).
         wide_log_scale: (k,) log of each satellite's wide component scale ``wide_k``.
-        wide_low, wide_high: (k,) the ends of its flat part [m].
-        wide_inv_sigma: (k,) its inverse standard deviation ``1 / s_k`` [1/m].
+        wide_high: (k,) the top of its flat part [m].
         group: Satellites per log.
         tempering: Tempering exponent of the log-likelihood.
         prior_log_w: (N,) prior log-weights.
@@ -168,6 +224,8 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
     xyz = np.empty((3, BLOCK))
     clock = np.empty((max(n_systems, 1), BLOCK))
     prod = np.empty(BLOCK)
+    dens = np.empty(BLOCK)
+    cores = np.empty(BLOCK)
     log_sum = np.empty(BLOCK)
     total = np.empty(s_count)
     shared = clock_w.shape[0] == 1
@@ -183,14 +241,10 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
                 log_sum[b] = 0.0
             count = 0
             for j in range(k):
-                ls, isg, fl = log_scale[j], inv_sigma[j], floor[j]
-                wl, lo, hi = wide_log_scale[j], wide_low[j], wide_high[j]
-                wis = wide_inv_sigma[j]
+                _robust_densities(r[j], m, log_scale[j], inv_sigma[j], floor[j],
+                                  wide_log_scale[j], wide_high[j], dens, cores)
                 for b in range(m):
-                    zj = r[j, b] * isg
-                    wj = (min(r[j, b] - lo, 0.0) + max(r[j, b] - hi, 0.0)) * wis
-                    prod[b] *= (elementary.exp(ls - 0.5 * zj * zj)
-                                + elementary.exp(wl - 0.5 * wj * wj) + fl)
+                    prod[b] *= dens[b]
                 count += 1
                 if count == group:
                     _fold_logs(prod, log_sum, m)
@@ -206,8 +260,7 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
 @contracted_kernel
 def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, sv, pr,
                         inv_sigma, sys_index, clock_w, n_systems, log_scale, floor,
-                        wide_log_scale, wide_low, wide_high, wide_inv_sigma, group, tempering,
-                        prior_log_w, joint):
+                        wide_log_scale, wide_high, group, tempering, prior_log_w, joint):
     """:func:`robust_joint` with the per-satellite arithmetic in float32 (twice the SIMD
     lanes), on coordinates relative to a ``centre`` near the cloud.
 
@@ -223,7 +276,7 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
 
     Args:
         sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_scale, floor,
-            wide_log_scale, wide_low, wide_high, wide_inv_sigma, tempering, prior_log_w, joint: As
+            wide_log_scale, wide_high, tempering, prior_log_w, joint: As
             :func:`robust_joint` (``floor`` and the densities within the float32 range,
             ``group`` for it).
         centre: (G, 3) the centre c [m], one for every set or each set's (as ``clock_w``).
@@ -244,16 +297,21 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
     log_scale32 = log_scale.astype(f32)
     floor32 = floor.astype(f32)
     wide_log32 = np.maximum(wide_log_scale, -1000.0).astype(f32)
-    wide_low32 = wide_low.astype(f32)
     wide_high32 = wide_high.astype(f32)
-    wide_inv32 = wide_inv_sigma.astype(f32)
-    half = f32(0.5)
+    # e^(wl - ls) and e^wl of :func:`_robust_densities32`, in float64 then rounded.
+    wide_ratio32 = np.zeros(k, dtype=f32)
+    plateau32 = np.zeros(k, dtype=f32)
+    for j in range(k):
+        if wide_log_scale[j] > _WIDE_ABSENT_LOG:
+            wide_ratio32[j] = f32(math.exp(wide_log_scale[j] - log_scale[j]))
+            plateau32[j] = f32(math.exp(wide_log_scale[j]))
     one = f32(1.0)
     zero = f32(0.0)
     r = np.empty((k, BLOCK), dtype=f32)
     clock = np.empty((max(n_systems, 1), BLOCK), dtype=f32)
     d = np.empty((4, BLOCK), dtype=f32)            # offsets east, north, up; |d|^2
     prod = np.empty(BLOCK, dtype=f32)
+    dens = np.empty(BLOCK, dtype=f32)
     log_sum = np.empty(BLOCK)
     exact_xyz = np.empty((3, BLOCK))
     exact_r = np.empty((k, BLOCK))
@@ -304,16 +362,11 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
                 log_sum[b] = 0.0
             count = 0
             for j in range(k):
-                ls, isg, fl = log_scale32[j], inv_sigma32[j], floor32[j]
-                wl, lo, hi = wide_log32[j], wide_low32[j], wide_high32[j]
-                wis = wide_inv32[j]
-                r_j, clock_c = r[j], clock[sys_index[j]]
+                _robust_densities32(r[j], clock[sys_index[j]], m, log_scale32[j],
+                                    inv_sigma32[j], floor32[j], wide_log32[j],
+                                    wide_ratio32[j], plateau32[j], wide_high32[j], dens)
                 for b in range(m):
-                    ej = r_j[b] - clock_c[b]
-                    zj = ej * isg
-                    wj = (min(ej - lo, zero) + max(ej - hi, zero)) * wis
-                    prod[b] *= (elementary.exp32(ls - half * zj * zj)
-                                + elementary.exp32(wl - half * wj * wj) + fl)
+                    prod[b] *= dens[b]
                 count += 1
                 if count == group:
                     _fold_logs(prod, log_sum, m)
@@ -405,7 +458,7 @@ def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
 
 @contracted_kernel
 def robust_inlier_shares(points, log_w, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
-                         log_scale, floor, wide_log_scale, wide_low, wide_high, wide_inv_sigma):
+                         log_scale, floor, wide_log_scale, wide_high):
     """Per-satellite inlier probabilities of one set under the robust model.
 
     ``p_k = d_k / (d_k + v_k + floor_k)``, ``d_k = scale_k exp(-z_k^2 / 2)`` (the core)
@@ -422,6 +475,8 @@ def robust_inlier_shares(points, log_w, sv, pr, inv_sigma, sys_index, clock_w, n
     xyz = np.empty((3, BLOCK))
     clock = np.empty((max(n_systems, 1), BLOCK))
     w = np.empty(BLOCK)
+    dens = np.empty(BLOCK)
+    cores = np.empty(BLOCK)
     # Sums per satellite and lane of a block, added up once at the end: a loop that adds
     # into one scalar stays scalar (each add waits for the previous one), this one
     # vectorises with the exponential in it.
@@ -434,15 +489,11 @@ def robust_inlier_shares(points, log_w, sv, pr, inv_sigma, sys_index, clock_w, n
         for b in range(m):
             w[b] = elementary.exp(log_w[start + b])
         for j in range(k):
-            ls, isg, fl = log_scale[j], inv_sigma[j], floor[j]
-            wl, lo, hi = wide_log_scale[j], wide_low[j], wide_high[j]
-            wis = wide_inv_sigma[j]
-            r_j, sum_w, sum_p = r[j], lanes_w[j], lanes_p[j]
+            sum_w, sum_p = lanes_w[j], lanes_p[j]
+            _robust_densities(r[j], m, log_scale[j], inv_sigma[j], floor[j],
+                              wide_log_scale[j], wide_high[j], dens, cores)
             for b in range(m):
-                zj = r_j[b] * isg
-                wj = (min(r_j[b] - lo, 0.0) + max(r_j[b] - hi, 0.0)) * wis
-                dens = elementary.exp(ls - 0.5 * zj * zj)
-                p = dens / (dens + elementary.exp(wl - 0.5 * wj * wj) + fl)
+                p = cores[b] / dens[b]
                 sum_w[b] += w[b] * p
                 sum_p[b] += p
     weighted = np.zeros(k)
