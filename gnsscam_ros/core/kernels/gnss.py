@@ -80,17 +80,30 @@ _WIDE_ABSENT_LOG = -700.0
 
 
 @inline_kernel
-def _robust_densities(r_j, m, ls, isg, fl, wl, hi, dens, cores):
+def _wide_constants(log_scale, wide_log_scale):
+    """Per satellite, ``e^(wl - ls)`` and ``e^wl`` of :func:`_robust_densities` (0 for an
+    absent wide component), once per kernel call: (k,), (k,)."""
+    k = log_scale.shape[0]
+    ratio = np.zeros(k)
+    plateau = np.zeros(k)
+    for j in range(k):
+        if wide_log_scale[j] > _WIDE_ABSENT_LOG:
+            ratio[j] = math.exp(wide_log_scale[j] - log_scale[j])
+            plateau[j] = math.exp(wide_log_scale[j])
+    return ratio, plateau
+
+
+@inline_kernel
+def _robust_densities(r_j, m, ls, isg, fl, wl, ratio, plateau, hi, dens, cores):
     """Each particle's density of one satellite under the robust model, for residuals
     ``r_j`` (float64): ``core + wide + floor`` into ``dens``, the core into ``cores``.
 
     The wide component is flat from 0 to ``hi`` and falls off on both sides like the core
-    (``core.gnss.robust_terms``). Below 0 it is the core times ``e^(wl - ls)``, on the
-    flat top the constant ``e^wl``: one exponential per particle and satellite, not two.
-    Only a residual beyond the flat top needs its own, and a block computes it only when
-    one of its residuals lies there (a satellite delayed beyond its component's top)."""
-    ratio = math.exp(wl - ls) if wl > _WIDE_ABSENT_LOG else 0.0
-    plateau = math.exp(wl) if wl > _WIDE_ABSENT_LOG else 0.0
+    (``core.gnss.robust_terms``). Below 0 it is the core times ``ratio = e^(wl - ls)``, on
+    the flat top the constant ``plateau = e^wl`` (:func:`_wide_constants`, 0 when
+    absent): one exponential per particle and satellite, not two. Only a residual beyond
+    the flat top needs its own, and a block computes it only when one of its residuals
+    lies there (a satellite delayed beyond its component's top)."""
     above = False
     for b in range(m):
         e = r_j[b]
@@ -100,7 +113,7 @@ def _robust_densities(r_j, m, ls, isg, fl, wl, hi, dens, cores):
         cores[b] = core
         dens[b] = core + wide + fl
         above |= e > hi
-    if above and wl > _WIDE_ABSENT_LOG:
+    if above and plateau > 0.0:
         for b in range(m):
             e = r_j[b]
             t = (e - hi) * isg
@@ -110,9 +123,7 @@ def _robust_densities(r_j, m, ls, isg, fl, wl, hi, dens, cores):
 
 @inline_kernel
 def _robust_densities32(r_j, clock_c, m, ls, isg, fl, wl, ratio, plateau, hi, dens):
-    """:func:`_robust_densities` in float32, for residuals ``r_j - clock_c`` (the
-    constants ``ratio = e^(wl - ls)`` and ``plateau = e^wl`` given, 0 for an absent
-    component)."""
+    """:func:`_robust_densities` in float32, for residuals ``r_j - clock_c``."""
     half = np.float32(0.5)
     zero = np.float32(0.0)
     above = False
@@ -226,6 +237,7 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
     prod = np.empty(BLOCK)
     dens = np.empty(BLOCK)
     cores = np.empty(BLOCK)
+    ratio, plateau = _wide_constants(log_scale, wide_log_scale)
     log_sum = np.empty(BLOCK)
     total = np.empty(s_count)
     shared = clock_w.shape[0] == 1
@@ -242,7 +254,8 @@ def robust_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems, log_sca
             count = 0
             for j in range(k):
                 _robust_densities(r[j], m, log_scale[j], inv_sigma[j], floor[j],
-                                  wide_log_scale[j], wide_high[j], dens, cores)
+                                  wide_log_scale[j], ratio[j], plateau[j], wide_high[j],
+                                  dens, cores)
                 for b in range(m):
                     prod[b] *= dens[b]
                 count += 1
@@ -298,13 +311,9 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
     floor32 = floor.astype(f32)
     wide_log32 = np.maximum(wide_log_scale, -1000.0).astype(f32)
     wide_high32 = wide_high.astype(f32)
-    # e^(wl - ls) and e^wl of :func:`_robust_densities32`, in float64 then rounded.
-    wide_ratio32 = np.zeros(k, dtype=f32)
-    plateau32 = np.zeros(k, dtype=f32)
-    for j in range(k):
-        if wide_log_scale[j] > _WIDE_ABSENT_LOG:
-            wide_ratio32[j] = f32(math.exp(wide_log_scale[j] - log_scale[j]))
-            plateau32[j] = f32(math.exp(wide_log_scale[j]))
+    ratio, plateau = _wide_constants(log_scale, wide_log_scale)  # float64, then rounded
+    wide_ratio32 = ratio.astype(f32)
+    plateau32 = plateau.astype(f32)
     one = f32(1.0)
     zero = f32(0.0)
     r = np.empty((k, BLOCK), dtype=f32)
@@ -477,6 +486,7 @@ def robust_inlier_shares(points, log_w, sv, pr, inv_sigma, sys_index, clock_w, n
     w = np.empty(BLOCK)
     dens = np.empty(BLOCK)
     cores = np.empty(BLOCK)
+    ratio, plateau = _wide_constants(log_scale, wide_log_scale)
     # Sums per satellite and lane of a block, added up once at the end: a loop that adds
     # into one scalar stays scalar (each add waits for the previous one), this one
     # vectorises with the exponential in it.
@@ -491,7 +501,8 @@ def robust_inlier_shares(points, log_w, sv, pr, inv_sigma, sys_index, clock_w, n
         for j in range(k):
             sum_w, sum_p = lanes_w[j], lanes_p[j]
             _robust_densities(r[j], m, log_scale[j], inv_sigma[j], floor[j],
-                              wide_log_scale[j], wide_high[j], dens, cores)
+                              wide_log_scale[j], ratio[j], plateau[j], wide_high[j], dens,
+                              cores)
             for b in range(m):
                 p = cores[b] / dens[b]
                 sum_w[b] += w[b] * p
