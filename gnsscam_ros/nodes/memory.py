@@ -29,9 +29,10 @@ frees goes back at once; ``malloc_trim(0)`` after the garbage (with the profile)
 propagated sets: 3.2 MB at N = 10,000 x M = 10) and frees them when it ends; glibc hands
 freed memory at the top of the heap back to the kernel (trim threshold), so the next epoch
 faults fresh zeroed pages in again: ~700 page faults per epoch at N = 10,000, 3,400 at
-100,000. :func:`keep_epoch_memory` (fusion_node's start-up) keeps blocks up to 32 MB
-(glibc's largest mmap threshold) on the heap and the freed heap up to 256 MB with the
-process: one page fault per epoch afterwards. Larger blocks (an 8000x8000 image) are
+100,000. :func:`keep_epoch_memory` (the start-up of fusion_node, and of pipeline_node, whose
+process runs fusion_node's epochs) keeps blocks up to 32 MB (glibc's largest mmap
+threshold) on the heap and the freed heap up to 256 MB with the process: one page fault
+per epoch afterwards. Larger blocks (an 8000x8000 image) are
 still mapped and unmapped on their own, so a big message still goes back at once; the
 resident memory of fusion_node stays at the high-water mark of its epochs (tens of MB at
 N = 10,000). (``gnsscam_bench`` keeps glibc's defaults: its yardstick, plain numpy, gains

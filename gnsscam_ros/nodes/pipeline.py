@@ -22,7 +22,7 @@ from .node_base import EXIT_FAILED, EXIT_OK
 from .fusion_node import FusionNode
 from .gnss_node import GnssNode
 from .imu_node import ImuNode
-from .memory import configure_node_memory
+from .memory import configure_node_memory, keep_epoch_memory
 from .runtime import (NodeSpinner, failed, init_ros, print_node_help,
                       quiet_interrupted_rclpy_objects, shut_down, start_nodes, wants_help)
 
@@ -42,6 +42,7 @@ def main(args=None) -> int:
         return EXIT_OK
     quiet_interrupted_rclpy_objects()
     configure_node_memory()             # before the first participant of the process
+    keep_epoch_memory()                 # fusion_node's epochs run in this process too
     nodes, spinner, code = [], None, EXIT_OK
     try:
         try:
