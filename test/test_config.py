@@ -183,7 +183,10 @@ def test_update_yaml_needs_its_markers_and_main_rewrites(tmp_path):
     assert cfgmod.main([str(stale)]) == 0
     text = stale.read_text(encoding='utf-8')
     assert text.startswith('head\n') and text.endswith(cfgmod.YAML_END + '\n    seed: -1\n')
-    assert update_yaml(text) == text and '    n_particles: 1000\n' in text
+    # The stale value is replaced by the default's.
+    assert update_yaml(text) == text
+    assert f'    n_particles: {FilterConfig().n_particles}\n' in text
+    assert 'n_particles: 3\n' not in text
     assert cfgmod.main([]) == 2
 
 
