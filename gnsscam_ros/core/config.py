@@ -82,13 +82,16 @@ class ParticleSetConfig(_Part):
     """The particle sets: sizes, initialisation, heading acquisition and resampling."""
 
     n_particles: int = parameter(
-        4000, 'Particles per posterior N. Accuracy where the geometry is poor grows with N '
-        '(GLONASS alone on the smartLoc drive, development seeds 1-10: RMSE 0.51, 0.50, '
-        '0.49, 0.46 of the robust WLS at 1000, 2000, 3000, 5000); 4000 is what the 10 ms '
-        'epoch affords with margin here (6.4 ms at the default configuration). The sizes '
-        'together (this, acquisition_particles, n_posteriors, n_motion_samples) must fit '
-        'the 2 GiB memory budget of an epoch (core.config.epoch_memory_bytes; large ones '
-        'use fewer satellites, too large ones are refused).', low=2, high=10_000_000)
+        4000, 'Particles per posterior N. Where the geometry is poor the estimate improves '
+        'with N; the epoch costs about N. The sizes together (this, acquisition_particles, '
+        'n_posteriors, n_motion_samples) must fit the 2 GiB memory budget of an epoch '
+        '(core.config.epoch_memory_bytes; large ones use fewer satellites, too large ones '
+        'are refused).', low=2, high=10_000_000,
+        provenance='Not fitted: a cost, set to what a 10 ms epoch affords with margin (6.4 '
+                   'ms at the default configuration on the 2-core test machine). Measured '
+                   'with filter seeds 1-10 (none of the reported seeds 11-20): GLONASS alone '
+                   'on the smartLoc drive, RMSE 0.51, 0.50, 0.49, 0.46 of the robust WLS at '
+                   'N = 1000, 2000, 3000, 5000.')
     n_posteriors: int = parameter(
         200, 'Posteriors M behind the risk bound and the protection level. With the exact '
         'inverse Bernoulli the bound can never fall below '
