@@ -4,8 +4,8 @@ Prints median wall times [ms] of
 
 * the posterior statistics of one epoch (pooled moments of posteriors and priors and
   their KL, hazard mass, risk bound, threshold and protection level) at S = 10 motion
-  samples of N = 10,000 particles with M = 10 posteriors, and at N = 4,000 with M = 200
-  (the default configuration);
+  samples of N = 10,000 particles with M = 10 posteriors, and at the default
+  configuration's sizes (S = 10, N = 4,000, M = 200 today);
 * the camera fusion of K = 10 matches at S = 10, N = 10,000;
 
 each next to the numpy implementation they replaced (``test/oracles.py`` of a source
@@ -27,6 +27,7 @@ from scipy.special import logsumexp
 
 from .filter import median_ms as _median_ms
 from ..core import integrity
+from ..core.config import FilterConfig
 from ..core.fusion import camera_fusion
 
 TEST_DIR = Path(__file__).resolve().parents[2] / 'test'
@@ -105,7 +106,10 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(0)
     limits = np.array([8.0])
     rows = []
-    for s, n, m in ((10, 10_000, 10), (10, 4000, 200)):
+    # The default configuration's sizes read from it, so that the row follows the default.
+    defaults = FilterConfig()
+    default_sizes = (defaults.n_motion_samples, defaults.n_particles, defaults.n_posteriors)
+    for s, n, m in ((10, 10_000, 10), default_sizes):
         posteriors, priors = posterior_case(rng, s, n, m)
         mean = np.array([3000.3, -2000.1, 40.0])
         # M = 10 cannot certify 0.1 (q_max = 0, no level): a target it can meet.
