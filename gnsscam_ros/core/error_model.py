@@ -171,6 +171,8 @@ class AdaptiveErrorModel:
         self.window_s = float(window_s)
         self.prior_correlation_time_s = float(prior_correlation_time_s)
         self.priors = priors
+        # The priors' C/N0 shape of the class spreads (a constant of the priors).
+        self._shape = priors.shape()
         # Per satellite key: (stamp_ns, residual) of the last two lags.
         self._history: dict[int, list[tuple[int, float]]] = {}
         # Sums of the lagged pairs, forgotten over the window: xy, xx, yy, lag, count.
@@ -185,7 +187,7 @@ class AdaptiveErrorModel:
 
     def _prior_fit(self, n: int) -> MixtureFit:
         p = self.priors
-        shape = p.shape() if n == N_CLASSES else np.ones(n)
+        shape = self._shape if n == N_CLASSES else np.ones(n)
         return MixtureFit(core_sd_m=p.core_sd_m * shape, wide_share=np.full(n, p.wide_share),
                           wide_mean_m=np.zeros(n), wide_sd_m=p.wide_sd_m * shape,
                           samples=np.zeros(n))
@@ -208,9 +210,12 @@ class AdaptiveErrorModel:
                 (None: not measured).
         """
         r = np.asarray(residual_m, dtype=float)
+        cn0 = np.asarray(cn0_dbhz, dtype=float)
         keep = np.isfinite(r)
-        r = r[keep]
-        cls = signal_class(np.asarray(cn0_dbhz, dtype=float)[keep])
+        if not keep.all():
+            r, cn0 = r[keep], cn0[keep]
+            keys = None if keys is None else np.asarray(keys)[keep]
+        cls = signal_class(cn0)
         # The fix rests on the line-of-sight satellites: their count, not all, says how
         # much of their errors it absorbed.
         f = self.fit
@@ -224,7 +229,9 @@ class AdaptiveErrorModel:
         r = r * np.sqrt(line_of_sight / (line_of_sight - n_unknowns))
         if keys is not None:
             clip = CORRELATION_CLIP_SD * s0
-            self._observe_pairs(stamp_ns, np.asarray(keys)[keep], np.clip(r, -clip, clip))
+            # np.clip's result, without its dispatch (a dozen values).
+            self._observe_pairs(stamp_ns, np.asarray(keys), np.minimum(np.maximum(r, -clip),
+                                                                       clip))
         self._append(stamp_ns, r, cls)
         self._refit()
 
@@ -241,10 +248,12 @@ class AdaptiveErrorModel:
             past = self._history.setdefault(key, [])
             while past and stamp_ns - past[0][0] > 2 * lag_ns:
                 past.pop(0)
-            gaps = [abs(stamp_ns - then - lag_ns) for then, _ in past]
-            if gaps and min(gaps) <= lag_ns // 2:
-                then, old = past[int(np.argmin(gaps))]
-                pairs.append((value, old, (stamp_ns - then) * 1e-9))
+            if past:
+                gaps = [abs(stamp_ns - then - lag_ns) for then, _ in past]
+                closest = min(gaps)
+                if closest <= lag_ns // 2:
+                    then, old = past[gaps.index(closest)]        # the first, as argmin
+                    pairs.append((value, old, (stamp_ns - then) * 1e-9))
             past.append((stamp_ns, value))
         for key in [k for k, past in self._history.items()
                     if not past or stamp_ns - past[-1][0] > 2 * lag_ns]:
@@ -312,7 +321,7 @@ class AdaptiveErrorModel:
         # The classes' prior: the pooled fit, its spreads shaped by C/N0 about their
         # sample-weighted mean (so that the shape moves spreads between classes only).
         counts = np.bincount(cls, minlength=N_CLASSES).astype(float)
-        shape = p.shape()
+        shape = self._shape
         shape = shape / (np.sum(counts * shape) / max(counts.sum(), 1.0))
         s0, pi, mu, s1 = fit
         centre = (s0 * shape, np.repeat(pi, N_CLASSES), np.repeat(mu, N_CLASSES), s1 * shape)

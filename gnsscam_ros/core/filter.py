@@ -349,7 +349,7 @@ class ParticleFilter:
         self._motion_seen |= motion.unknown_s == 0.0
         prep = None
         if check.usable:
-            centre, cov = weighted_mean_cov(priors[0, :, POS], self.log_w)
+            centre, cov = weighted_mean_cov(priors[0], self.log_w)
             prep = self._prepare(epoch.subset(check.keep), centre)
             if prep.pr_m.shape[0] < prep.n_systems + 3:
                 prep = None
@@ -403,7 +403,7 @@ class ParticleFilter:
         # Evaluate the first epoch's measurements on the fresh set.
         priors = np.repeat(self.particles[None], cfg.motion_sample_count, axis=0)
         self._motion_unknown_s = 0.0
-        centre, cov = weighted_mean_cov(self.particles[:, POS], self.log_w)
+        centre, cov = weighted_mean_cov(self.particles, self.log_w)
         prep = self._prepare(epoch.subset(check.keep), centre)
         return self._update(epoch, check, priors, prep, centre, cov, dt_s=0.0)
 
@@ -537,9 +537,8 @@ class ParticleFilter:
         """Estimate, integrity risk and resampling, shared by every update path."""
         cfg = self.config
         m, n = post_log_w.shape
-        pos = priors[..., POS]
         mean, cov, yaw, ess = weight_kernels.set_summary(priors[chosen], post_log_w[chosen])
-        risk, level = self._integrity(pos, post_log_w, chosen, mean, cov, epoch.stamp_ns,
+        risk, level = self._integrity(priors, post_log_w, chosen, mean, cov, epoch.stamp_ns,
                                       update)
         # The heading matters once the vehicle moves: settling starts when it is acquired,
         # or at once while the vehicle has not moved (and again from acquisition if it
@@ -594,13 +593,13 @@ class ParticleFilter:
         self.last_result = result
         return result
 
-    def _integrity(self, pos: np.ndarray, post_log_w: np.ndarray, chosen: int,
+    def _integrity(self, sets: np.ndarray, post_log_w: np.ndarray, chosen: int,
                    mean: np.ndarray, cov: np.ndarray, stamp_ns: int,
                    update: tuple) -> tuple[integrity.RiskBound, float]:
         """Risk bound at the alert limits and protection level over the M posteriors.
 
         Args:
-            pos: (S, N, 3) particle positions of the motion samples [m].
+            sets: (S, N, 4) particles of the motion samples.
             post_log_w: (S, N) their posterior log-weights.
             chosen: The chosen motion sample.
             mean: (3,) the estimate [m].
@@ -616,7 +615,7 @@ class ParticleFilter:
         if thin.step > 1:
             # Heading acquisition holds more particles than the working size; the bound
             # sees an evenly thinned set of about the working size.
-            pos, post_log_w = pos[:, thin], post_log_w[:, thin]
+            sets, post_log_w = sets[:, thin], post_log_w[:, thin]
             post_log_w = normalize_log_weights(post_log_w)
             prior_log_w = normalize_log_weights(self.log_w[thin])
         else:
@@ -632,10 +631,10 @@ class ParticleFilter:
             # long it persists from the error model; the residuals at the estimate size
             # the 'cn0' ones. The update weighed each satellite with tempering times inlier
             # probability over its variance.
-            sigma = tau = None
+            sigma = tau = learned = None
             if cfg.bias_model == BIAS_LEARNED:
-                sigma = (self.errors.satellite_model(prep.cn0_dbhz)[0]
-                         * np.sqrt(self.persistence.persistent_share))
+                learned = self.errors.satellite_model(prep.cn0_dbhz)
+                sigma = learned[0] * np.sqrt(self.persistence.persistent_share)
                 tau = self.errors.correlation_time_s
             else:
                 at_estimate = gnss.clock_corrected_residuals(mean[None], prep, clock_w)[0]
@@ -644,13 +643,14 @@ class ParticleFilter:
             weights = tempering * inlier / prep.sigma_m ** 2
             line = prep.sv_enu_m - mean
             line /= np.linalg.norm(line, axis=1, keepdims=True)
-            _, prior_cov = weighted_mean_cov(pos[chosen], prior_log_w)
+            # The whole rows: a kernel that reads three columns needs no copy of them.
+            _, prior_cov = weighted_mean_cov(sets[chosen], prior_log_w)
             biases = self.bias.biases_at(stamp_ns, prep.sv_key, prep.cn0_dbhz, sigma, tau)
             if cfg.bias_model == BIAS_LEARNED and cfg.hidden_fault_core_sds > 0.0:
                 # Plus one satellite's unseen bias per hypothesis (core.bias), at most the
                 # reach of its class's wide component (mean + 3 sd): the largest error the
                 # learned model gives any weight to.
-                core, _, wide_mean, wide_sd = self.errors.satellite_model(prep.cn0_dbhz)
+                core, _, wide_mean, wide_sd = learned
                 gauss_markov = biases
                 biases = with_hidden_faults(biases, hidden_fault_sizes(
                     core, leverages(line, weights, prep.sys_index, prep.n_systems),
@@ -669,6 +669,7 @@ class ParticleFilter:
                 dims = 2 if cfg.horizontal_risk else 3
                 offsets = beyond_cloud(offsets, self.bias.fault_offsets_m, cov, dims)
                 prior_offsets = beyond_cloud(prior_offsets, prior_faults, prior_cov, dims)
+        pos = sets[..., POS]
         posteriors = integrity.PosteriorSet(pos, post_log_w, index, offsets,
                                             cfg.horizontal_risk)
         priors = integrity.PosteriorSet(pos, np.broadcast_to(prior_log_w, post_log_w.shape),

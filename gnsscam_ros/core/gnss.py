@@ -17,7 +17,7 @@ The per-particle work (ranges, clocks, likelihoods) runs in the compiled kernels
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -67,6 +67,10 @@ class PreparedEpoch:
     wide_share: np.ndarray | None = None
     wide_mean_m: np.ndarray | None = None
     wide_sd_m: np.ndarray | None = None
+    # Per-satellite terms derived from the fields above, computed once per epoch however
+    # many likelihood calls need them (:func:`robust_terms`). The arrays are never
+    # written to after construction, so what is derived from them stays valid.
+    _derived: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
 
 @dataclass(frozen=True)
@@ -186,6 +190,18 @@ def robust_terms(prep: PreparedEpoch, outlier_prob: float, outlier_range_m: floa
     (the kernel takes one log per group; 690: float64, 87: float32); 0 when a single
     density may already lie outside it (a zero floor).
     """
+    key = (float(outlier_prob), float(outlier_range_m))
+    derived = prep._derived.get(key)
+    if derived is None:
+        derived = prep._derived[key] = _robust_arrays(prep, *key)
+    *arrays, per_term = derived
+    group = int(log_range / per_term) if np.isfinite(per_term) else 0
+    return RobustTerms(*arrays, group)
+
+
+def _robust_arrays(prep: PreparedEpoch, outlier_prob: float, outlier_range_m: float
+                   ) -> tuple:
+    """:func:`robust_terms`' arrays and the largest ``|log|`` of a single density."""
     k = prep.pr_m.shape[0]
     if prep.wide_share is None:
         core = np.full(k, 1.0 - outlier_prob)
@@ -206,8 +222,7 @@ def robust_terms(prep: PreparedEpoch, outlier_prob: float, outlier_range_m: floa
     log_largest = np.logaddexp(np.logaddexp(log_scale, wide_log), log_floor)
     per_term = max(float(np.abs(log_floor).max(initial=0.0)),
                    float(np.abs(log_largest).max(initial=0.0)), 1e-3)
-    group = int(log_range / per_term) if np.isfinite(per_term) else 0
-    return RobustTerms(log_scale, floor, wide_log, high, group)
+    return log_scale, floor, wide_log, high, per_term
 
 
 #: Largest distance of a particle from the cloud centre of the float32 likelihood [m]:

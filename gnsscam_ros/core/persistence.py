@@ -25,8 +25,6 @@ persists: the tempering of a fully correlated error).
 """
 from __future__ import annotations
 
-from collections import deque
-
 import numpy as np
 
 from .kernels import persistence as persistence_kernels
@@ -52,8 +50,13 @@ class SnapshotPersistence:
     def __init__(self, window_s: float = 60.0):
         self.window_s = float(window_s)
         self._path_m = np.zeros(2)             # dead-reckoned path since the start
-        self._stamp_ns: deque[int] = deque()
-        self._offset_m: deque[np.ndarray] = deque()
+        # The window's stamps [ns] and offsets [m] are rows ``_first .. _first + _count``
+        # of two buffers that grow as needed: the kernels read them as they stand, with
+        # no per-epoch conversion of a window of hundreds of epochs (10 Hz, 60 s).
+        self._stamps = np.empty(64, dtype=np.int64)
+        self._offsets = np.empty((64, 2))
+        self._first = 0
+        self._count = 0
         self._share = 1.0                      # of the window as it stands
 
     def move(self, motion_xy_m: np.ndarray) -> None:
@@ -72,11 +75,21 @@ class SnapshotPersistence:
         if not np.all(np.isfinite(offset)):
             return
         horizon = stamp_ns - int(self.window_s * 1e9)
-        while self._stamp_ns and self._stamp_ns[0] < horizon:
-            self._stamp_ns.popleft()
-            self._offset_m.popleft()
-        self._stamp_ns.append(int(stamp_ns))
-        self._offset_m.append(offset)
+        first, count = self._first, self._count
+        while count and self._stamps[first] < horizon:
+            first += 1
+            count -= 1
+        if first + count == self._stamps.shape[0]:
+            # Full at the end: move the window to the front, doubling the buffers when
+            # it fills more than half of them.
+            size = self._stamps.shape[0] * (2 if 2 * count > self._stamps.shape[0] else 1)
+            stamps, offsets = np.empty(size, dtype=np.int64), np.empty((size, 2))
+            stamps[:count] = self._stamps[first:first + count]
+            offsets[:count] = self._offsets[first:first + count]
+            self._stamps, self._offsets, first = stamps, offsets, 0
+        self._stamps[first + count] = int(stamp_ns)
+        self._offsets[first + count] = offset
+        self._first, self._count = first, count + 1
         self._share = self._measure()
 
     @staticmethod
@@ -94,10 +107,10 @@ class SnapshotPersistence:
         return self._share
 
     def _measure(self) -> float:
-        if len(self._stamp_ns) < 2:
+        if self._count < 2:
             return 1.0
-        t = np.asarray(self._stamp_ns, dtype=np.int64)
-        d = np.asarray(self._offset_m).reshape(-1, 2)
+        window = slice(self._first, self._first + self._count)
+        t, d = self._stamps[window], self._offsets[window]
         short, n_short = self._median_increment_m2(t, d, SHORT_LAG_S)
         long, n_long = self._median_increment_m2(t, d, LONG_LAG_S)
         if n_short < MIN_PAIRS or n_long < MIN_PAIRS or not long > 0.0:
