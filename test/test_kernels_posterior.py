@@ -146,7 +146,8 @@ def test_hazard_level_and_distances_equal_the_oracles(rng, case):
 
 def test_level_when_one_far_particle_crowds_the_histogram(rng):
     # Particles 1,000 and 10^6 km out stretch the bins: the crossing bin holds nearly all
-    # particles and is split again before its sort.
+    # particles (24,000: more than the first guess of its size, so it is gathered again
+    # into room for every distance) and is split again before its sort.
     posteriors = cloud(rng, 4, 3000, 8)
     posteriors.positions_m[0, 0, 0] += 1e6
     posteriors.positions_m[1, 0, 0] += 1e9
@@ -155,6 +156,30 @@ def test_level_when_one_far_particle_crowds_the_histogram(rng):
     for q_max in Q_MAX:
         assert posteriors.risk_and_level(centre, [8.0], q_max)[1] == oracles.protection_level(
             dist, w, q_max)
+
+
+def test_gather_of_a_bin_is_the_histogram_arithmetic_in_order(rng):
+    # Distances on and next to the bins' edges (where the product rounds either way) and
+    # elsewhere; every bin gathered must be what the histogram's arithmetic puts in it.
+    bins = posterior_kernels.LEVEL_BINS
+    d_max = 7.3
+    scale = bins / d_max
+    edges = np.arange(bins) / scale
+    dist = np.concatenate([edges, np.nextafter(edges, 0.0), np.nextafter(edges, 9.0),
+                           rng.uniform(0.0, d_max, 3000), [d_max]])
+    rng.shuffle(dist)
+    dist = dist.reshape(1, -1)
+    w = rng.uniform(0.0, 1.0, dist.shape)
+    of_bin = np.minimum((dist[0] * scale).astype(np.int64), bins - 1)
+    index = np.zeros(1, dtype=np.int64)
+    for b in (0, 1, 17, bins // 2, bins - 2, bins - 1):
+        values, weights = np.empty(dist.shape[1]), np.empty(dist.shape[1])
+        k = posterior_kernels._gather_bin(dist, w, index, scale, b, values, weights)
+        np.testing.assert_array_equal(values[:k], dist[0][of_bin == b])
+        np.testing.assert_array_equal(weights[:k], w[0][of_bin == b])
+        if k > 0:                                 # too little room: said, not truncated
+            assert posterior_kernels._gather_bin(dist, w, index, scale, b, values[:k - 1],
+                                                 weights[:k - 1]) == -1
 
 
 def test_level_of_ties_is_a_value_and_zero_when_all_mass_fits():

@@ -325,6 +325,34 @@ def _crossing(hist, base, q_mass):
 
 
 @kernel
+def _gather_bin(dist, w, index, scale, b_cross, values, weights):
+    """Distances (M, N) of histogram bin ``b_cross`` (``min(int(d * scale), LEVEL_BINS -
+    1)``) and their weights into ``values`` and ``weights``, in order; returns how many,
+    or -1 when they do not fit.
+
+    Only the distances within a bin's width of the bin take the bin arithmetic (rounding
+    moves none further); the others, nearly all, pass on two comparisons.
+    """
+    m, n = dist.shape
+    shared = w.shape[0] == 1
+    top_bin = LEVEL_BINS - 1
+    low, high = (b_cross - 1) / scale, (b_cross + 2) / scale
+    capacity = values.shape[0]
+    k = 0
+    for j in range(m):
+        row, wr = dist[j], w[0] if shared else w[index[j]]
+        for i in range(n):
+            d = row[i]
+            if d >= low and d < high and min(int(d * scale), top_bin) == b_cross:
+                if k == capacity:
+                    return -1
+                values[k] = d
+                weights[k] = wr[i]
+                k += 1
+    return k
+
+
+@kernel
 def tail_level(dist, w, index, q_mass, d_max):
     """Protection level over ``dist`` (M, N) with weights ``w[index[j]]`` (rows of S or a
     shared row): the smallest v in ``{0} ∪ {dist}`` whose mass strictly beyond v is at
@@ -340,7 +368,6 @@ def tail_level(dist, w, index, q_mass, d_max):
     if d_max <= 0.0:
         return 0.0
     hist = np.zeros(LEVEL_BINS)
-    count = np.zeros(LEVEL_BINS, dtype=np.int64)
     scale = LEVEL_BINS / d_max
     top_bin = LEVEL_BINS - 1
     for j in range(m):
@@ -348,22 +375,20 @@ def tail_level(dist, w, index, q_mass, d_max):
         for i in range(n):
             b = min(int(row[i] * scale), top_bin)
             hist[b] += wr[i]
-            count[b] += 1
     b_cross, base = _crossing(hist, 0.0, q_mass)
     if b_cross < 0:
         return 0.0                     # all the mass (so all beyond 0) is within q_mass
+    count = np.zeros(LEVEL_BINS, dtype=np.int64)
     if True:
-        # Gather the crossing bin (the same bin arithmetic as the histogram).
-        values = np.empty(count[b_cross])
-        weights = np.empty(count[b_cross])
-        k = 0
-        for j in range(m):
-            row, wr = dist[j], w[0] if shared else w[index[j]]
-            for i in range(n):
-                if min(int(row[i] * scale), top_bin) == b_cross:
-                    values[k] = row[i]
-                    weights[k] = wr[i]
-                    k += 1
+        # Gather the crossing bin (in the histogram's order and by its bin arithmetic).
+        # Its size is not known: a count per bin cost a third of the histogram pass. A
+        # guess of its size is nearly always enough; where not, room for every distance.
+        values, weights = np.empty(4 * LEVEL_SORT_MAX), np.empty(4 * LEVEL_SORT_MAX)
+        k = _gather_bin(dist, w, index, scale, b_cross, values, weights)
+        if k < 0:
+            values, weights = np.empty(m * n), np.empty(m * n)
+            k = _gather_bin(dist, w, index, scale, b_cross, values, weights)
+        values, weights = values[:k], weights[:k]
         # Split a crowded bin again until its crossing bin is small (or one value).
         while values.shape[0] > LEVEL_SORT_MAX:
             lo, hi = values.min(), values.max()
