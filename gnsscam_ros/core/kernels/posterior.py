@@ -225,10 +225,9 @@ def pooled_moments(x, y, z, w_a, index_a, offsets_a, w_b, index_b, offsets_b, pa
     return mean_a, cov_a, mean_b, cov_b, gaussian_kl(mean_a, cov_a, mean_b, cov_b, floor)
 
 
-@kernel
-def distances(x, y, z, index, offsets, centre, dims, out):
-    """``out[j, i] = |x_si - centre - offsets_j|`` over the first ``dims`` axes (2 or 3),
-    ``s = index[j]``: ``r = x - centre`` once per particle, then ``r - offset_j``."""
+@inline_kernel
+def _relative(x, y, z, centre, dims):
+    """``r = x - centre`` of every particle, (dims, S, N)."""
     n_sets, n = x.shape
     rel = np.empty((dims, n_sets, n))
     c0, c1 = centre[0], centre[1]
@@ -245,19 +244,32 @@ def distances(x, y, z, index, offsets, centre, dims, out):
             for i in range(n):
                 rx[i] = xs[i] - c0
                 ry[i] = ys[i] - c1
+    return rel
+
+
+@inline_kernel
+def _row_distances(rel, s, offset, dims, dest):
+    """``dest[i] = |r_si - offset|`` over the first ``dims`` axes (:func:`_relative`)."""
+    rx, ry = rel[0, s], rel[1, s]
+    ox, oy = offset[0], offset[1]
+    if dims == 3:
+        rz, oz = rel[2, s], offset[2]
+        for i in range(dest.shape[0]):
+            dx, dy, dz = rx[i] - ox, ry[i] - oy, rz[i] - oz
+            dest[i] = math.sqrt(dx * dx + dy * dy + dz * dz)
+    else:
+        for i in range(dest.shape[0]):
+            dx, dy = rx[i] - ox, ry[i] - oy
+            dest[i] = math.sqrt(dx * dx + dy * dy)
+
+
+@kernel
+def distances(x, y, z, index, offsets, centre, dims, out):
+    """``out[j, i] = |x_si - centre - offsets_j|`` over the first ``dims`` axes (2 or 3),
+    ``s = index[j]``: ``r = x - centre`` once per particle, then ``r - offset_j``."""
+    rel = _relative(x, y, z, centre, dims)
     for j in range(index.shape[0]):
-        s = index[j]
-        rx, ry, dest = rel[0, s], rel[1, s], out[j]
-        ox, oy = offsets[j, 0], offsets[j, 1]
-        if dims == 3:
-            rz, oz = rel[2, s], offsets[j, 2]
-            for i in range(n):
-                dx, dy, dz = rx[i] - ox, ry[i] - oy, rz[i] - oz
-                dest[i] = math.sqrt(dx * dx + dy * dy + dz * dz)
-        else:
-            for i in range(n):
-                dx, dy = rx[i] - ox, ry[i] - oy
-                dest[i] = math.sqrt(dx * dx + dy * dy)
+        _row_distances(rel, index[j], offsets[j], dims, out[j])
 
 
 @kernel
@@ -452,16 +464,17 @@ def hazard_and_level(x, y, z, w, index, offsets, centre, dims, radii, q_mass, wa
     m, n = index.shape[0], x.shape[1]
     shared = w.shape[0] == 1
     dist = np.empty((m, n))
-    distances(x, y, z, index, offsets, centre, dims, dist)
+    # Each posterior's distances (:func:`distances`), then their masses while they are in
+    # the cache.
+    rel = _relative(x, y, z, centre, dims)
     n_radii = radii.shape[0]
     total = np.zeros(n_radii)
-    part = np.zeros((n_radii, 4))
     d_max = 0.0
     stop = n - n % 4
     for j in range(m):
         row, wr = dist[j], w[0] if shared else w[index[j]]
+        _row_distances(rel, index[j], offsets[j], dims, row)
         # Branch-free (the comparisons are unpredictable): four partial sums per radius.
-        part[:, :] = 0.0
         for a in range(n_radii):
             r = radii[a]
             p0 = p1 = p2 = p3 = 0.0
