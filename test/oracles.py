@@ -729,3 +729,78 @@ def median_increment_m2(t: np.ndarray, d: np.ndarray, lag_s: float,
     with np.errstate(over='ignore', invalid='ignore'):
         step = d[ok] - d[pick[ok]]
         return float(np.median(np.sum(step * step, axis=1))), int(ok.sum())
+
+
+# ---------------------------------------------------------------- bias hypotheses
+COV_FLOOR_M2 = 1e-4        # core.bias.COV_FLOOR_M2
+
+
+def projected_weights(weights: np.ndarray, sys_index: np.ndarray, n_systems: int
+                      ) -> np.ndarray:
+    """``Wp = W - W S (S^T W S)^-1 S^T W``: the weight matrix with each constellation's
+    clock profiled out (k, k), for diagonal ``W = diag(weights)``."""
+    onehot = np.zeros((weights.shape[0], n_systems))
+    onehot[np.arange(weights.shape[0]), sys_index] = 1.0
+    ws = weights[:, None] * onehot                          # W S (k, S)
+    per_system = np.maximum(onehot.T @ weights, 1e-300)     # diag(S^T W S)
+    return np.diag(weights) - (ws / per_system) @ ws.T
+
+
+def bias_leverages(line_of_sight: np.ndarray, weights: np.ndarray,
+                   sys_index: np.ndarray, n_systems: int) -> np.ndarray:
+    """Diagonal of the weighted least-squares hat matrix, position and one clock per
+    constellation estimated: ``h_k``, the share of satellite k's own bias that the
+    estimate absorbs, (k,) in [0, 1] (``core.bias.leverages``)."""
+    k = line_of_sight.shape[0]
+    onehot = np.zeros((k, n_systems))
+    onehot[np.arange(k), sys_index] = 1.0
+    design = np.hstack([-line_of_sight, onehot])
+    cov = np.linalg.pinv(design.T @ (weights[:, None] * design))
+    return np.clip(np.einsum('ij,jk,ik->i', design, cov, design) * weights, 0.0, 1.0)
+
+
+def bias_beyond_cloud(offsets_m: np.ndarray, fault_offsets_m: np.ndarray,
+                      cloud_cov_m2: np.ndarray, dims: int) -> np.ndarray:
+    """``core.bias.beyond_cloud`` (numpy, BLAS products)."""
+    offsets = np.asarray(offsets_m, dtype=float)
+    faults = np.asarray(fault_offsets_m, dtype=float)
+    gm = (offsets - faults)[:, :dims]
+    moment = gm.T @ gm / max(gm.shape[0], 1)
+    values, vectors = np.linalg.eigh(moment)
+    if not values[-1] > 0.0:
+        return offsets.copy()                       # no Gauss-Markov part to shrink
+    # O^(-1/2) on the span of the offsets (a direction they never take stays at zero).
+    floor = values[-1] * 1e-12
+    inv_sqrt = (vectors * np.where(values > floor, 1.0 / np.sqrt(np.maximum(values, floor)),
+                                   0.0)) @ vectors.T
+    excess = _psd_part(moment - np.asarray(cloud_cov_m2, dtype=float)[:dims, :dims])
+    ex_values, ex_vectors = np.linalg.eigh(excess)
+    ex_sqrt = (ex_vectors * np.sqrt(np.maximum(ex_values, 0.0))) @ ex_vectors.T
+    out = offsets.copy()
+    out[:, :dims] = faults[:, :dims] + gm @ (ex_sqrt @ inv_sqrt).T
+    return out
+
+
+def _information(cov_m2: np.ndarray) -> np.ndarray:
+    return np.linalg.inv(cov_m2 + COV_FLOOR_M2 * np.eye(cov_m2.shape[0]))
+
+
+def _psd_part(matrix: np.ndarray) -> np.ndarray:
+    values, vectors = np.linalg.eigh(0.5 * (matrix + matrix.T))
+    return (vectors * np.maximum(values, 0.0)) @ vectors.T
+
+
+def bias_update(offsets_m, fault_offsets_m, biases_m, line_of_sight, weights, sys_index,
+                n_systems, prior_cov_m2, posterior_cov_m2, fault_biases_m=None):
+    """``BiasHypotheses.update``'s offsets and fault offsets (numpy, BLAS products)."""
+    prior_info = _information(prior_cov_m2)
+    gained = _psd_part(_information(posterior_cov_m2) - prior_info)
+    cov = np.linalg.inv(prior_info + gained)
+    wp = projected_weights(weights, sys_index, n_systems)
+    gain = -line_of_sight.T @ wp                        # G^T Wp, G = -line of sight
+    offsets_m = (offsets_m @ prior_info + (gain @ biases_m).T) @ cov
+    moved = fault_offsets_m @ prior_info
+    if fault_biases_m is not None:
+        moved = moved + (gain @ fault_biases_m).T
+    fault_offsets_m = moved @ cov
+    return offsets_m, fault_offsets_m

@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from oracles import projected_weights
 from synthetic import FRAME, epoch_at, sky
 
 from gnsscam_ros.core import integrity
 from gnsscam_ros.core.bias import (BiasHypotheses, BiasModel, beyond_cloud, hidden_fault_sizes,
-                                   leverages, projected_weights, with_hidden_faults)
+                                   leverages, with_hidden_faults)
 from gnsscam_ros.core.filter import UPDATED, FilterConfig, ParticleFilter
 from gnsscam_ros.core.motion import (ADDED, RESET, DeadReckoningState, MotionAccumulator)
 from gnsscam_ros.core.particles import MotionIncrement

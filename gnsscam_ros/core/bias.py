@@ -47,6 +47,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .kernels import bias as bias_kernels
+
 # Bias models of the posteriors behind the risk bound (the ``bias_model`` parameter).
 BIAS_LEARNED = 'learned'  # Gauss-Markov bias per satellite, size: learned error model
 BIAS_CN0 = 'cn0'         # Gauss-Markov bias per satellite, size from C/N0 and constants
@@ -98,28 +100,14 @@ class BiasModel:
         return level * np.sqrt(1.0 + 10.0 ** (-(cn0 - self.cn0_knee_dbhz) / 10.0))
 
 
-def projected_weights(weights: np.ndarray, sys_index: np.ndarray, n_systems: int
-                      ) -> np.ndarray:
-    """``Wp = W - W S (S^T W S)^-1 S^T W``: the weight matrix with each constellation's
-    clock profiled out (k, k), for diagonal ``W = diag(weights)``."""
-    onehot = np.zeros((weights.shape[0], n_systems))
-    onehot[np.arange(weights.shape[0]), sys_index] = 1.0
-    ws = weights[:, None] * onehot                          # W S (k, S)
-    per_system = np.maximum(onehot.T @ weights, 1e-300)     # diag(S^T W S)
-    return np.diag(weights) - (ws / per_system) @ ws.T
-
-
 def leverages(line_of_sight: np.ndarray, weights: np.ndarray, sys_index: np.ndarray,
               n_systems: int) -> np.ndarray:
     """Diagonal of the weighted least-squares hat matrix, position and one clock per
     constellation estimated: ``h_k``, the share of satellite k's own bias that the
-    estimate absorbs, (k,) in [0, 1]."""
-    k = line_of_sight.shape[0]
-    onehot = np.zeros((k, n_systems))
-    onehot[np.arange(k), sys_index] = 1.0
-    design = np.hstack([-line_of_sight, onehot])
-    cov = np.linalg.pinv(design.T @ (weights[:, None] * design))
-    return np.clip(np.einsum('ij,jk,ik->i', design, cov, design) * weights, 0.0, 1.0)
+    estimate absorbs, (k,) in [0, 1] (``core.kernels.bias.leverages``)."""
+    return bias_kernels.leverages(_array(line_of_sight), _array(weights),
+                                  np.ascontiguousarray(sys_index, dtype=np.int64),
+                                  int(n_systems))
 
 
 def hidden_fault_sizes(core_sd_m: np.ndarray, leverage: np.ndarray, core_sds: float,
@@ -170,32 +158,17 @@ def beyond_cloud(offsets_m: np.ndarray, fault_offsets_m: np.ndarray,
         cloud_cov_m2: (3, 3) position covariance of the particle set.
         dims: 2 (horizontal risk) or 3.
     """
-    offsets = np.asarray(offsets_m, dtype=float)
-    faults = np.asarray(fault_offsets_m, dtype=float)
+    offsets, faults = _array(offsets_m), _array(fault_offsets_m)
     gm = (offsets - faults)[:, :dims]
+    # numpy's product of a matrix with itself (BLAS syrk), which the kernel's would not
+    # reproduce to the bit (core.kernels.bias).
     moment = gm.T @ gm / max(gm.shape[0], 1)
-    values, vectors = np.linalg.eigh(moment)
-    if not values[-1] > 0.0:
-        return offsets.copy()                       # no Gauss-Markov part to shrink
-    # O^(-1/2) on the span of the offsets (a direction they never take stays at zero).
-    floor = values[-1] * 1e-12
-    inv_sqrt = (vectors * np.where(values > floor, 1.0 / np.sqrt(np.maximum(values, floor)),
-                                   0.0)) @ vectors.T
-    excess = _psd_part(moment - np.asarray(cloud_cov_m2, dtype=float)[:dims, :dims])
-    ex_values, ex_vectors = np.linalg.eigh(excess)
-    ex_sqrt = (ex_vectors * np.sqrt(np.maximum(ex_values, 0.0))) @ ex_vectors.T
-    out = offsets.copy()
-    out[:, :dims] = faults[:, :dims] + gm @ (ex_sqrt @ inv_sqrt).T
-    return out
+    return bias_kernels.beyond_cloud(offsets, faults, moment, _array(cloud_cov_m2),
+                                     int(dims))
 
 
-def _information(cov_m2: np.ndarray) -> np.ndarray:
-    return np.linalg.inv(cov_m2 + COV_FLOOR_M2 * np.eye(cov_m2.shape[0]))
-
-
-def _psd_part(matrix: np.ndarray) -> np.ndarray:
-    values, vectors = np.linalg.eigh(0.5 * (matrix + matrix.T))
-    return (vectors * np.maximum(values, 0.0)) @ vectors.T
+def _array(values) -> np.ndarray:
+    return np.ascontiguousarray(values, dtype=float)
 
 
 class BiasHypotheses:
@@ -336,14 +309,12 @@ class BiasHypotheses:
         Returns:
             (M, 3) offsets after the update [m].
         """
-        prior_info = _information(prior_cov_m2)
-        gained = _psd_part(_information(posterior_cov_m2) - prior_info)
-        cov = np.linalg.inv(prior_info + gained)
-        wp = projected_weights(weights, sys_index, n_systems)
-        gain = -line_of_sight.T @ wp                        # G^T Wp, G = -line of sight
-        self.offsets_m = (self.offsets_m @ prior_info + (gain @ biases_m).T) @ cov
-        moved = self.fault_offsets_m @ prior_info
-        if fault_biases_m is not None:
-            moved = moved + (gain @ fault_biases_m).T
-        self.fault_offsets_m = moved @ cov
+        biases = _array(biases_m)
+        faults = (np.empty((biases.shape[0], 0)) if fault_biases_m is None
+                  else _array(fault_biases_m))
+        self.offsets_m, self.fault_offsets_m = bias_kernels.update_offsets(
+            _array(self.offsets_m), _array(self.fault_offsets_m), biases, faults,
+            _array(line_of_sight), _array(weights),
+            np.ascontiguousarray(sys_index, dtype=np.int64), int(n_systems),
+            _array(prior_cov_m2), _array(posterior_cov_m2), COV_FLOOR_M2)
         return self.offsets_m
