@@ -804,3 +804,24 @@ def bias_update(offsets_m, fault_offsets_m, biases_m, line_of_sight, weights, sy
         moved = moved + (gain @ fault_biases_m).T
     fault_offsets_m = moved @ cov
     return offsets_m, fault_offsets_m
+
+
+# ---------------------------------------------------------------- float32 likelihood views
+def relative_geometry(sets: np.ndarray, prep: PreparedEpoch, clock_weights: np.ndarray):
+    """One view of ``core.gnss.relative_geometry`` (numpy): ``(centre, unit, base,
+    half_inv_range, max_offset)`` from the centre of every 32nd particle of the sets, or
+    None for a centre that is not finite."""
+    from gnsscam_ros.core.gnss import SINGLE_EXPANSION_TOLERANCE_M, SINGLE_MAX_OFFSET_M
+    step = max(1, sets.shape[1] // 32)
+    centre = sets[:, ::step, :3].reshape(-1, 3).mean(axis=0)
+    if not np.all(np.isfinite(centre)):
+        return None
+    offset = prep.sv_enu_m - centre
+    rho0 = np.sqrt(np.einsum('ij,ij->i', offset, offset))
+    unit = offset / rho0[:, None]
+    base = prep.pr_m - rho0
+    clock0 = np.bincount(prep.sys_index, weights=clock_weights * base,
+                         minlength=prep.n_systems)
+    base = base - clock0[prep.sys_index]
+    expansion = np.cbrt(2.0 * SINGLE_EXPANSION_TOLERANCE_M * float(rho0.min()) ** 2)
+    return centre, unit, base, 0.5 / rho0, float(min(SINGLE_MAX_OFFSET_M, expansion))

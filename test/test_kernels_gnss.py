@@ -93,8 +93,32 @@ def test_single_precision_robust_joint_is_within_1e4_nats_of_float64(spread_m):
     np.testing.assert_allclose(single.joint, double.joint, atol=1e-4)
     np.testing.assert_allclose(single.total, double.total, atol=1e-5)
     geometry = gnss.relative_geometry(sets, prep, clock_w)
-    assert geometry is not None and 500.0 < geometry.max_offset_m <= 1000.0
-    assert np.linalg.norm(sets[4, 100] - geometry.centre_m) > geometry.max_offset_m
+    assert geometry is not None and 500.0 < geometry.max_offset_m[0] <= 1000.0
+    assert np.linalg.norm(sets[4, 100] - geometry.centre_m[0]) > geometry.max_offset_m[0]
+
+
+@pytest.mark.parametrize('n', [1, 31, 32, 33, 2000])
+def test_relative_views_equal_numpy_to_the_bit(n):
+    """The float32 likelihood's views (one of all sets, or one per set with its own clock
+    weights) are numpy's arithmetic to the bit: they decide which particles take the
+    float64 path and what the float32 one computes."""
+    rng = np.random.default_rng(n)
+    prep = faulty_two_system_epoch(n)
+    sets = TRUTH_ENU + rng.normal(scale=rng.uniform(1.0, 300.0), size=(4, n, 3))
+    rows = np.stack([gnss.clock_weights(prep, TRUTH_ENU + [10.0 * s, 0.0, 0.0], 3.0)
+                     for s in range(4)])
+    one = gnss.relative_geometry(sets, prep, rows[0])
+    each = gnss.relative_geometry(sets, prep, rows)
+    for got, g, expected in [(one, 0, oracles.relative_geometry(sets, prep, rows[0]))] + [
+            (each, s, oracles.relative_geometry(sets[s:s + 1], prep, rows[s]))
+            for s in range(4)]:
+        for value, reference in zip((got.centre_m[g], got.unit[g], got.base_m[g],
+                                     got.half_inv_range[g], got.max_offset_m[g]), expected):
+            np.testing.assert_array_equal(value, reference)
+    sets[2, 0, 1] = np.nan                   # a poisoned particle: no float32 view
+    assert gnss.relative_geometry(sets, prep, rows[0]) is None
+    assert gnss.relative_geometry(sets, prep, rows) is None
+    assert gnss.relative_geometry(sets[:2], prep, rows[:2]) is not None
 
 
 @pytest.mark.parametrize('model', [gnss.RobustLikelihood(0.3, 300.0),

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .kernels import gnss as gnss_kernels
+from .kernels import snapshot as snapshot_kernels
 
 #: Gauss-Newton steps of the plain least squares and of the robust (Cauchy) refinement.
 PLAIN_STEPS = 4
@@ -76,11 +76,11 @@ def snapshot_position(sv_enu_m: np.ndarray, pr_m: np.ndarray, sigma_m: np.ndarra
     k = pr_m.shape[0]
     if k < 3 + n_systems + 1:
         return None
-    # One compiled pass (core.kernels.gnss.robust_snapshot): nine numpy lstsq calls on a
+    # One compiled pass (core.kernels.snapshot.robust_snapshot): nine numpy lstsq calls on a
     # dozen rows cost more in call overhead than in arithmetic.
     x = np.empty(3)
     try:
-        solved = gnss_kernels.robust_snapshot(
+        solved = snapshot_kernels.robust_snapshot(
             np.ascontiguousarray(sv_enu_m, dtype=float),
             np.ascontiguousarray(pr_m, dtype=float), np.ascontiguousarray(sigma_m, dtype=float),
             np.ascontiguousarray(sys_index, dtype=np.int64), int(n_systems),

@@ -240,46 +240,46 @@ SINGLE_LOG_RANGE = 87.0
 
 @dataclass(frozen=True)
 class RelativeGeometry:
-    """Satellites seen from a centre near the particle cloud, for the float32 likelihood
-    (:func:`core.kernels.gnss.robust_joint_single` says how they are used).
+    """Satellites seen from centres near the particle cloud, for the float32 likelihood
+    (:func:`core.kernels.gnss.robust_joint_single` says how they are used): G views, one
+    of all sets or one per set.
 
     Attributes:
-        centre_m: (3,) the centre [m].
-        unit: (k, 3) unit vectors from the centre to the satellites.
-        base_m: (k,) pseudorange minus range from the centre minus a common clock per
+        centre_m: (G, 3) the centres [m].
+        unit: (G, k, 3) unit vectors from a centre to the satellites.
+        base_m: (G, k) pseudorange minus range from the centre minus a common clock per
             constellation [m].
-        half_inv_range: (k,) 1 / (2 range from the centre) [1/m].
-        max_offset_m: Farthest a particle may be from the centre on the float32 path [m].
+        half_inv_range: (G, k) 1 / (2 range from the centre) [1/m].
+        max_offset_m: (G,) farthest a particle may be from its centre on the float32
+            path [m].
     """
 
     centre_m: np.ndarray
     unit: np.ndarray
     base_m: np.ndarray
     half_inv_range: np.ndarray
-    max_offset_m: float
+    max_offset_m: np.ndarray
 
 
 def relative_geometry(sets: np.ndarray, prep: PreparedEpoch, clock_weights: np.ndarray
                       ) -> RelativeGeometry | None:
-    """The float32 likelihood's view of an epoch from the centre of (S, N, >= 3) sets,
-    or None where float32 would not be exact enough (no finite centre)."""
-    step = max(1, sets.shape[1] // 32)
-    centre = sets[:, ::step, :3].reshape(-1, 3).mean(axis=0)
-    if not np.all(np.isfinite(centre)):
+    """The float32 likelihood's view of an epoch from the centre of (S, N, >= 3) sets with
+    (k,) or (1, k) clock weights, or its S views, one from each set's centre with its own
+    clock weights ((S, k)); None where float32 would not be exact enough (a centre that is
+    not finite). A common clock per constellation (the clock weights sum to one in each)
+    is taken out of the base: every particle's own clock removes it again, and it keeps
+    the float32 residuals small."""
+    clock_w = np.ascontiguousarray(clock_weights, dtype=float).reshape(-1, prep.pr_m.shape[0])
+    centre, unit, base, half_inv_range, closest, finite = gnss_kernels.relative_views(
+        sets, prep.sv_enu_m, prep.pr_m, prep.sys_index, prep.n_systems, clock_w)
+    if not finite:
         return None
-    offset = prep.sv_enu_m - centre
-    rho0 = np.sqrt(np.einsum('ij,ij->i', offset, offset))
-    unit = offset / rho0[:, None]
-    base = prep.pr_m - rho0
-    # A common clock per constellation (the clock weights sum to one in each): removed
-    # again by every particle's own clock, it keeps the float32 residuals small.
-    clock0 = np.bincount(prep.sys_index, weights=clock_weights * base,
-                         minlength=prep.n_systems)
-    base = base - clock0[prep.sys_index]
-    expansion = np.cbrt(2.0 * SINGLE_EXPANSION_TOLERANCE_M * float(rho0.min()) ** 2)
+    expansion = [np.cbrt(2.0 * SINGLE_EXPANSION_TOLERANCE_M * float(rho) ** 2)
+                 for rho in closest]
     return RelativeGeometry(centre_m=centre, unit=unit, base_m=base,
-                            half_inv_range=0.5 / rho0,
-                            max_offset_m=float(min(SINGLE_MAX_OFFSET_M, expansion)))
+                            half_inv_range=half_inv_range,
+                            max_offset_m=np.array([float(min(SINGLE_MAX_OFFSET_M, e))
+                                                   for e in expansion]))
 
 
 def robust_inlier_shares(positions_m: np.ndarray, log_w: np.ndarray, prep: PreparedEpoch,
@@ -412,18 +412,11 @@ class RobustLikelihood:
         geometry = None
         if self.single_precision and terms.group >= 1:
             # One view for every set, or each set its own with its own clock weights.
-            geometry = ([relative_geometry(sets, prep, clock_w[0])]
-                        if clock_w.shape[0] == 1 else
-                        [relative_geometry(sets[s:s + 1], prep, clock_w[s])
-                         for s in range(sets.shape[0])])
-            if any(g is None for g in geometry):
-                geometry = None
+            geometry = relative_geometry(sets, prep, clock_w)
         if geometry is not None:
             total = gnss_kernels.robust_joint_single(
-                sets, np.array([g.centre_m for g in geometry]),
-                np.array([g.unit for g in geometry]), np.array([g.base_m for g in geometry]),
-                np.array([g.half_inv_range for g in geometry]),
-                np.array([g.max_offset_m for g in geometry]), prep.sv_enu_m, prep.pr_m,
+                sets, geometry.centre_m, geometry.unit, geometry.base_m,
+                geometry.half_inv_range, geometry.max_offset_m, prep.sv_enu_m, prep.pr_m,
                 inv_sigma, prep.sys_index, clock_w, prep.n_systems, *terms.arrays,
                 terms.group, float(tempering), prior_log_w, joint)
             return GnssLikelihood(joint=joint, total=total)

@@ -3,8 +3,9 @@
 Everything an epoch does per particle or per particle and satellite runs here, fused into
 few passes over the arrays: propagation (``motion``), receiver clock and GNSS likelihood
 (``gnss``), camera distributions and their mixture (``camera``), posterior moments,
-hazard mass and protection level (``posterior``); and the bias hypotheses' small matrices
-(``bias``), whose numpy calls cost more than their arithmetic. The modules of ``core``
+hazard mass and protection level (``posterior``); and per epoch, the snapshot solution
+(``snapshot``) and the bias hypotheses' small matrices (``bias``), whose numpy calls cost
+more than their arithmetic. The modules of ``core``
 call these; the plain numpy forms they replaced survive only as test oracles
 (``test/oracles.py``).
 
@@ -19,7 +20,7 @@ A Ctrl-C that lands in one of llvmlite's callbacks while a kernel compiles is ra
 in the main thread (``core.interrupts``) instead of being dropped.
 
 Kernels run on the calling thread only (no numba threading layer; BLAS/LAPACK only for the
-snapshot solution's least squares on a dozen rows, ``gnss.robust_snapshot``, and the bias
+snapshot solution's least squares on a dozen rows, ``snapshot.robust_snapshot``, and the bias
 hypotheses' products of at most a few hundred by a dozen, ``bias``: far below any size
 that BLAS runs on threads), so an epoch costs the same whatever was imported
 before.

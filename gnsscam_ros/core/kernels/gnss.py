@@ -22,8 +22,6 @@ from . import contracted_kernel, elementary, inline_kernel, kernel
 
 #: Particles per block (see the module docstring).
 BLOCK = 64
-#: float64 machine epsilon (numpy's lstsq cut-off is ``eps * max(rows, columns)``).
-_EPS = float(np.finfo(np.float64).eps)
 LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 
 
@@ -569,6 +567,58 @@ def clock_inlier_weights(residual_m, sigma_m, sys_index, n_systems, spread_m, it
 
 
 @kernel
+def relative_views(sets, sv, pr, sys_index, n_systems, clock_w):
+    """The float32 likelihood's views of an epoch (``core.gnss.relative_geometry``): from
+    the centre of every 32nd particle of all (S, N, >= 3) sets (``clock_w`` (1, k)), or of
+    each set alone (``clock_w`` (S, k), a row per set).
+
+    numpy's arithmetic, operation for operation (the centre a sum in particle order, the
+    squared range as numpy's ``einsum`` adds it: east and up first).
+
+    Returns:
+        ``(centre (G, 3), unit (G, k, 3), base (G, k), half_inv_range (G, k), closest
+        (G,) range from the centre to the nearest satellite, finite)``: ``finite`` False
+        when a centre is not finite (then the other values of that view are undefined).
+    """
+    n_sets, n = sets.shape[0], sets.shape[1]
+    views = clock_w.shape[0]
+    step = max(1, n // 32)
+    k = sv.shape[0]
+    centre = np.zeros((views, 3))
+    unit = np.empty((views, k, 3))
+    base = np.empty((views, k))
+    half_inv_range = np.empty((views, k))
+    closest = np.full(views, np.inf)
+    clock0 = np.empty(n_systems)
+    for g in range(views):
+        first, last = (0, n_sets) if views == 1 else (g, g + 1)
+        count = 0
+        for s in range(first, last):
+            for i in range(0, n, step):
+                for a in range(3):
+                    centre[g, a] += sets[s, i, a]
+                count += 1
+        for a in range(3):
+            centre[g, a] = centre[g, a] / count
+            if not np.isfinite(centre[g, a]):
+                return centre, unit, base, half_inv_range, closest, False
+        clock0[:] = 0.0
+        for j in range(k):
+            o0, o1, o2 = sv[j, 0] - centre[g, 0], sv[j, 1] - centre[g, 1], sv[j, 2] - centre[g, 2]
+            rho = math.sqrt((o0 * o0 + o2 * o2) + o1 * o1)
+            unit[g, j, 0] = o0 / rho
+            unit[g, j, 1] = o1 / rho
+            unit[g, j, 2] = o2 / rho
+            base[g, j] = pr[j] - rho
+            half_inv_range[g, j] = 0.5 / rho
+            closest[g] = min(closest[g], rho)
+            clock0[sys_index[j]] += clock_w[g, j] * base[g, j]
+        for j in range(k):
+            base[g, j] = base[g, j] - clock0[sys_index[j]]
+    return centre, unit, base, half_inv_range, closest, True
+
+
+@kernel
 def constellation_index(system):
     """Index 0..S-1 of each satellite's constellation among those with at least two
     satellites, in increasing system order, -1 for a constellation of one; and S."""
@@ -587,79 +637,3 @@ def constellation_index(system):
             n_systems += 1
         a = b + 1
     return index, n_systems
-
-
-@kernel
-def robust_snapshot(sv, pr, sigma, sys_index, n_systems, start, plain_steps, robust_steps,
-                    cauchy_scale, x):
-    """Snapshot position of one epoch: ``plain_steps`` Gauss-Newton steps of weighted
-    least squares, then ``robust_steps`` of iteratively reweighted least squares with a
-    Cauchy loss of scale ``cauchy_scale * sigma`` (``core.consistency.snapshot_position``
-    says why). The unknowns are the position and one clock per constellation, the clocks
-    estimated afresh at every step. Writes the position into ``x`` (3,); returns False
-    where there is none (non-finite or absurd input, a non-finite system, a non-finite
-    result).
-
-    Each step is numpy's arithmetic, operation for operation, and its least squares is
-    LAPACK's ``gelsd`` as numpy's ``lstsq`` calls it (numba's ``np.linalg.lstsq``, the
-    same cut-off ``rcond = eps * max(k, n)``): the solution is numpy's to the bit. That
-    matters: ranges of 2e7 m round to 4e-9 m, so a solver that differed in the last bits
-    moved the solution by nanometres, and through the error model that learns from its
-    residuals, the filter's estimate by 1e-7 m (the reference epochs, which hold it to
-    1e-9). The least squares is the one BLAS/LAPACK use of the kernels; a system of a
-    dozen rows runs on the calling thread.
-
-    Args:
-        sv: (k, 3) satellite positions [m].
-        pr: (k,) pseudoranges [m].
-        sigma: (k,) error standard deviations [m].
-        sys_index: (k,) constellation of each satellite.
-        n_systems: Number of constellations.
-        start: (3,) linearisation point [m].
-    """
-    k = pr.shape[0]
-    n = 3 + n_systems
-    # A poisoned state (a non-finite or absurd starting point) has no snapshot solution.
-    for a in range(3):
-        if not (np.isfinite(start[a]) and abs(start[a]) < 1e8):
-            return False
-    for j in range(k):
-        if not (np.isfinite(sv[j, 0]) and np.isfinite(sv[j, 1]) and np.isfinite(sv[j, 2])
-                and np.isfinite(pr[j]) and np.isfinite(sigma[j]) and sigma[j] > 0.0):
-            return False
-    rcond = _EPS * max(k, n)
-    jac = np.zeros((k, n))
-    a_w = np.empty((k, n))
-    b_w = np.empty(k)
-    resid = np.empty(k)
-    robust_w = np.ones(k)
-    for a in range(3):
-        x[a] = start[a]
-    for j in range(k):
-        jac[j, 3 + sys_index[j]] = 1.0
-    for step in range(plain_steps + robust_steps):
-        for j in range(k):
-            ox, oy, oz = sv[j, 0] - x[0], sv[j, 1] - x[1], sv[j, 2] - x[2]
-            rng = math.sqrt((ox * ox + oy * oy) + oz * oz)
-            jac[j, 0] = -ox / rng
-            jac[j, 1] = -oy / rng
-            jac[j, 2] = -oz / rng
-            resid[j] = pr[j] - rng
-            # The clocks are re-estimated at every step: the residual is before them.
-            w = robust_w[j] / sigma[j]
-            for c in range(n):
-                a_w[j, c] = jac[j, c] * w
-                if not np.isfinite(a_w[j, c]):
-                    return False
-            b_w[j] = resid[j] * w
-            if not np.isfinite(b_w[j]):
-                return False
-        delta = np.linalg.lstsq(a_w, b_w, rcond)[0]
-        for a in range(3):
-            x[a] = x[a] + delta[a]
-        if step >= plain_steps - 1:
-            fit = np.dot(jac, delta)
-            for j in range(k):
-                post = (resid[j] - fit[j]) / (cauchy_scale * sigma[j])
-                robust_w[j] = 1.0 / math.sqrt(1.0 + post * post)
-    return np.isfinite(x[0]) and np.isfinite(x[1]) and np.isfinite(x[2])
