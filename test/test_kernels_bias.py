@@ -1,8 +1,9 @@
 """The bias hypotheses' compiled linear algebra equals numpy's forms to the bit.
 
 The offsets carry over from epoch to epoch, so a kernel that rounded differently would
-move the protection level further with every epoch (measured: 3e-5 of it over the smartLoc
-drive, and one verdict): the kernels are held to ``test/oracles.py`` exactly.
+move the protection level further with every epoch (measured with products in plain loops:
+3e-5 of it over the smartLoc drive with GLONASS alone, and one epoch's verdict): the
+kernels are held to ``test/oracles.py`` exactly.
 """
 import numpy as np
 import oracles

@@ -274,6 +274,8 @@ def relative_geometry(sets: np.ndarray, prep: PreparedEpoch, clock_weights: np.n
         sets, prep.sv_enu_m, prep.pr_m, prep.sys_index, prep.n_systems, clock_w)
     if not finite:
         return None
+    # numpy's cbrt, not the kernel's: the two differ in the last bit, and this bound
+    # decides which particles take the float64 path.
     expansion = [np.cbrt(2.0 * SINGLE_EXPANSION_TOLERANCE_M * float(rho) ** 2)
                  for rho in closest]
     return RelativeGeometry(centre_m=centre, unit=unit, base_m=base,

@@ -10,7 +10,8 @@ Each step is numpy's arithmetic, operation for operation: products through ``np.
 (numpy's ``inv``), the pseudo-inverse as numpy's ``pinv`` forms it, ``eigh`` as numpy's.
 The offsets are numpy's to the bit (``test/oracles.py`` holds the numpy forms). That
 matters even though only the bound uses them: they carry over from epoch to epoch, and a
-difference in the last bits grew to 3e-5 of a protection level over the smartLoc drive.
+difference in the last bits (products in plain loops) grew to 3e-5 of a protection level
+over the smartLoc drive with GLONASS alone, and changed one epoch's verdict.
 One product numpy makes differently, ``g^T g`` of a matrix with itself (BLAS ``syrk``),
 is left to the caller.
 """
