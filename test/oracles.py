@@ -10,7 +10,9 @@ import numpy as np
 from scipy.special import logsumexp, rel_entr
 
 from gnsscam_ros.core.fusion import FusionResult
-from gnsscam_ros.core.gnss import LOG_SQRT_2PI, PreparedEpoch
+from gnsscam_ros.core.bias import COV_FLOOR_M2
+from gnsscam_ros.core.gnss import (LOG_SQRT_2PI, SINGLE_EXPANSION_TOLERANCE_M, SINGLE_MAX_OFFSET_M,
+                                   PreparedEpoch)
 from gnsscam_ros.core.particles import STATE_DIM, YAW, MotionIncrement
 from gnsscam_ros.core.types import OdometrySeries
 
@@ -732,9 +734,6 @@ def median_increment_m2(t: np.ndarray, d: np.ndarray, lag_s: float,
 
 
 # ---------------------------------------------------------------- bias hypotheses
-COV_FLOOR_M2 = 1e-4        # core.bias.COV_FLOOR_M2
-
-
 def projected_weights(weights: np.ndarray, sys_index: np.ndarray, n_systems: int
                       ) -> np.ndarray:
     """``Wp = W - W S (S^T W S)^-1 S^T W``: the weight matrix with each constellation's
@@ -811,7 +810,6 @@ def relative_geometry(sets: np.ndarray, prep: PreparedEpoch, clock_weights: np.n
     """One view of ``core.gnss.relative_geometry`` (numpy): ``(centre, unit, base,
     half_inv_range, max_offset)`` from the centre of every 32nd particle of the sets, or
     None for a centre that is not finite."""
-    from gnsscam_ros.core.gnss import SINGLE_EXPANSION_TOLERANCE_M, SINGLE_MAX_OFFSET_M
     step = max(1, sets.shape[1] // 32)
     centre = sets[:, ::step, :3].reshape(-1, 3).mean(axis=0)
     if not np.all(np.isfinite(centre)):

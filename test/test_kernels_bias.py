@@ -9,7 +9,7 @@ import numpy as np
 import oracles
 import pytest
 
-from gnsscam_ros.core.bias import COV_FLOOR_M2, BiasHypotheses, BiasModel, beyond_cloud, leverages
+from gnsscam_ros.core.bias import BiasHypotheses, BiasModel, beyond_cloud, leverages
 
 
 def geometry(rng, k):
@@ -49,10 +49,6 @@ def test_leverages_and_update_equal_numpy_to_the_bit(rng, k, systems, m):
                              posterior, fault_biases)
             np.testing.assert_array_equal(got, expected[0])
             np.testing.assert_array_equal(hyp.fault_offsets_m, expected[1])
-
-
-def test_the_oracle_floor_is_the_package_floor():
-    assert oracles.COV_FLOOR_M2 == COV_FLOOR_M2
 
 
 @pytest.mark.parametrize('dims', [2, 3])

@@ -276,12 +276,11 @@ def relative_geometry(sets: np.ndarray, prep: PreparedEpoch, clock_weights: np.n
         return None
     # numpy's cbrt, not the kernel's: the two differ in the last bit, and this bound
     # decides which particles take the float64 path.
-    expansion = [np.cbrt(2.0 * SINGLE_EXPANSION_TOLERANCE_M * float(rho) ** 2)
-                 for rho in closest]
+    max_offset = [float(min(SINGLE_MAX_OFFSET_M,
+                            np.cbrt(2.0 * SINGLE_EXPANSION_TOLERANCE_M * float(rho) ** 2)))
+                  for rho in closest]
     return RelativeGeometry(centre_m=centre, unit=unit, base_m=base,
-                            half_inv_range=half_inv_range,
-                            max_offset_m=np.array([float(min(SINGLE_MAX_OFFSET_M, e))
-                                                   for e in expansion]))
+                            half_inv_range=half_inv_range, max_offset_m=np.array(max_offset))
 
 
 def robust_inlier_shares(positions_m: np.ndarray, log_w: np.ndarray, prep: PreparedEpoch,
