@@ -66,10 +66,36 @@ def test_a_process_exiting_while_a_block_is_drawn_waits_for_it_and_exits_cleanly
             'from gnsscam_ros.core.noise import ProcessNoise\n'
             'noise = ProcessNoise(np.random.default_rng(0))\n'
             'noise.take((10, 400_000, 4))\n'
-            'worker = [t for t in threading.enumerate() if t.name == "process-noise"]\n'
+            'worker = [t for t in threading.enumerate() if t.name.startswith("process-noise")]\n'
             'assert worker and not worker[0].daemon, worker\n'
             'print("exiting while drawing", worker[0].is_alive())\n')
     done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                           timeout=120)
     assert done.returncode == 0, done.stderr
     assert 'exiting while drawing' in done.stdout
+
+
+def _takes_in_child(noise, shapes, queue):
+    blocks = [noise.take(s).copy() for s in shapes]
+    # The block after them is being drawn ahead, by a worker of this process.
+    ahead = noise._pending.result(timeout=30).copy()
+    queue.put(blocks + [ahead])
+
+
+def test_a_forked_process_starts_its_own_worker_and_draws_the_stream():
+    # The executor is copied into a forked child without its thread: a block submitted
+    # to it there is never drawn. The child starts a worker of its own and draws ahead.
+    import multiprocessing
+    noise = ProcessNoise(np.random.default_rng(9))
+    noise.take(LARGE)
+    noise._wait()                            # the block ahead is drawn before the fork
+    context = multiprocessing.get_context('fork')
+    queue = context.Queue()
+    child = context.Process(target=_takes_in_child, args=(noise, [LARGE, LARGE], queue))
+    child.start()
+    got = queue.get(timeout=60)
+    child.join(timeout=60)
+    assert child.exitcode == 0
+    expected = _stream(9, [LARGE] * 4)
+    for block, want in zip(got, expected[1:]):
+        np.testing.assert_array_equal(block, want)
