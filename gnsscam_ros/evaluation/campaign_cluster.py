@@ -21,13 +21,12 @@ deaths per task, default 3); a case that still fails is reported and left for th
 """
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import os
 import time
 from typing import Iterator
 
 from ..core.filter import FilterConfig
+from ..nodes.memory import set_malloc_thresholds
 from .campaign import camera_cache_key, camera_matches_for_seed, case_task, uses_camera
 from .campaign_grid import CaseKey
 
@@ -39,8 +38,7 @@ class ClusterError(RuntimeError):
     """The cluster cannot be started or reached."""
 
 
-#: glibc mallopt parameters and the values its dynamic thresholds reach under numpy.
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+#: The values glibc's dynamic thresholds reach under numpy.
 _MMAP_THRESHOLD_B, _TRIM_THRESHOLD_B = 32 * 2 ** 20, 64 * 2 ** 20
 _malloc_tuned = False
 
@@ -60,12 +58,7 @@ def tune_malloc() -> bool:
     global _malloc_tuned
     if _malloc_tuned or 'MALLOC_TRIM_THRESHOLD_' not in os.environ:
         return _malloc_tuned
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library('c') or 'libc.so.6')
-        _malloc_tuned = bool(libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_B)
-                             and libc.mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD_B))
-    except (OSError, AttributeError):
-        _malloc_tuned = False          # not glibc: nothing to undo
+    _malloc_tuned = set_malloc_thresholds(_MMAP_THRESHOLD_B, _TRIM_THRESHOLD_B)
     return _malloc_tuned
 
 

@@ -121,16 +121,25 @@ EPOCH_MMAP_THRESHOLD_BYTES = 32 * 1024 * 1024     # glibc's maximum on 64-bit
 EPOCH_TRIM_THRESHOLD_BYTES = 256 * 1024 * 1024
 
 
-def keep_epoch_memory() -> bool:
-    """Keep the memory of freed epoch arrays in the process for the next epoch (see the
-    module docstring). True when set; False where the C library is not glibc."""
+def set_malloc_thresholds(mmap_bytes: int, trim_bytes: int) -> bool:
+    """Set glibc's mmap and trim thresholds (``mallopt``; setting them also turns off
+    glibc's dynamic mmap threshold). True when set; False where the C library is not
+    glibc. This process's epochs (:func:`keep_epoch_memory`) and the campaign's Dask
+    workers (``evaluation.campaign_cluster.tune_malloc``) set them."""
     try:
         libc = ctypes.CDLL(None)
         mallopt = libc.mallopt
     except (OSError, AttributeError):
         return False
-    return bool(mallopt(M_MMAP_THRESHOLD, EPOCH_MMAP_THRESHOLD_BYTES)
-                and mallopt(M_TRIM_THRESHOLD, EPOCH_TRIM_THRESHOLD_BYTES))
+    return bool(mallopt(M_MMAP_THRESHOLD, int(mmap_bytes))
+                and mallopt(M_TRIM_THRESHOLD, int(trim_bytes)))
 
 
-__all__ = ['PROFILE', 'configure_node_memory', 'keep_epoch_memory', 'use_fastdds_profile']
+def keep_epoch_memory() -> bool:
+    """Keep the memory of freed epoch arrays in the process for the next epoch (see the
+    module docstring). True when set; False where the C library is not glibc."""
+    return set_malloc_thresholds(EPOCH_MMAP_THRESHOLD_BYTES, EPOCH_TRIM_THRESHOLD_BYTES)
+
+
+__all__ = ['PROFILE', 'configure_node_memory', 'keep_epoch_memory', 'set_malloc_thresholds',
+           'use_fastdds_profile']
