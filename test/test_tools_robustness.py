@@ -287,6 +287,23 @@ def test_file_writers_name_their_temporary_file_as_partial_outputs(mapdb_set, tm
         assert out.is_file() and not hidden_leftovers(tmp_path)
 
 
+@pytest.mark.parametrize('umask', [0o022, 0o077, 0o002])
+def test_outputs_have_the_modes_of_the_users_files(mapdb_set, tmp_path, umask):
+    """A finished output has the permissions ``open`` and ``mkdir`` give under the
+    process's umask, not those of a private temporary file (0600 / 0700): a result, a map
+    database or a bag folder others may read when the user's files may be read."""
+    previous = os.umask(umask)
+    try:
+        for name, write in _file_writers(mapdb_set).items():
+            write(tmp_path / name)
+            assert (tmp_path / name).stat().st_mode & 0o777 == 0o666 & ~umask, name
+        folder = partials.make_partial_dir(tmp_path / 'bag')
+        assert folder.stat().st_mode & 0o777 == 0o777 & ~umask
+        folder.rmdir()
+    finally:
+        os.umask(previous)
+
+
 def test_killed_file_writers_leftovers_removed_by_the_next_write(mapdb_set, tmp_path,
                                                                  capsys):
     """A leftover of a killed write (a dead pid's ``.NAME.partial-*`` file) is removed by

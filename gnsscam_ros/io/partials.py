@@ -18,25 +18,34 @@ work of a writer that still runs:
 """
 from __future__ import annotations
 
+import errno
 import os
 import re
+import secrets
 import shlex
 import shutil
 import socket
 import sys
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 #: Marker between the output's name and the writer's identity.
 MARK = '.partial-'
-#: ``.NAME.partial-HOST-PID-RANDOM``: mkdtemp's random part has no '-' (letters, digits,
-#: '_'), the host is sanitised to the same set plus '.', so the pid is the last number
-#: between dashes.
+#: ``.NAME.partial-HOST-PID-RANDOM``: the random part has no '-' (hex digits; that of
+#: older versions, mkdtemp's: letters, digits, '_'), the host is sanitised to letters,
+#: digits, '_' and '.', so the pid is the last number between dashes.
 _OWNED = re.compile(r'^\.(?P<name>.+)\.partial-(?P<host>[A-Za-z0-9_.]+)-(?P<pid>\d+)-'
                     r'(?P<rand>[A-Za-z0-9_]+)$')
 #: Names written before the pid was part of them: ``.NAME.partial-RANDOM``.
 _LEGACY = re.compile(r'^\.(?P<name>.+)\.partial-(?P<rand>[A-Za-z0-9_]+)$')
+#: Modes of a new partial file and folder, less the process's umask as for any ``open``
+#: or ``mkdir``: the finished output has the permissions of the user's other files.
+#: (``tempfile.mkstemp`` and ``mkdtemp`` make private 0600 / 0700 temporaries, and the
+#: rename carried that into the output: a bag or a result that another account, a ROS
+#: launch user or a container, could not read.)
+FILE_MODE, DIR_MODE = 0o666, 0o777
+#: Random names tried before giving up (8 hex digits each: a clash is already rare).
+_NAME_ATTEMPTS = 100
 #: Seconds of slack between a process's start time (1/100 s ticks, boot time in whole
 #: seconds) and a file's modification time.
 _CLOCK_SLACK_S = 2.0
@@ -52,28 +61,47 @@ def partial_prefix(out: str | os.PathLike, pid: int | None = None) -> str:
     return f'.{Path(out).name}{MARK}{_host()}-{os.getpid() if pid is None else pid}-'
 
 
+def _partial_name(out: Path) -> Path:
+    return out.parent / (partial_prefix(out) + secrets.token_hex(4))
+
+
 def make_partial_file(out: str | os.PathLike) -> tuple[int, Path]:
-    """Create the hidden partial file of ``out`` beside it (the parent must exist).
+    """Create the hidden partial file of ``out`` beside it (the parent must exist), with
+    the mode a new file of this process gets (``FILE_MODE`` less the umask).
 
     Returns:
-        (an open descriptor, mode 0600, for writing; its path).
+        (an open descriptor for reading and writing; its path).
 
     Raises:
         OSError: The file cannot be created (read-only or missing parent, ...).
     """
     out = Path(out)
-    fd, name = tempfile.mkstemp(prefix=partial_prefix(out), dir=out.parent)
-    return fd, Path(name)
+    flags = os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, 'O_CLOEXEC', 0)
+    for _ in range(_NAME_ATTEMPTS):
+        name = _partial_name(out)
+        try:
+            return os.open(name, flags, FILE_MODE), name
+        except FileExistsError:
+            continue
+    raise FileExistsError(errno.EEXIST, 'no free name for a partial file', str(out))
 
 
 def make_partial_dir(out: str | os.PathLike) -> Path:
-    """Create the hidden partial folder of ``out`` beside it (the parent must exist).
+    """Create the hidden partial folder of ``out`` beside it (the parent must exist), with
+    the mode a new folder of this process gets (``DIR_MODE`` less the umask).
 
     Raises:
         OSError: The folder cannot be created (read-only or missing parent, ...).
     """
     out = Path(out)
-    return Path(tempfile.mkdtemp(prefix=partial_prefix(out), dir=out.parent))
+    for _ in range(_NAME_ATTEMPTS):
+        name = _partial_name(out)
+        try:
+            os.mkdir(name, DIR_MODE)
+            return name
+        except FileExistsError:
+            continue
+    raise FileExistsError(errno.EEXIST, 'no free name for a partial folder', str(out))
 
 
 @dataclass(frozen=True)
