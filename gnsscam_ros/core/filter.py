@@ -65,10 +65,13 @@ HEADING_LOST_RAD = 0.5
 #: Travel since the first fix up to which the vehicle counts as not having moved [m]: its
 #: heading, unknown, does not matter yet (a static receiver never needs it).
 STATIONARY_M = 0.5
-#: Particles the consistency test weighs (an even thinning of a larger cloud, both of its
-#: hypotheses on the same particles): its log-likelihood ratio needs the cloud's shape,
-#: not every particle, and a second full evaluation would double the likelihood's cost.
-CONSISTENCY_PARTICLES = 1000
+#: Particles of a set that the statistics of its shape see (an even thinning of a larger
+#: set, weights normalised again): the consistency test's log-likelihood ratio (both of
+#: its hypotheses on the same particles; a second full evaluation would double the
+#: likelihood's cost) and the Gaussian fits of the bound's KL divergence (their moments:
+#: every particle cost 0.3 ms at N = 10,000 and moved no protection level by more than
+#: 0.1 % on emulated and smartLoc drives; the level itself takes every particle).
+SHAPE_PARTICLES = 1000
 
 
 @dataclass
@@ -457,7 +460,10 @@ class ParticleFilter:
         post_log_w -= total[:, None]
         chosen = int(np.argmax(total))
         # The chosen set's inlier probability of each satellite, for the bias hypotheses,
-        # and its inlier share (the robust likelihood's reported mixture weights).
+        # and its inlier share (the robust likelihood's reported mixture weights). Over
+        # every particle: the hypotheses carry these weights from epoch to epoch, and from
+        # a thinning (SHAPE_PARTICLES) single protection levels on GLONASS alone moved by
+        # up to 16 %.
         inlier, share = gnss.robust_inlier_shares(priors[chosen], post_log_w[chosen], prep,
                                                   clock_w, cfg.outlier_prob,
                                                   cfg.outlier_range_m)
@@ -500,9 +506,9 @@ class ParticleFilter:
         shift[:2] = snap[:2] - centre[:2]
         log_w = self.log_w
         at_moved = gnss.clock_weights(prep, centre + shift[:3], spread_m)
-        if cloud.shape[0] > CONSISTENCY_PARTICLES:
+        if cloud.shape[0] > SHAPE_PARTICLES:
             # Thinned cloud and moved cloud in one call, each with its own clock weights.
-            thin = SYSTEMATIC.thin(cloud.shape[0], CONSISTENCY_PARTICLES)
+            thin = SYSTEMATIC.thin(cloud.shape[0], SHAPE_PARTICLES)
             cloud, log_w = cloud[thin], normalize_log_weights(log_w[thin])
             cloud_total, moved_total = (float(t) for t in self.likelihood.joint(
                 np.stack((cloud, cloud + shift)), prep, np.stack((clock_w, at_moved)),
@@ -672,11 +678,19 @@ class ParticleFilter:
         pos = sets[..., POS]
         posteriors = integrity.PosteriorSet(pos, post_log_w, index, offsets,
                                             cfg.horizontal_risk)
-        priors = integrity.PosteriorSet(pos, np.broadcast_to(prior_log_w, post_log_w.shape),
-                                        index, prior_offsets, cfg.horizontal_risk)
-        # KL(pi_t || pi_t-1) between Gaussian fits of the pooled posteriors and priors; it
-        # sets q_max, so the empirical risk and the level come from one pass.
-        kl = posteriors.divergence_from(priors)
+        # KL(pi_t || pi_t-1) between Gaussian fits of the pooled posteriors and priors (their
+        # moments from an even thinning of each set, SHAPE_PARTICLES); it sets q_max, so
+        # the empirical risk and the level, over every particle, come from one pass.
+        shape = SYSTEMATIC.thin(post_log_w.shape[1], SHAPE_PARTICLES)
+        fit_log_w, fit_prior_log_w = post_log_w[:, shape], prior_log_w[shape]
+        if shape.step > 1:
+            fit_log_w = normalize_log_weights(fit_log_w)
+            fit_prior_log_w = normalize_log_weights(fit_prior_log_w)
+        fits = integrity.PosteriorSet(pos[:, shape], fit_log_w, index, offsets,
+                                      cfg.horizontal_risk)
+        kl = fits.divergence_from(integrity.PosteriorSet(
+            fits.positions_m, np.broadcast_to(fit_prior_log_w, fit_log_w.shape), index,
+            prior_offsets, cfg.horizontal_risk))
         eps = integrity.divergence_budget(kl, cfg.n_posteriors, cfg.risk_delta)
         q_max = integrity.max_empirical_risk(cfg.target_risk, eps, cfg.inverse_bernoulli)
         limits = cfg.alert_limits_m
