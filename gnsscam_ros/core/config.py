@@ -88,7 +88,7 @@ class ParticleSetConfig(_Part):
         '(core.config.epoch_memory_bytes; large ones use fewer satellites, too large ones '
         'are refused).', low=2, high=10_000_000,
         provenance='Not fitted: a cost, set to what a 10 ms epoch affords with margin (6.8 '
-                   'ms at the default configuration when chosen, 6.0 ms now: '
+                   'ms at the default configuration when chosen, 6.1 ms now: '
                    'docs/results/bench.json). Measured '
                    'with filter seeds 1-10 (none of the reported seeds 11-20): GLONASS alone '
                    'on the smartLoc drive, RMSE 0.51, 0.50, 0.49, 0.46 of the robust WLS at '
