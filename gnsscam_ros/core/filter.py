@@ -459,11 +459,9 @@ class ParticleFilter:
         post_log_w = joint
         post_log_w -= total[:, None]
         chosen = int(np.argmax(total))
-        # The chosen set's inlier probability of each satellite, for the bias hypotheses,
-        # and its inlier share (the robust likelihood's reported mixture weights). Over
-        # every particle: the hypotheses carry these weights from epoch to epoch, and from
-        # a thinning (SHAPE_PARTICLES) single protection levels on GLONASS alone moved by
-        # up to 16 %.
+        # The chosen set's inlier probability of each satellite, for the bias hypotheses
+        # (they carry it from epoch to epoch: from SHAPE_PARTICLES, single GLONASS-only
+        # levels moved by 16 %), and its inlier share (the reported mixture weights).
         inlier, share = gnss.robust_inlier_shares(priors[chosen], post_log_w[chosen], prep,
                                                   clock_w, cfg.outlier_prob,
                                                   cfg.outlier_range_m)
