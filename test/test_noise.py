@@ -82,13 +82,18 @@ def _takes_in_child(noise, shapes, queue):
     queue.put(blocks + [ahead])
 
 
-def test_a_forked_process_starts_its_own_worker_and_draws_the_stream():
+@pytest.mark.parametrize('taken', [True, False])
+def test_a_forked_process_starts_its_own_worker_and_draws_the_stream(taken):
     # The executor is copied into a forked child without its thread: a block submitted
-    # to it there is never drawn. The child starts a worker of its own and draws ahead.
+    # to it there is never drawn. The child starts a worker of its own and draws ahead;
+    # a block drawn ahead before the fork but not yet taken is the child's next block.
     import multiprocessing
     noise = ProcessNoise(np.random.default_rng(9))
     noise.take(LARGE)
-    noise._wait()                            # the block ahead is drawn before the fork
+    if taken:
+        noise._wait()                        # drawn and taken into _next before the fork
+    else:
+        noise._pending.result(timeout=30)    # drawn, still pending at the fork
     context = multiprocessing.get_context('fork')
     queue = context.Queue()
     child = context.Process(target=_takes_in_child, args=(noise, [LARGE, LARGE], queue))

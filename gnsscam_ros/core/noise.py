@@ -84,11 +84,11 @@ class ProcessNoise:
 
     def _wait(self) -> None:
         """Take the block drawn ahead into ``_next``; a failed draw is raised here. In a
-        process forked while a block was being drawn the draw never finishes (its thread
-        stayed behind): the block is drawn again by ``take``."""
+        process forked before the draw was done it is never done (its thread stayed
+        behind, the stream is where the draw found it): ``take`` draws the block."""
         if self._pending is not None:
             pending, self._pending = self._pending, None
-            if self._worker_pid == os.getpid():
+            if self._worker_pid == os.getpid() or pending.done():
                 self._next = pending.result()
 
     # A filter is copied (tests compare it with a copy of itself) and handed between
