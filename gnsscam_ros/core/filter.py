@@ -460,8 +460,8 @@ class ParticleFilter:
         post_log_w -= total[:, None]
         chosen = int(np.argmax(total))
         # The chosen set's inlier probability of each satellite, for the bias hypotheses
-        # (they carry it from epoch to epoch: from SHAPE_PARTICLES, single GLONASS-only
-        # levels moved by 16 %), and its inlier share (the reported mixture weights).
+        # (over every particle: they carry it from epoch to epoch, and from SHAPE_PARTICLES
+        # single GLONASS-only levels moved by up to 16 %), and its inlier share (reported).
         inlier, share = gnss.robust_inlier_shares(priors[chosen], post_log_w[chosen], prep,
                                                   clock_w, cfg.outlier_prob,
                                                   cfg.outlier_range_m)
