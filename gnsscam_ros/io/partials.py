@@ -61,8 +61,17 @@ def partial_prefix(out: str | os.PathLike, pid: int | None = None) -> str:
     return f'.{Path(out).name}{MARK}{_host()}-{os.getpid() if pid is None else pid}-'
 
 
-def _partial_name(out: Path) -> Path:
-    return out.parent / (partial_prefix(out) + secrets.token_hex(4))
+def _create_partial(out: str | os.PathLike, create, what: str):
+    """``create(path)`` at a fresh hidden partial name of ``out`` (a random hex suffix,
+    tried again on the rare clash); its result."""
+    out = Path(out)
+    for _ in range(_NAME_ATTEMPTS):
+        name = out.parent / (partial_prefix(out) + secrets.token_hex(4))
+        try:
+            return create(name)
+        except FileExistsError:
+            continue
+    raise FileExistsError(errno.EEXIST, f'no free name for a partial {what}', str(out))
 
 
 def make_partial_file(out: str | os.PathLike) -> tuple[int, Path]:
@@ -75,15 +84,8 @@ def make_partial_file(out: str | os.PathLike) -> tuple[int, Path]:
     Raises:
         OSError: The file cannot be created (read-only or missing parent, ...).
     """
-    out = Path(out)
     flags = os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, 'O_CLOEXEC', 0)
-    for _ in range(_NAME_ATTEMPTS):
-        name = _partial_name(out)
-        try:
-            return os.open(name, flags, FILE_MODE), name
-        except FileExistsError:
-            continue
-    raise FileExistsError(errno.EEXIST, 'no free name for a partial file', str(out))
+    return _create_partial(out, lambda name: (os.open(name, flags, FILE_MODE), name), 'file')
 
 
 def make_partial_dir(out: str | os.PathLike) -> Path:
@@ -93,15 +95,10 @@ def make_partial_dir(out: str | os.PathLike) -> Path:
     Raises:
         OSError: The folder cannot be created (read-only or missing parent, ...).
     """
-    out = Path(out)
-    for _ in range(_NAME_ATTEMPTS):
-        name = _partial_name(out)
-        try:
-            os.mkdir(name, DIR_MODE)
-            return name
-        except FileExistsError:
-            continue
-    raise FileExistsError(errno.EEXIST, 'no free name for a partial folder', str(out))
+    def mkdir(name: Path) -> Path:
+        os.mkdir(name, DIR_MODE)
+        return name
+    return _create_partial(out, mkdir, 'folder')
 
 
 @dataclass(frozen=True)
