@@ -679,12 +679,12 @@ class ParticleFilter:
         # KL(pi_t || pi_t-1) between Gaussian fits of the pooled posteriors and priors (their
         # moments from an even thinning of each set, SHAPE_PARTICLES); it sets q_max, so
         # the empirical risk and the level, over every particle, come from one pass.
-        shape = SYSTEMATIC.thin(post_log_w.shape[1], SHAPE_PARTICLES)
-        fit_log_w, fit_prior_log_w = post_log_w[:, shape], prior_log_w[shape]
-        if shape.step > 1:
+        fit_thin = SYSTEMATIC.thin(post_log_w.shape[1], SHAPE_PARTICLES)
+        fit_log_w, fit_prior_log_w = post_log_w[:, fit_thin], prior_log_w[fit_thin]
+        if fit_thin.step > 1:
             fit_log_w = normalize_log_weights(fit_log_w)
             fit_prior_log_w = normalize_log_weights(fit_prior_log_w)
-        fits = integrity.PosteriorSet(pos[:, shape], fit_log_w, index, offsets,
+        fits = integrity.PosteriorSet(pos[:, fit_thin], fit_log_w, index, offsets,
                                       cfg.horizontal_risk)
         kl = fits.divergence_from(integrity.PosteriorSet(
             fits.positions_m, np.broadcast_to(fit_prior_log_w, fit_log_w.shape), index,
