@@ -12,7 +12,8 @@ from conftest import SMARTLOC_EXCERPT
 from gnsscam_ros.core.filter import FilterConfig
 from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
 from gnsscam_ros.evaluation import cli
-from gnsscam_ros.evaluation.metrics import percentile_with_inf, protection_level_metrics
+from gnsscam_ros.evaluation.metrics import (cloud_calibration, nees, percentile_with_inf,
+                                            protection_level_metrics)
 from gnsscam_ros.io.atomic import write_json_atomic
 from gnsscam_ros.evaluation.runner import EpochTable, run_filter, summarize
 
@@ -51,6 +52,34 @@ def test_protection_level_metrics_known_answer():
     assert empty['mi_rate'] is None and empty['median_m'] is None
     with pytest.raises(ValueError):
         protection_level_metrics(np.ones(2), np.ones(3), 8.0)
+
+
+def test_cloud_calibration_known_answers():
+    rng = np.random.default_rng(4)
+    # Correlated 2D errors drawn from the covariance reported with them: calibrated.
+    cov = np.array([[4.0, 1.5], [1.5, 2.0]])
+    err = rng.multivariate_normal(np.zeros(2), cov, size=20_000)
+    covs = np.broadcast_to(cov, (err.shape[0], 2, 2))
+    values = nees(err, covs)
+    assert values.mean() == pytest.approx(2.0, rel=0.03)          # chi-square, 2 dof
+    calibrated = cloud_calibration(values, 2)
+    assert calibrated['calibrated_median_nees'] == pytest.approx(2.0 * math.log(2.0))
+    assert calibrated['spread_to_error'] == pytest.approx(1.0, abs=0.03)
+    # A cloud reported twice as wide as its errors (four times the covariance).
+    assert cloud_calibration(nees(err, 4.0 * covs), 2)['spread_to_error'] == pytest.approx(
+        2.0, rel=0.03)
+    # 3D, overconfident by a factor 2 in spread.
+    err3 = rng.normal(scale=2.0, size=(20_000, 3))
+    wide = cloud_calibration(nees(err3, np.broadcast_to(np.eye(3), (20_000, 3, 3))), 3)
+    assert wide['calibrated_median_nees'] == pytest.approx(2.366, abs=1e-3)
+    assert wide['spread_to_error'] == pytest.approx(0.5, rel=0.03)
+    # Covariances that are not finite or not positive definite are left out, not scored.
+    bad = np.stack([np.eye(2), np.full((2, 2), np.nan), np.zeros((2, 2)),
+                    np.array([[1.0, 2.0], [2.0, 1.0]])])
+    values = nees(np.ones((4, 2)), bad)
+    assert values[0] == pytest.approx(2.0) and np.isnan(values[1:]).all()
+    assert cloud_calibration(values, 2)['epochs'] == 1
+    assert cloud_calibration(np.zeros(0), 2)['spread_to_error'] is None
 
 
 def test_percentile_with_inf():
@@ -121,6 +150,10 @@ def test_cli_emulated_epochs_csv_and_plots(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert 'MI rate' in printed and 'Stanford at AL 8 m' in printed
     result = json.loads(out.read_text())
+    # Every updated epoch reports its covariance: the calibration is over all of them.
+    calibration = result['cloud_calibration']
+    assert calibration['epochs'] == result['protection_level']['epochs'] > 0
+    assert f"reported spread / error {calibration['spread_to_error']:.2f}" in printed
     rows = _read_csv(csv_path)
     assert list(rows[0])[:len(REQUIRED)] == REQUIRED
     assert len(rows) == result['dataset']['gnss_epochs'] == result['epochs_csv']['rows']

@@ -21,8 +21,8 @@ from gnsscam_ros.evaluation.robustness import (DEFAULT_CELLS, TARGETS, cell_driv
 #: Fields every cell of the JSON has.
 CELL_FIELDS = ('name', 'description', 'variation', 'same_data_as', 'data', 'seeds',
                'mi_rate', 'rmse_2d_m', 'wls_rmse_2d_m', 'rmse_ratio_to_wls',
-               'protection_level', 'median_error_m', 'pl_to_error_ratio', 'recoveries',
-               'targets', 'pass', 'runs')
+               'protection_level', 'median_error_m', 'pl_to_error_ratio',
+               'cloud_calibration', 'recoveries', 'targets', 'pass', 'runs')
 
 
 def test_every_cell_of_the_matrix_changes_the_data_as_it_says(smartloc_excerpt):
@@ -68,12 +68,14 @@ def test_every_cell_of_the_matrix_changes_the_data_as_it_says(smartloc_excerpt):
     assert len(set(others)) == len(others)
 
 
-def run(seed, mi, n, rmse, wls=20.0, recoveries=None, err=None, pl=None):
+def run(seed, mi, n, rmse, wls=20.0, recoveries=None, err=None, pl=None, nees=None):
     err = np.full(n, 5.0) if err is None else np.asarray(err, float)
     pl = np.full(n, 12.0) if pl is None else np.asarray(pl, float)
+    nees = np.full(n, 2.0) if nees is None else np.asarray(nees, float)
     return {'seed': seed, 'mi_epochs': mi, 'epochs': n, 'rmse_2d_m': rmse,
             'wls_rmse_2d_m': wls, 'wls_epochs': n, 'recoveries': recoveries,
-            'statuses': {}, 'filter_seconds': 1.0, 'error_m': err, 'protection_level_m': pl}
+            'statuses': {}, 'filter_seconds': 1.0, 'error_m': err, 'protection_level_m': pl,
+            'nees': nees, 'nees_dims': 2}
 
 
 def test_cell_figures_follow_from_the_runs():
@@ -88,6 +90,11 @@ def test_cell_figures_follow_from_the_runs():
     assert cell['protection_level']['median_m'] == 12.0
     assert cell['pl_to_error_ratio'] == pytest.approx(12.0 / 5.0)
     assert cell['recoveries'] == {'total': 0, 'reported': False, 'per_run': [0, 0, 0]}
+    # NEES pooled over the seeds: 2.0 everywhere against the 2D chi-square median.
+    assert cell['cloud_calibration']['epochs'] == 600
+    assert cell['cloud_calibration']['spread_to_error'] == pytest.approx(
+        np.sqrt(2.0 * np.log(2.0) / 2.0))
+    assert all('nees' not in r for r in cell['runs'])
     assert all(t['pass'] for t in cell['targets'].values()) and cell['pass']
     # Each target fails on its own.
     assert not summarize_cell([run(0, 60, 200, 8.0), run(1, 70, 200, 8.0)])['targets'][

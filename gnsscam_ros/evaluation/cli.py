@@ -79,6 +79,12 @@ def print_result(label: str, result: dict, out=None) -> None:
         print(format_table(protection_level_headers(pl), protection_level_rows(label, pl)),
               file=out)
         print(stanford_line(pl), file=out)
+    calibration = result.get('cloud_calibration')
+    if calibration is not None and calibration['median_nees'] is not None:
+        print(f"Cloud calibration: median NEES {calibration['median_nees']:.3g} over "
+              f"{calibration['epochs']} epochs ({calibration['calibrated_median_nees']:.3g} "
+              f"when the reported covariance matches the errors, {calibration['dims']}D): "
+              f"reported spread / error {calibration['spread_to_error']:.2f}", file=out)
 
 
 def add_campaign_arguments(camp: argparse.ArgumentParser) -> None:

@@ -227,7 +227,7 @@ def robustness_results(results: dict[str, dict]) -> list[str]:
 def _robustness_section(name: str, result: dict) -> list[str]:
     rows = [[c['name'], _rate(c['mi_rate']['mean']), _rate(c['mi_rate']['upper']),
              c['rmse_ratio_to_wls'],
-             c['pl_to_error_ratio'],
+             c['pl_to_error_ratio'], c['cloud_calibration']['spread_to_error'],
              'yes' if c['pass'] else 'no: ' + ', '.join(
                  k for k, t in c['targets'].items() if not t['pass'])]
             for c in result['cells']]
@@ -238,7 +238,7 @@ def _robustness_section(name: str, result: dict) -> list[str]:
                          for k, t in result['targets'].items())
              + '); the full table and figure: [robustness.md](robustness.md).', '']
     return lines + _code(format_table(['cell', 'MI rate', 'MI upper', 'RMSE / WLS',
-                                       'PL / error', 'pass'], rows))
+                                       'PL / error', 'spread / error', 'pass'], rows))
 
 
 def render_results(results: dict[str, dict]) -> str:

@@ -28,10 +28,21 @@ the PL (horizontal by default):
 * PL median and 95th percentile: order statistics with inf (and a missing PL, NaN) counted
   as inf, so they are inf when that many epochs have no finite PL.
 * Stanford counts at the configured alert limit: ``report.stanford_counts``.
+
+Cloud calibration (``cloud_calibration``), per epoch with a GNSS update: the normalised
+estimation error squared ``NEES = e' P^-1 e`` of the error ``e`` against the covariance
+``P`` the filter reports with its estimate (the chosen set's), both measured like the PL
+(east-north, or 3D). For a cloud whose spread matches its errors NEES follows a chi-square
+law of 2 (3) degrees of freedom, median 1.386 (2.366). ``spread_to_error`` =
+``sqrt(calibrated median / median NEES)``: 1 for a calibrated cloud, 2 for one twice as
+wide as its errors (a PL that large for that reason, not for the bound's margin),
+below 1 for an overconfident one. Epochs whose covariance is not finite or not positive
+definite are left out (``epochs`` counts those used).
 """
 from __future__ import annotations
 
 import numpy as np
+from scipy.stats import chi2
 
 from .report import stanford_counts
 
@@ -43,6 +54,36 @@ def rmse(errors_m: np.ndarray) -> float:
     """Root mean square of errors [m]; NaN for no epochs."""
     errors_m = np.asarray(errors_m, dtype=float)
     return float(np.sqrt(np.mean(errors_m ** 2))) if errors_m.size else float('nan')
+
+
+def nees(error_m: np.ndarray, covariance_m2: np.ndarray) -> np.ndarray:
+    """(T,) normalised estimation errors squared of (T, d) errors against (T, d, d)
+    covariances; NaN where a covariance is not finite or not positive definite."""
+    error_m = np.asarray(error_m, dtype=float)
+    cov = np.asarray(covariance_m2, dtype=float)
+    out = np.full(error_m.shape[0], np.nan)
+    usable = np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(error_m).all(axis=1)
+    if usable.any():
+        # Positive definite: the Cholesky factor exists (eigenvalues > 0).
+        usable[usable] = np.linalg.eigvalsh(cov[usable]).min(axis=1) > 0.0
+    if usable.any():
+        e = error_m[usable]
+        out[usable] = np.einsum('ti,ti->t', e, np.linalg.solve(cov[usable], e[..., None])[..., 0])
+    return out
+
+
+def cloud_calibration(nees_values: np.ndarray, dims: int) -> dict:
+    """Calibration of the filter's reported spread against its errors from per-epoch
+    NEES values of ``dims`` dimensions (see the module docstring): ``epochs``,
+    ``median_nees``, ``calibrated_median_nees`` and ``spread_to_error`` (None without
+    epochs or with a median of 0)."""
+    values = np.asarray(nees_values, dtype=float)
+    values = values[np.isfinite(values)]
+    calibrated = float(chi2.median(dims))
+    median = float(np.median(values)) if values.size else None
+    return {'epochs': int(values.size), 'dims': int(dims), 'median_nees': median,
+            'calibrated_median_nees': calibrated,
+            'spread_to_error': (float(np.sqrt(calibrated / median)) if median else None)}
 
 
 def _rate(numerator: int, denominator: int) -> float | None:

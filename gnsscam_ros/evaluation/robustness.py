@@ -52,6 +52,10 @@ horizontal by default):
   ratio to the WLS 2D RMSE of the cell;
 * ``protection_level``: median and p95 over every seed's epochs (inf counts as inf);
   ``median_error_m``; ``pl_to_error_ratio`` = median PL / median error;
+* ``cloud_calibration``: the NEES of every seed's epochs pooled (:func:`.metrics.
+  cloud_calibration`): ``spread_to_error`` says how much of ``pl_to_error_ratio`` is the
+  reported spread being wider than the errors (1: calibrated) rather than the bound's
+  margin over it;
 * ``recoveries``: the runs' ``recoveries`` (the evaluation JSON's key: epochs at which
   the filter recovered, ``runner.RunRecord.recoveries``), summed; 0 with ``reported:
   false`` when the evaluation does not report it;
@@ -78,8 +82,9 @@ from ..datasets.variants import (decimate_gnss, drive_digest, drop_cn0, gnss_rat
                                  start_after)
 from .campaign_cluster import CaseRunner
 from .evaluate import evaluate_drive_record
+from .runner import run_nees
 from .intervals import between_seed_interval, mean_interval
-from .metrics import percentile_with_inf
+from .metrics import cloud_calibration, percentile_with_inf
 
 #: Satellites a single-system cell needs in an epoch (4 unknowns and one redundant range).
 SINGLE_SYSTEM_MIN_SATELLITES = 5
@@ -218,7 +223,8 @@ def run_seed(drive: Drive, seed: int, config: FilterConfig) -> dict:
     Returns:
         The run's figures (``mi_epochs``, ``epochs``, ``rmse_2d_m``, ``wls_rmse_2d_m``,
         ``recoveries`` (None when not reported), ``statuses``, ``filter_seconds``) and its
-        per-epoch ``error_m`` and ``protection_level_m`` (measured like the PL).
+        per-epoch ``error_m``, ``protection_level_m`` and ``nees`` (measured like the PL;
+        ``nees_dims`` its dimensions).
     """
     result, record = evaluate_drive_record(drive, config, seed=seed)
     diff = record.estimate_enu_m - record.truth_enu_m
@@ -232,7 +238,8 @@ def run_seed(drive: Drive, seed: int, config: FilterConfig) -> dict:
             'wls_epochs': result['baseline_wls']['epochs'],
             'recoveries': None if recoveries is None else int(recoveries),
             'statuses': dict(result['statuses']), 'filter_seconds': result['filter_seconds'],
-            'error_m': error, 'protection_level_m': np.asarray(record.protection_level_m)}
+            'error_m': error, 'protection_level_m': np.asarray(record.protection_level_m),
+            'nees': run_nees(record, config), 'nees_dims': 2 if config.horizontal_risk else 3}
 
 
 def _ratio(numerator, denominator):
@@ -274,9 +281,13 @@ def summarize_cell(runs: list[dict]) -> dict:
         'median_error_m': err_median,
         'pl_to_error_ratio': (None if pl_median is None or not err_median
                               else pl_median / err_median),
+        'cloud_calibration': cloud_calibration(
+            np.concatenate([r['nees'] for r in runs] or [np.zeros(0)]),
+            runs[0]['nees_dims'] if runs else 2),
         'recoveries': {'total': int(sum(reported)), 'reported': bool(reported),
                        'per_run': [r['recoveries'] or 0 for r in runs]},
-        'runs': [{k: v for k, v in r.items() if k not in ('error_m', 'protection_level_m')}
+        'runs': [{k: v for k, v in r.items()
+                  if k not in ('error_m', 'protection_level_m', 'nees', 'nees_dims')}
                  for r in runs],
     }
     out['targets'] = {

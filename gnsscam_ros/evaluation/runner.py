@@ -17,7 +17,8 @@ from ..core.gnss import check_epoch
 from ..core.motion import DeadReckoningConfig, DeadReckoningState, dead_reckon
 from ..core.snapshot import solve_snapshot
 from ..core.types import Drive, GnssEpoch
-from .metrics import integrity_metrics, protection_level_metrics, rmse
+from .metrics import (cloud_calibration, integrity_metrics, nees, protection_level_metrics,
+                      rmse)
 
 
 @dataclass
@@ -89,6 +90,8 @@ class RunRecord:
     reference_risk: np.ndarray  # (T, A)
     alert_limits_m: np.ndarray
     protection_level_m: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,)
+    # (T, 3, 3) the covariance reported with each estimate (``EpochResult.covariance_m2``).
+    covariance_m2: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
     # (T,) the verdict is OK (``IntegrityVerdict.ok``).
     integrity_ok: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     # (T,) ``IntegrityVerdict.valid``: the flag at a further alert limit L is
@@ -234,7 +237,7 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int,
     limits = config.alert_limits_m
     other = integrity.APPROX if config.inverse_bernoulli == integrity.EXACT else integrity.EXACT
     stamps, estimates, bounds, bounds_other, references = [], [], [], [], []
-    levels, oks, valids = [], [], []
+    levels, oks, valids, covariances = [], [], [], []
     statuses: dict[str, int] = {}
     bar = Progress(f'filter {drive.name}', len(drive.gnss), progress)
     start = time.monotonic()
@@ -266,6 +269,7 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int,
             config.risk_delta, other).risk_bound)
         references.append(report.posterior_set.hazard_mass(truth, limits))
         levels.append(result.protection_level_m)
+        covariances.append(result.covariance_m2)
         oks.append(report.verdict.ok)
         valids.append(report.verdict.valid)
     seconds = time.monotonic() - start
@@ -278,6 +282,7 @@ def run_epochs(drive: Drive, config: FilterConfig, seed: int,
                     other: np.array(bounds_other).reshape(-1, len(limits))},
         reference_risk=np.array(references).reshape(-1, len(limits)), alert_limits_m=limits,
         protection_level_m=np.array(levels, dtype=float),
+        covariance_m2=np.array(covariances, dtype=float).reshape(-1, 3, 3),
         integrity_ok=np.array(oks, dtype=bool),
         integrity_valid=np.array(valids, dtype=bool),
         statuses=statuses, seconds=seconds, camera_alpha=camera_alpha,
@@ -362,6 +367,14 @@ def accuracy(estimate_enu_m: np.ndarray, truth_enu_m: np.ndarray) -> dict:
             'max_2d_m': float(err2.max()) if err2.size else None}
 
 
+def run_nees(record: RunRecord, config: FilterConfig) -> np.ndarray:
+    """(T,) NEES of a run's errors against its reported covariances, measured like the
+    PL (east-north by default; ``metrics.nees``)."""
+    d = 2 if config.horizontal_risk else 3
+    return nees((record.estimate_enu_m - record.truth_enu_m)[:, :d],
+                record.covariance_m2[:, :d, :d])
+
+
 def summarize(record: RunRecord, config: FilterConfig) -> dict:
     """Accuracy and integrity metrics of a run, keyed like the evaluation JSON."""
     out = accuracy(record.estimate_enu_m, record.truth_enu_m)
@@ -394,6 +407,9 @@ def summarize(record: RunRecord, config: FilterConfig) -> dict:
     out['protection_level'] = protection_level_metrics(
         err, record.protection_level_m, config.alert_limit_m,
         integrity_ok=record.integrity_ok if record.integrity_ok.size == err.size else None)
+    if record.covariance_m2.shape[0] == err.size:
+        out['cloud_calibration'] = cloud_calibration(run_nees(record, config),
+                                                     2 if config.horizontal_risk else 3)
     out['statuses'] = record.statuses
     out['recoveries'] = record.recoveries
     out['filter_seconds'] = record.seconds
