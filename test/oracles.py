@@ -741,7 +741,8 @@ def projected_weights(weights: np.ndarray, sys_index: np.ndarray, n_systems: int
     onehot = np.zeros((weights.shape[0], n_systems))
     onehot[np.arange(weights.shape[0]), sys_index] = 1.0
     ws = weights[:, None] * onehot                          # W S (k, S)
-    per_system = np.maximum(onehot.T @ weights, 1e-300)     # diag(S^T W S)
+    per_system = np.maximum(np.bincount(sys_index, weights, minlength=n_systems),
+                            1e-300)                      # diag(S^T W S)
     return np.diag(weights) - (ws / per_system) @ ws.T
 
 

@@ -104,7 +104,13 @@ def update_offsets(offsets, fault_offsets, biases, fault_biases, line_of_sight, 
     # Wp = W - W S (S^T W S)^-1 S^T W: the weights with each constellation's clock out.
     onehot = _onehot(sys_index, n_systems)
     ws = weights.reshape(-1, 1) * onehot
-    per_system = np.maximum(np.dot(onehot.T, weights), 1e-300)
+    # Each constellation's weight summed in the satellites' order (numpy's bincount), not
+    # through BLAS: with one constellation numpy's product is a dot and this one a gemv,
+    # which round differently on some BLAS builds (Debian 12's OpenBLAS).
+    per_system = np.zeros(n_systems)
+    for i in range(sys_index.shape[0]):
+        per_system[sys_index[i]] += weights[i]
+    per_system = np.maximum(per_system, 1e-300)
     wp = np.diag(weights) - np.dot(ws / per_system, ws.T)
     gain = np.dot(-line_of_sight.T, wp)                 # G^T Wp, G = -line of sight
     new_offsets = np.dot(np.dot(offsets, prior_info) + np.dot(gain, biases).T, cov)
