@@ -217,9 +217,9 @@ def test_bad_input_and_arguments_get_the_documented_exit_codes(tmp_path, capsys)
     assert all(rows[c.name] == 'no' for c in robustness.EXTRA_CELLS)
 
 
-def test_extra_cells_run_only_when_named_and_change_the_cn0_as_they_say(smartloc_excerpt):
+def test_extra_cells_run_only_when_named_and_change_the_data_as_they_say(smartloc_excerpt):
     extra = [c.name for c in robustness.EXTRA_CELLS]
-    assert set(extra) == {'cn0_-8db', 'cn0_+8db', 'cn0_unknown'}
+    assert set(extra) == {'cn0_-8db', 'cn0_+8db', 'cn0_unknown', 'troposphere'}
     assert not set(extra) & {c.name for c in select_cells()}
     assert [c.name for c in select_cells(['cn0_unknown', 'baseline'])] == [
         'baseline', 'cn0_unknown']
@@ -232,6 +232,18 @@ def test_extra_cells_run_only_when_named_and_change_the_cn0_as_they_say(smartloc
                                       cn0 + d)
     unknown = cell_drive(smartloc_excerpt, robustness.CELLS_BY_NAME['cn0_unknown'], 30.0)
     assert all(np.isnan(e.cn0_dbhz).all() for e in unknown.gnss)
+    # The troposphere cell: the delay at the drive's place (Berlin, near sea level): each
+    # pseudorange longer by 2.3-2.5 m at the zenith, by about 1 / sin(elevation) more
+    # (within 1 % above 20 deg) the lower the satellite.
+    tropo = cell_drive(smartloc_excerpt, robustness.CELLS_BY_NAME['troposphere'], 30.0)
+    delay = np.concatenate([b.pr_m - a.pr_m for a, b in zip(base.gnss, tropo.gnss)])
+    el = np.radians(np.concatenate([e.elevation_deg for e in base.gnss]))
+    zenith = (delay * np.sin(el))[el > np.radians(20.0)]
+    assert zenith.size > 100
+    np.testing.assert_array_less(2.3, zenith)
+    np.testing.assert_array_less(zenith, 2.5)
+    assert tropo.info['variants'][-1]['kind'] == 'leave_troposphere'
+    assert 52.0 < tropo.info['variants'][-1]['lat_deg'] < 53.0
 
 
 def test_exit_codes_are_gnsscam_evals():

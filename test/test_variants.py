@@ -9,9 +9,9 @@ from gnsscam_ros.core.types import GLONASS, GPS
 from gnsscam_ros.datasets.errors import DatasetError
 from gnsscam_ros.datasets.faults import FaultEpisodes, inject_pseudorange_faults
 from gnsscam_ros.datasets.variants import (decimate_gnss, drive_digest, drop_cn0,
-                                           gnss_rate_hz, gnss_stamps_ns, scale_variances,
-                                           select_systems, set_variances, shift_cn0,
-                                           start_after)
+                                           gnss_rate_hz, gnss_stamps_ns, leave_troposphere,
+                                           scale_variances, select_systems, set_variances,
+                                           shift_cn0, start_after)
 
 S = 1_000_000_000
 
@@ -78,6 +78,38 @@ def test_drop_cn0_leaves_no_cn0_and_nothing_else_changed(drive, untouched):
         assert b.cn0_dbhz.shape == a.cn0_dbhz.shape and np.isnan(b.cn0_dbhz).all()
         assert_same_except(a, b, ('cn0_dbhz',))
     assert out.info['variants'][-1] == {'kind': 'drop_cn0'}
+
+
+def test_leave_troposphere_adds_the_mapped_slant_delay_and_nothing_else(drive, untouched):
+    out = leave_troposphere(drive, 52.5, 0.0)
+    for a, b in zip(drive.gnss, out.gnss):
+        assert_same_except(a, b, ('pr_m',))
+        delay = b.pr_m - a.pr_m
+        # Sea level, standard atmosphere: 2.3 m hydrostatic and 0.1 m wet at the zenith;
+        # the Black-Eisner mapping is 1 / sin(el) within 1 % above 20 deg.
+        high = a.elevation_deg > 20.0
+        np.testing.assert_allclose(delay[high] * np.sin(np.radians(a.elevation_deg[high])),
+                                   2.4, atol=0.1)
+        assert np.all(np.diff(delay[np.argsort(a.elevation_deg)]) <= 0)
+    assert out.info['variants'][-1] == {'kind': 'leave_troposphere', 'lat_deg': 52.5,
+                                        'height_m': 0.0}
+    # At 2 km the air above is thinner: a fifth less delay.
+    high = leave_troposphere(drive, 52.5, 2000.0)
+    ratio = ((high.gnss[0].pr_m - drive.gnss[0].pr_m)
+             / (out.gnss[0].pr_m - drive.gnss[0].pr_m))
+    assert np.all((0.7 < ratio) & (ratio < 0.85))
+
+
+def test_leave_troposphere_refuses_an_unknown_elevation_or_place(drive):
+    first = drive.gnss[0]
+    elevation = first.elevation_deg.copy()
+    elevation[1] = np.nan
+    blind = dataclasses.replace(drive, gnss=[dataclasses.replace(first,
+                                                                 elevation_deg=elevation)])
+    with pytest.raises(DatasetError, match='elevation'):
+        leave_troposphere(blind, 52.5, 0.0)
+    with pytest.raises(ValueError, match='finite'):
+        leave_troposphere(drive, float('nan'), 0.0)
 
 
 @pytest.mark.parametrize('var_m2', [25.0, 4.0])

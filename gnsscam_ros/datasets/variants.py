@@ -11,6 +11,9 @@ present it (pure functions: the drive given is left as it is, a new one is retur
   IMU before that dropped; the ground truth kept whole: it is only used for scoring);
 * :func:`shift_cn0`, :func:`drop_cn0`: the C/N0 on another receiver's scale (every value
   offset by some dB-Hz: another antenna, front end or C/N0 estimator), or not reported.
+* :func:`leave_troposphere`: the tropospheric delay left in the pseudoranges (a
+  preprocessing that removed the satellite clocks but not the atmosphere, against the
+  GNSS input contract of ``GnssEpoch.pr_m``).
 
 Each appends a record of what it did to ``drive.info['variants']`` and a tag to the name.
 :func:`drive_digest` names a drive's content, so that variations that leave a drive as it
@@ -23,6 +26,7 @@ import hashlib
 
 import numpy as np
 
+from ..core.corrections import tropo_delay_m
 from ..core.types import Drive, ImuSeries, OdometrySeries
 from .errors import DatasetError
 
@@ -93,6 +97,33 @@ def drop_cn0(drive: Drive) -> Drive:
     epochs = [dataclasses.replace(e, cn0_dbhz=np.full(e.cn0_dbhz.shape, np.nan))
               for e in drive.gnss]
     return _with_variant(drive, 'no_cn0', {'kind': 'drop_cn0'}, gnss=epochs)
+
+
+def leave_troposphere(drive: Drive, lat_deg: float, height_m: float) -> Drive:
+    """Every pseudorange plus its slant tropospheric delay at a receiver at ``lat_deg``,
+    ``height_m`` (``core.corrections.tropo_delay_m``: Saastamoinen zenith delays of a
+    standard atmosphere, about 2.4 m at sea level, Black-Eisner mapping: 9 m at 15 deg
+    elevation). The common part goes into the receiver clock; what differs between
+    satellites moves the position.
+
+    Raises:
+        DatasetError: A satellite's elevation is unknown (the delay depends on it).
+        ValueError: ``lat_deg`` or ``height_m`` is not finite.
+    """
+    lat, height = float(lat_deg), float(height_m)
+    if not (np.isfinite(lat) and np.isfinite(height)):
+        raise ValueError(f'receiver latitude and height must be finite, got {lat_deg!r}, '
+                         f'{height_m!r}')
+    epochs = []
+    for e in drive.gnss:
+        if not np.all(np.isfinite(e.elevation_deg)):
+            raise DatasetError(f'{drive.name}: an elevation is unknown at epoch '
+                               f'{e.stamp_ns}: the tropospheric delay depends on it')
+        delay = tropo_delay_m(np.radians(lat), height, np.radians(e.elevation_deg))
+        epochs.append(dataclasses.replace(e, pr_m=e.pr_m + delay))
+    return _with_variant(drive, 'troposphere_left', {'kind': 'leave_troposphere',
+                                                     'lat_deg': lat, 'height_m': height},
+                         gnss=epochs)
 
 
 def gnss_stamps_ns(drive: Drive) -> np.ndarray:

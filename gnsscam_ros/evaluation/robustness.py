@@ -32,6 +32,9 @@ matrix is the default one):
 cn0_-8db ...   every C/N0 8 dB-Hz lower or higher: the same signals as another receiver
                (antenna, front end, C/N0 estimator) reports them
 cn0_unknown    no C/N0 at all (a receiver or format that does not report it)
+troposphere    the tropospheric delay left in the pseudoranges (a preprocessing that did
+               not remove it; a standard atmosphere at the drive's start,
+               :func:`gnsscam_ros.datasets.variants.leave_troposphere`)
 ============== ==========================================================================
 
 A cell's drive is made in this order: the start cut, then ``duration_s`` (quick runs: the
@@ -77,9 +80,10 @@ from ..core.types import GLONASS, GPS, Drive
 from ..datasets.cut import cut_drive
 from ..datasets.errors import DatasetError
 from ..datasets.faults import RAMP, STEP, FaultEpisodes, inject_pseudorange_faults
+from ..core.frames import LocalFrame
 from ..datasets.variants import (decimate_gnss, drive_digest, drop_cn0, gnss_rate_hz,
-                                 scale_variances, select_systems, set_variances, shift_cn0,
-                                 start_after)
+                                 leave_troposphere, scale_variances, select_systems,
+                                 set_variances, shift_cn0, start_after)
 from .campaign_cluster import CaseRunner
 from .evaluate import evaluate_drive_record
 from .runner import run_nees
@@ -153,6 +157,7 @@ EXTRA_CELLS: tuple[Cell, ...] = (
     *(Cell(f'cn0_{d:+g}db', 'shift_cn0', d, f'every C/N0 {d:+g} dB-Hz (another receiver)')
       for d in (-8.0, 8.0)),
     Cell('cn0_unknown', 'drop_cn0', None, 'no C/N0 reported'),
+    Cell('troposphere', 'troposphere', None, 'tropospheric delay left in the pseudoranges'),
 )
 CELLS_BY_NAME = {c.name: c for c in (*DEFAULT_CELLS, *EXTRA_CELLS)}
 
@@ -212,9 +217,28 @@ def cell_drive(drive: Drive, cell: Cell, duration_s: float | None = None,
         return shift_cn0(drive, cell.value)
     if cell.kind == 'drop_cn0':
         return drop_cn0(drive)
+    if cell.kind == 'troposphere':
+        lat_deg, _, height_m = _receiver_llh(drive)
+        return leave_troposphere(drive, lat_deg, height_m)
     if cell.kind in ('none', 'start'):
         return drive
     raise ValueError(f'unknown cell kind {cell.kind!r}')
+
+
+def _receiver_llh(drive: Drive) -> tuple[float, float, float]:
+    """Where the receiver is, roughly (the atmosphere's place: metres do not matter): the
+    drive's map origin, else its first ground-truth position (the data's preparation,
+    not the filter, reads it).
+
+    Raises:
+        DatasetError: The drive has neither.
+    """
+    if drive.origin_llh is not None:
+        return drive.origin_llh
+    if drive.truth is not None and len(drive.truth):
+        return LocalFrame.from_ecef(drive.truth.ecef_m[0]).origin_llh
+    raise DatasetError(f'{drive.name}: no map origin and no ground truth: where the '
+                       'receiver is (for its atmosphere) is unknown')
 
 
 def run_seed(drive: Drive, seed: int, config: FilterConfig) -> dict:
