@@ -76,19 +76,19 @@ import numpy as np
 from tqdm import tqdm
 
 from ..core.filter import FilterConfig
+from ..core.frames import LocalFrame
 from ..core.types import GLONASS, GPS, Drive
 from ..datasets.cut import cut_drive
 from ..datasets.errors import DatasetError
 from ..datasets.faults import RAMP, STEP, FaultEpisodes, inject_pseudorange_faults
-from ..core.frames import LocalFrame
 from ..datasets.variants import (decimate_gnss, drive_digest, drop_cn0, gnss_rate_hz,
                                  leave_troposphere, scale_variances, select_systems,
                                  set_variances, shift_cn0, start_after)
 from .campaign_cluster import CaseRunner
 from .evaluate import evaluate_drive_record
-from .runner import run_nees
 from .intervals import between_seed_interval, mean_interval
 from .metrics import cloud_calibration, percentile_with_inf
+from .runner import run_nees
 
 #: Satellites a single-system cell needs in an epoch (4 unknowns and one redundant range).
 SINGLE_SYSTEM_MIN_SATELLITES = 5
