@@ -94,8 +94,8 @@ def test_leave_troposphere_adds_the_mapped_slant_delay_and_nothing_else(drive, u
     assert out.info['variants'][-1] == {'kind': 'leave_troposphere', 'lat_deg': 52.5,
                                         'height_m': 0.0}
     # At 2 km the air above is thinner: a fifth less delay.
-    high = leave_troposphere(drive, 52.5, 2000.0)
-    ratio = ((high.gnss[0].pr_m - drive.gnss[0].pr_m)
+    at_2km = leave_troposphere(drive, 52.5, 2000.0)
+    ratio = ((at_2km.gnss[0].pr_m - drive.gnss[0].pr_m)
              / (out.gnss[0].pr_m - drive.gnss[0].pr_m))
     assert np.all((0.7 < ratio) & (ratio < 0.85))
 

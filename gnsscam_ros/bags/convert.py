@@ -256,8 +256,7 @@ class _Messages:
         truth = drive.truth
         self.q_truth = None
         if truth is not None and truth.yaw_rad is not None and len(truth):
-            frame = (LocalFrame(*drive.origin_llh) if drive.origin_llh is not None
-                     else LocalFrame.from_ecef(truth.ecef_m[0]))
+            frame = LocalFrame.at_origin_or(drive.origin_llh, truth.ecef_m[0])
             self.q_truth = schema.yaw_to_ecef_quaternion(
                 truth.yaw_rad, schema.enu_quaternion(frame.rot_ecef_to_enu))
 

@@ -165,12 +165,6 @@ def _frame_check(path: Path, topic: str, msg, frame_id: str) -> None:
                               f'expected {frame_id!r}', path=path, topic=topic)
 
 
-def _truth_frame(origin_llh, truth_ecef: np.ndarray) -> LocalFrame:
-    """The ENU frame the truth headings refer to (same rule as the converter)."""
-    return (LocalFrame(*origin_llh) if origin_llh is not None
-            else LocalFrame.from_ecef(truth_ecef[0]))
-
-
 def _truth_from_rows(stamps: list[int], rows: list[tuple], origin_llh) -> Trajectory | None:
     """Truth rows ``(x, y, z, qx, qy, qz, qw)`` -> Trajectory (yaw None if all zero)."""
     if not stamps:
@@ -179,7 +173,8 @@ def _truth_from_rows(stamps: list[int], rows: list[tuple], origin_llh) -> Trajec
     ecef, quat = arr[:, :3], arr[:, 3:]
     yaw = None
     if np.any(quat != 0.0):
-        frame = _truth_frame(origin_llh, ecef)
+        # The frame the truth headings refer to (the converter's).
+        frame = LocalFrame.at_origin_or(origin_llh, ecef[0])
         yaw = schema.ecef_quaternion_to_yaw(quat, schema.enu_quaternion(frame.rot_ecef_to_enu))
         yaw[np.all(quat == 0.0, axis=1)] = np.nan    # per-sample unknown heading
     return Trajectory(stamp_ns=np.array(stamps, dtype=np.int64), ecef_m=ecef, yaw_rad=yaw)

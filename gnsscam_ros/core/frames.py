@@ -35,6 +35,12 @@ class LocalFrame:
         lat, lon, alt = pymap3d.ecef2geodetic(*np.asarray(ecef_m, dtype=float))
         return cls(float(lat), float(lon), float(alt))
 
+    @classmethod
+    def at_origin_or(cls, origin_llh, first_ecef_m: np.ndarray) -> 'LocalFrame':
+        """A drive's map frame: at its ``origin_llh`` (lat, lon, alt) when it has one,
+        else under ``first_ecef_m`` (its first ground-truth position) [m]."""
+        return cls(*origin_llh) if origin_llh is not None else cls.from_ecef(first_ecef_m)
+
     def ecef_to_enu(self, ecef_m: np.ndarray) -> np.ndarray:
         """(..., 3) ECEF [m] -> (..., 3) local ENU [m] (a rigid transform)."""
         return (np.asarray(ecef_m, dtype=float) - self.origin_ecef_m) @ self.rot_ecef_to_enu.T

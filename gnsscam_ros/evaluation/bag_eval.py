@@ -54,7 +54,7 @@ from ..bags.read import ResultBag, read_drive, read_results
 from ..core.filter import FilterConfig
 from ..core.frames import LocalFrame
 from ..core.integrity import hazard_mass
-from ..core.types import Drive, Trajectory
+from ..core.types import Drive
 from .metrics import integrity_metrics, protection_level_metrics
 from .runner import EpochTable, accuracy, empty_epoch_table, run_snapshot_baseline, truth_at
 
@@ -69,11 +69,6 @@ def _gaussian_samples(centre: np.ndarray, cov: np.ndarray, z: np.ndarray) -> np.
     # Eigen-decomposition instead of Cholesky: tolerates the semi-definite covariance of a
     # collapsed particle set.
     return centre + (z * np.sqrt(np.clip(vals, 0.0, None))) @ vecs.T
-
-
-def _truth_frame(origin_llh, truth: Trajectory) -> LocalFrame:
-    return (LocalFrame(*origin_llh) if origin_llh is not None
-            else LocalFrame.from_ecef(truth.ecef_m[0]))
 
 
 def _estimates(res: ResultBag, frame: LocalFrame, origin_known: bool
@@ -308,7 +303,7 @@ def evaluate_result_bag_epochs(result_bag: str | Path, truth_bag: str | Path | N
     if truth is None or not len(truth):
         raise BagContentError(f'{res.path}: no {schema.TRUTH} to evaluate against; record it '
                               'or pass the dataset bag', path=res.path, topic=schema.TRUTH)
-    frame = _truth_frame(origin, truth)
+    frame = LocalFrame.at_origin_or(origin, truth.ecef_m[0])
     source, est_stamps, est_enu = _estimates(res, frame, origin is not None)
     est_index = {int(s): i for i, s in enumerate(est_stamps)}
 

@@ -31,8 +31,7 @@ def evaluate_drive_record(drive: Drive, config: FilterConfig, seed: int = 0,
         raise ValueError(f'{drive.name}: no ground truth, nothing to evaluate against')
     record = run_filter(drive, config, seed=seed, progress=progress)
     out = summarize(record, config)
-    frame = (LocalFrame(*drive.origin_llh) if drive.origin_llh is not None
-             else LocalFrame.from_ecef(drive.truth.ecef_m[0]))
+    frame = LocalFrame.at_origin_or(drive.origin_llh, drive.truth.ecef_m[0])
     stamps, fixes = run_snapshot_baseline(drive, frame, config.measurement_var_m2)
     baseline = accuracy(fixes, truth_at(drive, frame, stamps))
     out['baseline_wls'] = baseline

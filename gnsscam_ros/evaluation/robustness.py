@@ -233,12 +233,11 @@ def _receiver_llh(drive: Drive) -> tuple[float, float, float]:
     Raises:
         DatasetError: The drive has neither.
     """
-    if drive.origin_llh is not None:
-        return drive.origin_llh
-    if drive.truth is not None and len(drive.truth):
-        return LocalFrame.from_ecef(drive.truth.ecef_m[0]).origin_llh
-    raise DatasetError(f'{drive.name}: no map origin and no ground truth: where the '
-                       'receiver is (for its atmosphere) is unknown')
+    if drive.origin_llh is None and (drive.truth is None or not len(drive.truth)):
+        raise DatasetError(f'{drive.name}: no map origin and no ground truth: where the '
+                           'receiver is (for its atmosphere) is unknown')
+    first = None if drive.origin_llh is not None else drive.truth.ecef_m[0]
+    return LocalFrame.at_origin_or(drive.origin_llh, first).origin_llh
 
 
 def run_seed(drive: Drive, seed: int, config: FilterConfig) -> dict:
