@@ -277,6 +277,58 @@ def test_replay_cli_namespace_alone_reaches_nodes_in_it(bags, tmp_path):
         graph.close()
 
 
+#: A reliable subscriber of argv[1] in a process of its own: prints ``matched`` once it
+#: knows the publisher (before, it would not be waited for), then spins.
+RELIABLE_SUBSCRIBER = """
+import sys, rclpy
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import Imu
+rclpy.init()
+node = rclpy.create_node('reliable_subscriber')
+def matched(info):
+    if info.current_count_change > 0:
+        print('matched', flush=True)
+node.create_subscription(Imu, sys.argv[1], lambda msg: None, QoSProfile(
+    history=HistoryPolicy.KEEP_LAST, depth=1000, reliability=ReliabilityPolicy.RELIABLE),
+    event_callbacks=SubscriptionEventCallbacks(matched=matched))
+rclpy.spin(node)
+"""
+
+
+@pytest.mark.slow
+def test_replay_names_the_topics_a_reader_never_acknowledged(bags, tmp_path):
+    """A replay that ends before a reliable subscriber holds everything says so (its
+    last messages may die with it): here the subscriber's process is stopped (SIGSTOP),
+    so it acknowledges nothing."""
+    graph = RosGraph()
+    expected = bag_topics(bags / 'mcap')['/imu/data'][1]
+    child = subprocess.Popen([sys.executable, '-c', RELIABLE_SUBSCRIBER, '/imu/data'],
+                             env=ros_env(tmp_path, graph.domain), stdout=subprocess.PIPE,
+                             text=True)
+    node = None
+    try:
+        node = BagReplayer(bags / 'mcap', rate=0.0, topics=['/imu/data'], wait_s=0.0,
+                           ack_timeout_s=0.5, context=graph.ctx)
+        wait_until(lambda: node._bag_pubs['/imu/data'].get_subscription_count() == 1, 20.0,
+                   'the counter matched')
+        assert child.stdout.readline().strip() == 'matched'
+        child.send_signal(signal.SIGSTOP)
+        summary = node.play()
+        assert summary.published['/imu/data'] == expected
+        assert summary.undelivered == ['/imu/data']
+        assert 'not acknowledged by every subscriber at the end: /imu/data' in summary.text()
+        assert summary.as_dict()['undelivered'] == ['/imu/data']
+    finally:
+        if child.poll() is None:
+            child.send_signal(signal.SIGCONT)
+            child.kill()
+            child.wait()
+        if node is not None:
+            node.destroy_node()
+        graph.close()
+
+
 # ======================================================================= record
 def record(argv, capfd):
     code = record_main([str(a) for a in argv])

@@ -45,6 +45,7 @@ from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticArray
 from std_srvs.srv import Trigger
+from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -89,7 +90,8 @@ class BagReplayer(Node):
             to appear before playing [s].
         require_subscribers: Relative topics that must have a subscriber before playing
             (e.g. the ones a recorder records), within ``wait_s``.
-        settle_s: Wait after the graph is connected, before the first message [s].
+        settle_s: Wait after the graph is connected, before the first message [s]; longer
+            when finding the subscribers took longer (a loaded machine).
         gnss_grace_s: Pause before a GNSS epoch that follows camera images, once their
             matches are acknowledged (see :meth:`.FlowControl.admit`) [s].
         bag_namespace: Namespace the bag's topics were written under (to recognise them);
@@ -303,8 +305,13 @@ class BagReplayer(Node):
                         out.append(f'a subscriber on {topic}')
             return out
 
+        began = time.monotonic()
         while missing() and time.monotonic() < deadline and not self._stopping():
             time.sleep(0.02)
+        # The other side matches our publishers about as slowly as we found its
+        # subscribers (both learn of each other from the same announcements): on a loaded
+        # machine, longer than the fixed settle time. Not known when some never came.
+        settle_s = self.settle_s if missing() else max(self.settle_s, time.monotonic() - began)
         for topic, stream in self._streams.items():
             if self._bag_pubs[topic].get_subscription_count() == 0:
                 stream.enabled, stream.reason = False, 'off: no subscriber'
@@ -313,7 +320,7 @@ class BagReplayer(Node):
                 stream.reason = f'off: nobody publishes {stream.rule.ack_topic}'
         self._start_mode = self._wait_for_links(deadline)
         if self._start_mode in ('', 'fixed settle'):
-            time.sleep(self.settle_s)
+            time.sleep(settle_s)
         self._reset_nodes_of_another_time_base()
         left = missing()
         if left:
@@ -467,6 +474,7 @@ class BagReplayer(Node):
                 if not self._stopping():
                     self._publish_all(summary, gnss_stamps)
                     self.flow.drain()
+                    summary.undelivered = self._deliver_all()
             except (KeyboardInterrupt, ExternalShutdownException):
                 # Ctrl-C: stop after the current message and report what was played.
                 summary.interrupted = True
@@ -529,6 +537,22 @@ class BagReplayer(Node):
                 return                 # Ctrl-C shut the context down during a publish
             raise BagReadError(f'{self.bag}: reading failed: {type(err).__name__}: {err}',
                                path=self.bag) from err
+
+    def _deliver_all(self) -> list[str]:
+        """Wait (at most ``ack_timeout_s`` in all) until every reliable subscriber holds
+        every message published; the topics where one does not. Leaving before would lose
+        the last messages still in flight (a recorder's, a reliable node's)."""
+        deadline = time.monotonic() + self.ack_timeout_s
+        undelivered = []
+        for topic, pub in self._bag_pubs.items():
+            left = max(0.0, deadline - time.monotonic())
+            if not pub.wait_for_all_acked(Duration(seconds=left)):
+                undelivered.append(topic)
+        if undelivered:
+            self.get_logger().warning(
+                f'not every subscriber acknowledged every message within '
+                f'{self.ack_timeout_s:g} s on {", ".join(undelivered)}')
+        return undelivered
 
     def _stamped(self, reader, connections, start_ns: int):
         """``(connection, stamp_ns, raw bytes)`` in bag order, equal stamps in

@@ -36,6 +36,8 @@ class ReplaySummary:
         start_wait_s: Wall time from the replay's start to its first message [s].
         reset_nodes: Nodes reset (``~/reset``) before the first message because they held
             another time base (a bag played again into running nodes).
+        undelivered: Topics with a reliable subscriber that had not acknowledged every
+            message when the replay ended (within ``ack_timeout_s``).
     """
 
     bag: Path
@@ -55,6 +57,7 @@ class ReplaySummary:
     start: str = ''
     start_wait_s: float = 0.0
     reset_nodes: list[str] = field(default_factory=list)
+    undelivered: list[str] = field(default_factory=list)
 
     @property
     def bag_span_s(self) -> float:
@@ -87,7 +90,7 @@ class ReplaySummary:
                 'ack_wait_s': self.ack_wait_s, 'interrupted': self.interrupted,
                 'cpu_s': self.cpu_s, 'node_diagnostics': self.node_diagnostics,
                 'start': self.start, 'start_wait_s': self.start_wait_s,
-                'reset_nodes': self.reset_nodes}
+                'reset_nodes': self.reset_nodes, 'undelivered': self.undelivered}
 
     def text(self) -> str:
         """Readable one-paragraph summary."""
@@ -110,6 +113,9 @@ class ReplaySummary:
         off = {k: v for k, v in self.flow_control.items() if v != 'on'}
         if off:
             lines.append(f'flow control off: {off}')
+        if self.undelivered:
+            lines.append('not acknowledged by every subscriber at the end: '
+                         + ', '.join(self.undelivered))
         if self.start and self.start != 'links matched':
             lines.append(f'started on {self.start}')
         if self.interrupted:
