@@ -45,6 +45,7 @@ solutions the consistency test compares with (:meth:`AdaptiveErrorModel.total_si
 """
 from __future__ import annotations
 
+from bisect import bisect_left
 from dataclasses import dataclass
 
 import numpy as np
@@ -173,8 +174,8 @@ class AdaptiveErrorModel:
         self.priors = priors
         # The priors' C/N0 shape of the class spreads (a constant of the priors).
         self._shape = priors.shape()
-        # Per satellite key: (stamp_ns, residual) of the last two lags.
-        self._history: dict[int, list[tuple[int, float]]] = {}
+        # Per satellite key: the stamps [ns] and residuals [m] of the last two lags.
+        self._history: dict[int, tuple[list[int], list[float]]] = {}
         # Sums of the lagged pairs, forgotten over the window: xy, xx, yy, lag, count.
         self._pairs = np.zeros(5)
         self._pairs_stamp_ns: int | None = None
@@ -182,6 +183,12 @@ class AdaptiveErrorModel:
         self._class = np.zeros(MAX_SAMPLES, dtype=np.int64)
         self._residual_m = np.zeros(MAX_SAMPLES)
         self._count = 0
+        # Constants of every refit: unit weights, the one class of the pooled fit, and
+        # its prior's centre.
+        self._ones = np.ones(MAX_SAMPLES)
+        self._zeros = np.zeros(MAX_SAMPLES, dtype=np.int64)
+        self._pooled_prior = tuple(np.array([v]) for v in (
+            priors.core_sd_m, priors.wide_share, 0.0, priors.wide_sd_m))
         self.pooled = self._prior_fit(1)
         self.fit = self._prior_fit(N_CLASSES)
 
@@ -245,18 +252,22 @@ class AdaptiveErrorModel:
         lag_ns = int(CORRELATION_LAG_S * 1e9)
         pairs = []
         for key, value in zip(keys.tolist(), r.tolist()):
-            past = self._history.setdefault(key, [])
-            while past and stamp_ns - past[0][0] > 2 * lag_ns:
-                past.pop(0)
-            if past:
-                gaps = [abs(stamp_ns - then - lag_ns) for then, _ in past]
-                closest = min(gaps)
-                if closest <= lag_ns // 2:
-                    then, old = past[gaps.index(closest)]        # the first, as argmin
-                    pairs.append((value, old, (stamp_ns - then) * 1e-9))
-            past.append((stamp_ns, value))
-        for key in [k for k, past in self._history.items()
-                    if not past or stamp_ns - past[-1][0] > 2 * lag_ns]:
+            stamps, values = self._history.setdefault(key, ([], []))
+            # Stamps rise (the filter refuses an epoch not after the last): bisections.
+            old = bisect_left(stamps, stamp_ns - 2 * lag_ns)
+            del stamps[:old], values[:old]
+            if stamps:
+                # The stamp closest to one lag back; of two as close, the earlier.
+                target = stamp_ns - lag_ns
+                i = bisect_left(stamps, target)
+                if i == len(stamps) or (i > 0 and target - stamps[i - 1] <= stamps[i] - target):
+                    i = bisect_left(stamps, stamps[i - 1])
+                if abs(target - stamps[i]) <= lag_ns // 2:
+                    pairs.append((value, values[i], (stamp_ns - stamps[i]) * 1e-9))
+            stamps.append(stamp_ns)
+            values.append(value)
+        for key in [k for k, (stamps, _) in self._history.items()
+                    if not stamps or stamp_ns - stamps[-1] > 2 * lag_ns]:
             del self._history[key]
         if pairs:
             x, y, lag = np.array(pairs).T
@@ -309,14 +320,12 @@ class AdaptiveErrorModel:
     def _refit(self) -> None:
         n = self._count
         r, cls = self._residual_m[:n], self._class[:n]
-        w = np.ones(n)
+        w = self._ones[:n]
         p = self.priors
-        pooled = tuple(np.array([v]) for v in (p.core_sd_m, p.wide_share, 0.0, p.wide_sd_m))
         fit = (self.pooled.core_sd_m, self.pooled.wide_share, self.pooled.wide_mean_m,
                self.pooled.wide_sd_m)
-        zeros = np.zeros(n, dtype=np.int64)
-        fit = mixture_kernels.em_fit(r, w, zeros, 1, *fit, *pooled, p.pooled_strength,
-                                     p.min_core_sd_m, EM_ITERATIONS)
+        fit = mixture_kernels.em_fit(r, w, self._zeros[:n], 1, *fit, *self._pooled_prior,
+                                     p.pooled_strength, p.min_core_sd_m, EM_ITERATIONS)
         self.pooled = MixtureFit(*fit, samples=np.array([float(n)]))
         # The classes' prior: the pooled fit, its spreads shaped by C/N0 about their
         # sample-weighted mean (so that the shape moves spreads between classes only).
