@@ -6,6 +6,7 @@ without the Fast DDS profile, which would change this process's environment): th
 documented exit code, one ``gnsscam_replay:``/``gnsscam_record:`` error line naming the
 bag (rcutils may add log lines of its own), no traceback, nothing left behind.
 """
+import select
 import shutil
 import signal
 import struct
@@ -312,6 +313,8 @@ def test_replay_names_the_topics_a_reader_never_acknowledged(bags, tmp_path):
                            ack_timeout_s=0.5, context=graph.ctx)
         wait_until(lambda: node._bag_pubs['/imu/data'].get_subscription_count() == 1, 20.0,
                    'the counter matched')
+        # Bounded: a subscriber that never reports must fail the test, not hang it.
+        assert select.select([child.stdout], [], [], 20.0)[0], 'the subscriber never matched'
         assert child.stdout.readline().strip() == 'matched'
         child.send_signal(signal.SIGSTOP)
         summary = node.play()
