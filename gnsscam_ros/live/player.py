@@ -306,12 +306,12 @@ class BagReplayer(Node):
             return out
 
         began = time.monotonic()
-        while missing() and time.monotonic() < deadline and not self._stopping():
+        while (absent := missing()) and time.monotonic() < deadline and not self._stopping():
             time.sleep(0.02)
         # The other side matches our publishers about as slowly as we found its
         # subscribers (both learn of each other from the same announcements): on a loaded
         # machine, longer than the fixed settle time. Not known when some never came.
-        settle_s = self.settle_s if missing() else max(self.settle_s, time.monotonic() - began)
+        settle_s = self.settle_s if absent else max(self.settle_s, time.monotonic() - began)
         for topic, stream in self._streams.items():
             if self._bag_pubs[topic].get_subscription_count() == 0:
                 stream.enabled, stream.reason = False, 'off: no subscriber'
