@@ -156,6 +156,10 @@ def _quiet_unraisable(unraisable) -> None:
       fails again in its ``__del__`` ("Exception ignored in: Executor.__del__ ...
       AttributeError: ... '_sigint_gc'", 3 stops in 20 here): that is the stop, not an
       error worth a traceback on stderr.
+    - The same for llvmlite's objects while numba compiles the kernels at start-up: one
+      whose constructor the Ctrl-C interrupted before it held its pointer fails in
+      ``ObjectRef.__del__`` ("AttributeError: 'PassBuilder' object has no attribute
+      '_as_parameter_'", 1 CI run in about 10).
     - A Ctrl-C that lands inside a ctypes callback (llvmlite's object-cache callbacks
       while numba compiles the kernels at start-up) is raised again in the main thread
       (``core.interrupts``), where it stops the start-up as any other Ctrl-C.
@@ -164,8 +168,8 @@ def _quiet_unraisable(unraisable) -> None:
     if redeliver_dropped_interrupt(unraisable):
         return
     where = getattr(unraisable.object, '__module__', None) or ''
-    if (where.startswith('rclpy') and isinstance(unraisable.exc_value, AttributeError)
-            and not rclpy.ok()):
+    if (where.startswith(('rclpy', 'llvmlite')) and not rclpy.ok()
+            and isinstance(unraisable.exc_value, AttributeError)):
         return
     sys.__unraisablehook__(unraisable)
 
