@@ -20,7 +20,7 @@ from gnsscam_ros.nodes.runtime import NodeSpinner
 
 pytestmark = pytest.mark.ros
 
-RATE = 2.0                  # the requested replay rate (x real time)
+RATE = 4.0                  # the requested replay rate (x real time)
 N_PARTICLES = 300
 
 
