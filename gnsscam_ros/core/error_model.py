@@ -65,6 +65,10 @@ REFERENCE_CN0_DBHZ = 45.0
 UNKNOWN_CLASS = CN0_EDGES_DBHZ.shape[0] + 1
 N_CLASSES = UNKNOWN_CLASS + 1
 #: EM iterations per epoch (warm-started: the fit moves by one epoch's data at a time).
+#: Three do not converge the fit where the window's data change fast (on Berlin at 5 Hz
+#: a class's core read 4.4 m where ten or fifty iterations give 15 m); fits run to
+#: convergence (ten) widened the PL and failed one robustness cell (docs/robustness.md,
+#: "The error model's EM"), so the warm-started three stay.
 EM_ITERATIONS = 3
 #: Most residuals the window holds (60 s of 60 satellites at 5 Hz fit).
 MAX_SAMPLES = 20_000
