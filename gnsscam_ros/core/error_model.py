@@ -16,8 +16,9 @@ estimated from the residuals over a sliding window):
   ``(1 - pi) N(r; 0, s0^2) + pi N(r; mu, s1^2)``: a line-of-sight core centred on zero
   (the per-constellation receiver clock takes the common offset) and a wide component
   for NLOS and multipath with a mean ``mu >= 0`` (a reflected signal arrives late);
-* weights and spreads are maximum a posteriori estimates by EM, a few iterations per
-  epoch started from the last epoch's fit (incremental EM). The priors keep a class with
+* weights and spreads move towards their maximum a posteriori estimates by EM, a few
+  iterations per epoch started from the last epoch's fit (incremental EM; not always
+  converged, see ``EM_ITERATIONS``). The priors keep a class with
   few samples near the pooled fit of all classes shaped by the SIGMA-epsilon law of code
   tracking (Hartinger and Brunner 1999: variance proportional to ``10^(-C/N0 / 10)``),
   and the pooled fit near physical scales (:class:`ErrorPriors`): conventions of the
