@@ -334,8 +334,9 @@ class IntegrityConfig(_Part):
         '(core.consistency): odds of e^2 = 7 to 1; and the snapshot solution is beyond '
         "the cloud's own protection level.", 'nats', low=0.0, low_open=True)
     consistency_recover_nats: float = parameter(
-        6.0, 'At this statistic (odds of 400 to 1) the filter recovers: recovery_share of '
-        'the cloud moves onto the snapshot solution and integrity settles again.', 'nats',
+        6.0, 'At this statistic (odds of 400 to 1), with the snapshot solution beyond the '
+        "cloud's own protection level, the filter recovers: recovery_share of the cloud "
+        'moves onto the snapshot solution and integrity settles again.', 'nats',
         low=0.0, low_open=True)
     recovery_share: float = parameter(
         0.5, 'Share of the cloud moved onto the snapshot solution at a recovery.', low=0.0,
