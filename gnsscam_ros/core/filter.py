@@ -562,11 +562,7 @@ class ParticleFilter:
         if (consistency.inconsistent or consistency.recover) and not (
                 consistency.separation_m > level):
             # The alternative is within the level the cloud claims: covered either way, no
-            # alarm (correlated snapshot errors held the statistic at 2-4 nats for minutes
-            # with them 3-7 m off: emulated bags 3 and 4 were ERROR in half their epochs),
-            # and nothing to recover to (with every epoch independent, the emulated drive
-            # recovered 20 times in 400 s onto snapshot solutions 1-3 m from the cloud,
-            # each time settling again with the level widened).
+            # alarm and nothing to recover to (a consistent cloud's statistic drifts up).
             consistency = replace(consistency, inconsistent=False, recover=False)
         # The estimate may be the wrong one of two places: while the test says so, and
         # until integrity has settled (the cloud has not yet shown that it is consistent;
