@@ -83,6 +83,13 @@ def test_snapshot_position_recovers_a_position_from_far_away_despite_an_nlos_del
     assert np.linalg.norm(got - truth) < 3.0, got
 
 
+def _horizontal_errors_m(drive, frame: LocalFrame, results) -> np.ndarray:
+    """Horizontal distance of each epoch result's estimate from the drive's truth [m]."""
+    stamps = np.array([r.stamp_ns for r in results], dtype=np.int64)
+    est = np.array([r.position_enu_m for r in results])
+    return np.hypot(*(est - truth_at(drive, frame, stamps))[:, :2].T)
+
+
 def _lock_run(shift_at_s=60.0, shift_m=(60.0, 0.0), seconds=180):
     """The emulated drive with the cloud moved ``shift_m`` off at ``shift_at_s``: the
     reports after the move and their horizontal errors."""
@@ -99,10 +106,8 @@ def _lock_run(shift_at_s=60.0, shift_m=(60.0, 0.0), seconds=180):
             engine.filter.particles = engine.filter.particles.copy()
             engine.filter.particles[:, :2] += shift_m
             moved = True
+    err = _horizontal_errors_m(drive, engine.frame, [r.result for r in after])
     stamps = np.array([r.result.stamp_ns for r in after], dtype=np.int64)
-    truth = truth_at(drive, engine.frame, stamps)
-    est = np.array([r.result.position_enu_m for r in after])
-    err = np.hypot(*(est - truth)[:, :2].T)
     t = (stamps - stamps[0]) * 1e-9
     return after, err, t
 
@@ -184,9 +189,7 @@ def test_after_a_recovery_onto_wrong_measurements_the_level_covers_where_the_clo
     after = [r for r in reports if (r.result.stamp_ns - t0) * 1e-9 >= at_s]
     assert after[0].result.recovered
     after = after[1:]                        # the epochs after the move
-    stamps = np.array([r.result.stamp_ns for r in after], dtype=np.int64)
-    est = np.array([r.result.position_enu_m for r in after])
-    err = np.hypot(*(est - truth_at(drive, engine.frame, stamps))[:, :2].T)
+    err = _horizontal_errors_m(drive, engine.frame, [r.result for r in after])
     pl = np.array([r.result.protection_level_m for r in after])
     settling = np.array([r.result.settling_s < 30.0 for r in after])
     assert settling[:20].all() and err[settling].max() > 30.0      # the cloud followed
@@ -236,9 +239,7 @@ def test_with_every_epoch_independent_a_cloud_in_the_right_place_does_not_recove
                          timing=InputTiming(gnss_queue_size=None))
     results = [r.result for r in engine_reports(
         engine, drive.gnss, dead_reckon(drive.imu, drive.odometry), None)]
-    stamps = np.array([r.stamp_ns for r in results], dtype=np.int64)
-    est = np.array([r.position_enu_m for r in results])
-    err = np.hypot(*(est - truth_at(drive, engine.frame, stamps))[:, :2].T)
+    err = _horizontal_errors_m(drive, engine.frame, results)
     assert np.all(err[30:] < 5.0), err[30:].max()
     statistic = np.array([r.consistency.statistic_nats for r in results])
     # The statistic did reach the recovery level (the gate, not a quiet test, held it),
