@@ -24,11 +24,7 @@ estimated from the residuals over a sliding window):
   and the pooled fit near physical scales (:class:`ErrorPriors`): conventions of the
   problem class (code noise of metres, NLOS errors of tens of metres), not values fitted
   to a data set. Before any residual the model is that prior, so the first fix is
-  weighted by C/N0 too, never by the stated variances;
-* each residual weighs the time it stands for (:func:`residual_weight_s`), and the
-  priors weigh as much as a few seconds of data: so the balance between the prior and
-  the data, and with it the fit, does not depend on how many epochs a second of data
-  brings (the GNSS rate).
+  weighted by C/N0 too, never by the stated variances.
 
 The residuals are those of the epoch's own robust snapshot solution (so that a filter
 locked onto a wrong place cannot teach the model that place), after its clock per
@@ -104,11 +100,8 @@ class ErrorPriors:
         core_sd_m: Line-of-sight code error standard deviation before any data [m].
         wide_sd_m: NLOS / multipath error standard deviation before any data [m].
         wide_share: Share of NLOS / multipath residuals before any data.
-        pooled_strength: Weight of the pooled fit's prior, in satellite-seconds of
-            residuals (:func:`residual_weight_s`). 6 s is what its earlier thirty
-            pseudo-samples (a convention, not a fit) weighed against a 5 Hz stream; they
-            weighed five times more against a 1 Hz one.
-        class_strength: Weight by which a class is drawn to the pooled fit, likewise.
+        pooled_strength: Pseudo-samples of the pooled fit's prior.
+        class_strength: Pseudo-samples by which a class is drawn to the pooled fit.
         min_core_sd_m: Smallest core spread: code noise never vanishes (0.3 m: a good
             receiver's code tracking) [m].
         max_shape: Largest factor of the SIGMA-epsilon shape (at the lowest C/N0).
@@ -117,8 +110,8 @@ class ErrorPriors:
     core_sd_m: float = 5.0
     wide_sd_m: float = 30.0
     wide_share: float = 0.3
-    pooled_strength: float = 6.0
-    class_strength: float = 6.0
+    pooled_strength: float = 30.0
+    class_strength: float = 30.0
     min_core_sd_m: float = 0.3
     max_shape: float = 10.0
 
@@ -129,30 +122,14 @@ class ErrorPriors:
                           self.max_shape)
 
 
-#: Fewest residuals the window keeps, however old (thirty epochs of ten satellites). A
-#: 60 s window of a 30 s static station holds two epochs, some 20 residuals: too few to
-#: tell a core from a wide component (the fit stayed near the prior, twice the station's
-#: errors); at 1 Hz and above a drive's 60 s hold more than this and the window is the
-#: time window. After a GNSS outage the last residuals before it stay until new ones
-#: replace them: the same receiver's older errors say more than the prior does.
-MIN_WINDOW_RESIDUALS = 300
-
-
-def residual_weight_s(dt_s: float, correlation_time_s: float) -> float:
-    """What one residual weighs in the fit [s]: the time since the epoch before it,
-    ``dt``, while that is short against the correlation time ``tau`` of the errors, and
-    at most ``2 tau`` (``2 tau tanh(dt / (2 tau))``, the worth of an epoch of
-    ``core.persistence.persisting_worth`` in seconds).
-
-    Counted per residual, the data of a 5 Hz receiver would outweigh the prior five times
-    more than those of the same receiver at 1 Hz, whose residuals carry the same errors a
-    fifth as often: on the Berlin drive decimated to 1 Hz the 30-35 dB-Hz class kept a
-    core of 7.5 m, near its prior, where at 5 Hz its data make it 21 m, and the filter
-    followed those satellites 30 m off (docs/robustness.md). Weighed by the time they
-    stand for, a second of data weighs the same against the prior at any rate.
-    """
-    tau = max(correlation_time_s, MIN_CORRELATION_TIME_S)
-    return float(2.0 * tau * np.tanh(max(dt_s, 0.0) / (2.0 * tau)))
+#: Fewest residuals the window keeps, however old: ten times the prior's pseudo-samples
+#: (``ErrorPriors.pooled_strength``), so that the data outweigh the prior. A 60 s window
+#: of a 30 s static station holds two epochs (some 20 residuals against 30 pseudo-samples
+#: of a 5 m core: the fit stayed near the prior, twice the station's errors); at 1 Hz and
+#: above a drive's 60 s hold more than this and the window is the time window. After a
+#: GNSS outage the last residuals before it stay until new ones replace them: the same
+#: receiver's older errors say more than the prior does.
+MIN_WINDOW_RESIDUALS = int(10 * ErrorPriors.pooled_strength)
 
 
 @dataclass(frozen=True)
@@ -210,14 +187,10 @@ class AdaptiveErrorModel:
         self._stamp_ns = np.zeros(MAX_SAMPLES, dtype=np.int64)
         self._class = np.zeros(MAX_SAMPLES, dtype=np.int64)
         self._residual_m = np.zeros(MAX_SAMPLES)
-        self._weight_s = np.zeros(MAX_SAMPLES)    # residual_weight_s of each
         self._count = 0
-        # The last epoch observed, and the one whose weight waits for the interval after
-        # it (the first epoch has none before it).
-        self._last_stamp_ns: int | None = None
-        self._pending_stamp_ns: int | None = None
-        # Constants of every refit: the one class of the pooled fit, and its prior's
-        # centre.
+        # Constants of every refit: unit weights, the one class of the pooled fit, and
+        # its prior's centre.
+        self._ones = np.ones(MAX_SAMPLES)
         self._zeros = np.zeros(MAX_SAMPLES, dtype=np.int64)
         self._pooled_prior = tuple(np.array([v]) for v in (
             priors.core_sd_m, priors.wide_share, 0.0, priors.wide_sd_m))
@@ -237,8 +210,7 @@ class AdaptiveErrorModel:
         return self._count
 
     def observe(self, stamp_ns: int, residual_m: np.ndarray, cn0_dbhz: np.ndarray,
-                n_unknowns: int, keys: np.ndarray | None = None,
-                interval_s: float | None = None) -> None:
+                n_unknowns: int, keys: np.ndarray | None = None) -> None:
         """Add one epoch's residuals at the estimate and refit the mixture.
 
         Args:
@@ -248,14 +220,7 @@ class AdaptiveErrorModel:
             n_unknowns: Position and clock unknowns the fix took from them.
             keys: (k,) one key per satellite across epochs, for the time correlation
                 (None: not measured).
-            interval_s: Time since the stream's previous epoch [s], which the residuals
-                stand for (:func:`residual_weight_s`; 0: the first epoch). None: since
-                the previous call.
         """
-        if interval_s is None:
-            last = self._last_stamp_ns
-            interval_s = 0.0 if last is None else (stamp_ns - last) * 1e-9
-        self._last_stamp_ns = stamp_ns
         r = np.asarray(residual_m, dtype=float)
         cn0 = np.asarray(cn0_dbhz, dtype=float)
         keep = np.isfinite(r)
@@ -279,21 +244,8 @@ class AdaptiveErrorModel:
             # np.clip's result, without its dispatch (a dozen values).
             self._observe_pairs(stamp_ns, np.asarray(keys), np.minimum(np.maximum(r, -clip),
                                                                        clip))
-        self._append(stamp_ns, r, cls, self._epoch_weight_s(stamp_ns, interval_s))
+        self._append(stamp_ns, r, cls)
         self._refit()
-
-    def _epoch_weight_s(self, stamp_ns: int, interval_s: float) -> float:
-        """The weight of this epoch's residuals. The first epoch stands for no interval
-        yet: its residuals take the weight of the next epoch's."""
-        if not interval_s > 0.0:
-            self._pending_stamp_ns = stamp_ns
-            return 0.0
-        weight = residual_weight_s(interval_s, self.correlation_time_s)
-        if self._pending_stamp_ns is not None:
-            n = self._count
-            self._weight_s[:n][self._stamp_ns[:n] == self._pending_stamp_ns] = weight
-            self._pending_stamp_ns = None
-        return weight
 
     def _observe_pairs(self, stamp_ns: int, keys: np.ndarray, r: np.ndarray) -> None:
         """Pair each satellite's residual with its own about ``CORRELATION_LAG_S``
@@ -351,8 +303,7 @@ class AdaptiveErrorModel:
         return float(np.clip(-(lag / count) / np.log(rho), MIN_CORRELATION_TIME_S,
                              self.window_s))
 
-    def _append(self, stamp_ns: int, r: np.ndarray, cls: np.ndarray, weight_s: float
-                ) -> None:
+    def _append(self, stamp_ns: int, r: np.ndarray, cls: np.ndarray) -> None:
         horizon = stamp_ns - int(self.window_s * 1e9)
         n = self._count
         k = min(r.shape[0], MAX_SAMPLES)
@@ -364,18 +315,17 @@ class AdaptiveErrorModel:
         start = max(0, int(live.sum()) + k - MAX_SAMPLES)
         idx = np.flatnonzero(live)[start:]
         m = idx.shape[0]
-        for arr in (self._stamp_ns, self._class, self._residual_m, self._weight_s):
+        for arr in (self._stamp_ns, self._class, self._residual_m):
             arr[:m] = arr[idx]
         self._stamp_ns[m:m + k] = stamp_ns
         self._class[m:m + k] = cls[-k:]
         self._residual_m[m:m + k] = r[-k:]
-        self._weight_s[m:m + k] = weight_s
         self._count = m + k
 
     def _refit(self) -> None:
         n = self._count
         r, cls = self._residual_m[:n], self._class[:n]
-        w = self._weight_s[:n]
+        w = self._ones[:n]
         p = self.priors
         fit = (self.pooled.core_sd_m, self.pooled.wide_share, self.pooled.wide_mean_m,
                self.pooled.wide_sd_m)
@@ -383,12 +333,10 @@ class AdaptiveErrorModel:
                                      p.pooled_strength, p.min_core_sd_m, EM_ITERATIONS)
         self.pooled = MixtureFit(*fit, samples=np.array([float(n)]))
         # The classes' prior: the pooled fit, its spreads shaped by C/N0 about their
-        # weighted mean (so that the shape moves spreads between classes only).
+        # sample-weighted mean (so that the shape moves spreads between classes only).
         counts = np.bincount(cls, minlength=N_CLASSES).astype(float)
-        weights = np.bincount(cls, w, minlength=N_CLASSES)
         shape = self._shape
-        total = weights.sum()
-        shape = shape / (np.sum(weights * shape) / total if total > 0.0 else 1.0)
+        shape = shape / (np.sum(counts * shape) / max(counts.sum(), 1.0))
         s0, pi, mu, s1 = fit
         centre = (s0 * shape, np.repeat(pi, N_CLASSES), np.repeat(mu, N_CLASSES), s1 * shape)
         fit = (self.fit.core_sd_m, self.fit.wide_share, self.fit.wide_mean_m,

@@ -443,7 +443,7 @@ class ParticleFilter:
         tempering = tempering_exponent(self.persistence.persistent_share, persisting)
         lik = self.likelihood.joint(priors, prep, clock_w, tempering, self.log_w)
         joint, total = lik.joint, lik.total
-        self._consistency_state = self._snapshot_step(epoch.stamp_ns, dt_s, priors[0], prep,
+        self._consistency_state = self._snapshot_step(epoch.stamp_ns, priors[0], prep,
                                                       centre, spread_m, clock_w, tempering,
                                                       float(total[0]), persisting)
         fusion = None
@@ -478,15 +478,15 @@ class ParticleFilter:
         result.n_satellites = int(prep.pr_m.shape[0])
         return result
 
-    def _snapshot_step(self, stamp_ns: int, dt_s: float, cloud: np.ndarray,
-                       prep: gnss.PreparedEpoch, centre: np.ndarray, spread_m: float,
-                       clock_w: np.ndarray, tempering: float, cloud_total: float,
-                       persisting: float) -> ConsistencyState:
+    def _snapshot_step(self, stamp_ns: int, cloud: np.ndarray, prep: gnss.PreparedEpoch,
+                       centre: np.ndarray, spread_m: float, clock_w: np.ndarray,
+                       tempering: float, cloud_total: float, persisting: float
+                       ) -> ConsistencyState:
         """What the epoch's own robust snapshot solution tells: its residuals teach the
-        error model (``core.error_model``, ``dt_s`` after the last epoch; the snapshot
-        depends on this epoch alone, so a filter locked onto a wrong place cannot teach
-        the model that place), and the cloud moved onto it is the alternative of the
-        consistency test (``core.consistency``; ``clock_w``: the update's clock weights)."""
+        error model (``core.error_model``; the snapshot depends on this epoch alone, so
+        a filter locked onto a wrong place cannot teach the model that place), and the
+        cloud moved onto it is the alternative of the consistency test
+        (``core.consistency``; ``clock_w``: the update's clock weights)."""
         cfg = self.config
         adaptive = cfg.error_model == ERROR_ADAPTIVE
         sigma = self.errors.total_sigma_m(prep.cn0_dbhz) if adaptive else prep.sigma_m
@@ -499,7 +499,7 @@ class ParticleFilter:
             at_snap = gnss.clock_weights(prep, snap, cfg.clock_kernel_max_m)
             residual = gnss.clock_corrected_residuals(snap[None], prep, at_snap)[0]
             self.errors.observe(stamp_ns, residual, prep.cn0_dbhz, 3 + prep.n_systems,
-                                prep.sv_key, interval_s=dt_s)
+                                prep.sv_key)
         shift = np.zeros(cloud.shape[1])
         shift[:2] = snap[:2] - centre[:2]
         log_w = self.log_w
