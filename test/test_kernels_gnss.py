@@ -95,6 +95,13 @@ def test_single_precision_robust_joint_is_within_1e4_nats_of_float64(spread_m):
     geometry = gnss.relative_geometry(sets, prep, clock_w)
     assert geometry is not None and 500.0 < geometry.max_offset_m[0] <= 1000.0
     assert np.linalg.norm(sets[4, 100] - geometry.centre_m[0]) > geometry.max_offset_m[0]
+    # The inlier shares on the same views, the set with the exact block among them.
+    for chosen in (0, 4):
+        post = double.joint[chosen] - double.total[chosen]
+        exact = gnss.robust_inlier_shares(sets[chosen], post, prep, clock_w, 0.3, 300.0)
+        fast = gnss.robust_inlier_shares(sets[chosen], post, prep, clock_w, 0.3, 300.0,
+                                         single.geometry, chosen)
+        np.testing.assert_allclose(fast, exact, atol=1e-5)
 
 
 @pytest.mark.parametrize('n', [1, 31, 32, 33, 2000])
@@ -173,16 +180,28 @@ def test_log_sum_exp_kernel_equals_scipy(n):
     assert gnss_kernels._log_sum_exp(np.full(n, -np.inf)) == -np.inf
 
 
-def test_robust_inlier_shares_match_the_oracle(case):
+def inlier_shares(single, sets, prior, prep, clock_w):
+    """The robust inlier shares of ``sets[1]``: float64, or float32 on the views the
+    float32 joint of every set took (as the filter takes them)."""
+    geometry = None
+    if single:
+        likelihood = gnss.RobustLikelihood(0.3, 300.0)
+        geometry = likelihood.joint(sets, prep, clock_w, 1.0, prior).geometry
+        assert geometry is not None
+    return gnss.robust_inlier_shares(sets[1], prior, prep, clock_w, 0.3, 300.0, geometry, 1)
+
+
+@pytest.mark.parametrize('single, tolerance', [(False, 1e-9), (True, 1e-5)])
+def test_robust_inlier_shares_match_the_oracle(case, single, tolerance):
     prep, sets, prior, clock_w, z = case
-    probability, share = gnss.robust_inlier_shares(sets[1], prior, prep, clock_w, 0.3, 300.0)
+    probability, share = inlier_shares(single, sets, prior, prep, clock_w)
     log_sigma = np.log(prep.sigma_m)
     np.testing.assert_allclose(
         probability, oracles.robust_inlier_probability(z[1], log_sigma, 0.3, 300.0, prior),
-        atol=1e-9)
+        atol=tolerance)
     np.testing.assert_allclose(
         share, oracles.robust_log_likelihood(z[1:2], log_sigma, 0.3, 300.0).gamma[0],
-        atol=1e-9)
+        atol=tolerance)
 
 
 def with_learned_mixture(prep):
@@ -214,17 +233,19 @@ def test_robust_joint_under_a_learned_mixture_matches_the_oracle(case, single, t
                                atol=tolerance)
 
 
-def test_robust_inlier_shares_under_a_learned_mixture_match_the_oracle(case):
+@pytest.mark.parametrize('single, tolerance', [(False, 1e-9), (True, 1e-5)])
+def test_robust_inlier_shares_under_a_learned_mixture_match_the_oracle(
+        case, single, tolerance):
     prep, sets, prior, clock_w, z = case
     prep = with_learned_mixture(prep)
-    probability, share = gnss.robust_inlier_shares(sets[1], prior, prep, clock_w, 0.3, 300.0)
+    probability, share = inlier_shares(single, sets, prior, prep, clock_w)
     core, whole = oracles.mixture_densities(z[1] * prep.sigma_m, prep.sigma_m,
                                             prep.wide_share, prep.wide_mean_m, prep.wide_sd_m,
                                             gnss.FAULT_SHARE, 300.0)
     inlier = core / whole
-    np.testing.assert_allclose(probability, np.exp(prior) @ inlier, atol=1e-9)
+    np.testing.assert_allclose(probability, np.exp(prior) @ inlier, atol=tolerance)
     np.testing.assert_allclose(share, inlier.mean(axis=0) / inlier.mean(axis=0).sum(),
-                               atol=1e-9)
+                               atol=tolerance)
 
 
 @pytest.mark.parametrize('single', [False, True])

@@ -1,7 +1,9 @@
 """The compiled posterior statistics (``core.kernels.posterior``) against the numpy oracles:
 distances, hazard masses, protection level, pooled moments and their KL, the inverse
-Bernoulli; and the fast exponential they use and the logarithm of the likelihood
-(``core.kernels.elementary``)."""
+Bernoulli; and the fast exponential they use, the logarithm of the likelihood and the sine
+and cosine of the headings (``core.kernels.elementary``)."""
+import math
+
 import numpy as np
 import oracles
 import pytest
@@ -11,7 +13,8 @@ from gnsscam_ros.core import integrity
 from gnsscam_ros.core.filter import UPDATED, FilterConfig, ParticleFilter
 from gnsscam_ros.core.kernels import kernel
 from gnsscam_ros.core.kernels import posterior as posterior_kernels
-from gnsscam_ros.core.kernels.elementary import exp, exp32, log
+from gnsscam_ros.core.kernels.elementary import (SINCOS_LARGEST, exp, exp32, log,
+                                                 sincos_into)
 from gnsscam_ros.core.particles import MotionIncrement
 
 SECOND = 1_000_000_000
@@ -91,6 +94,39 @@ def test_fast_log_is_within_one_ulp_everywhere():
     _log_array(special, out)
     np.testing.assert_array_equal(out[:3], [-np.inf, -np.inf, np.inf])
     assert np.isnan(out[3:]).all()
+
+
+@kernel
+def _sincos_arrays(x, sin_out, cos_out):
+    sincos_into(x, sin_out, cos_out)
+
+
+def test_fast_sincos_is_within_one_ulp_up_to_its_largest_argument():
+    rng = np.random.default_rng(0)
+    x = np.concatenate([
+        # Every binade from 1e-9 rad to the largest argument, both signs.
+        rng.choice([-1.0, 1.0], 200_000) * np.exp(rng.uniform(np.log(1e-9),
+                                                              np.log(SINCOS_LARGEST),
+                                                              200_000)),
+        rng.uniform(-4.0, 4.0, 100_000),                       # headings
+        np.arange(-800, 801) * (np.pi / 4),                    # zeros and quadrant edges
+        [0.0, -0.0, 5e-324, SINCOS_LARGEST, -SINCOS_LARGEST]])
+    sin_x, cos_x = np.empty_like(x), np.empty_like(x)
+    _sincos_arrays(x, sin_x, cos_x)
+    exact = x.astype(np.longdouble)
+    for got, want in ((sin_x, np.sin(exact)), (cos_x, np.cos(exact))):
+        np.testing.assert_array_less(np.abs(got - want), np.spacing(np.abs(got)) * 1.0001
+                                     + 1e-300)
+    assert sin_x[-5] == 0.0 and cos_x[-5] == 1.0 and math.copysign(1.0, sin_x[-4]) < 0
+    # NaN and infinity give NaN; one argument beyond the range takes libm's for all.
+    special = np.array([np.nan, np.inf, -np.inf])
+    sin_s, cos_s = np.empty(3), np.empty(3)
+    _sincos_arrays(special, sin_s, cos_s)
+    assert np.isnan(sin_s).all() and np.isnan(cos_s).all()
+    beyond = np.array([0.5, 2.0 * SINCOS_LARGEST, 1e300])
+    _sincos_arrays(beyond, sin_s, cos_s)
+    assert list(sin_s) == [math.sin(v) for v in beyond]
+    assert list(cos_s) == [math.cos(v) for v in beyond]
 
 
 def cloud(rng, s, n, m, ties=False, zeros=False, horizontal=True, shared=False,

@@ -464,7 +464,7 @@ class ParticleFilter:
         # single GLONASS-only levels moved by up to 16 %), and its inlier share (reported).
         inlier, share = gnss.robust_inlier_shares(priors[chosen], post_log_w[chosen], prep,
                                                   clock_w, cfg.outlier_prob,
-                                                  cfg.outlier_range_m)
+                                                  cfg.outlier_range_m, lik.geometry, chosen)
         result = self._finish(epoch, check, priors, post_log_w, chosen, total,
                               (prep, inlier, tempering, clock_w))
         result.tempering = tempering

@@ -29,6 +29,7 @@ from .gnss_checks import (MAX_PSEUDORANGE_M, MAX_SATELLITE_RADIUS_M,  # noqa: F4
                           MAX_EPOCH_SATELLITES, MAX_VARIANCE_M2, GnssCheck, check_epoch,
                           epoch_problem, satellite_key)
 from .kernels import gnss as gnss_kernels
+from .kernels import inliers as inlier_kernels
 from .types import GnssEpoch
 
 LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
@@ -285,9 +286,14 @@ def relative_geometry(sets: np.ndarray, prep: PreparedEpoch, clock_weights: np.n
 
 def robust_inlier_shares(positions_m: np.ndarray, log_w: np.ndarray, prep: PreparedEpoch,
                          clock_weights: np.ndarray, outlier_prob: float,
-                         outlier_range_m: float) -> tuple[np.ndarray, np.ndarray]:
+                         outlier_range_m: float, geometry: RelativeGeometry | None = None,
+                         view: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Posterior probability that each satellite is an inlier under the robust model, for
     one particle set (N, >= 3) with normalised log-weights (N,).
+
+    With ``geometry`` (the views the float32 likelihood took, ``GnssLikelihood.geometry``;
+    ``view``: the set's view, 0 when one is shared) the densities are those float32 ones
+    (about three times faster), else float64.
 
     Returns:
         ``(probability (k,), share (k,))``: the probabilities averaged under the weights
@@ -295,11 +301,20 @@ def robust_inlier_shares(positions_m: np.ndarray, log_w: np.ndarray, prep: Prepa
         average over the particles normalised to sum to one (the robust likelihood's
         mixture weights, reported with the epoch).
     """
+    positions_m = np.ascontiguousarray(positions_m, dtype=float)
+    log_w = np.ascontiguousarray(log_w, float)
+    clock_weights = np.ascontiguousarray(clock_weights, dtype=float)
     terms = robust_terms(prep, outlier_prob, outlier_range_m)
-    return gnss_kernels.robust_inlier_shares(
-        np.ascontiguousarray(positions_m, dtype=float), np.ascontiguousarray(log_w, float),
-        prep.sv_enu_m, prep.pr_m, 1.0 / prep.sigma_m, prep.sys_index, clock_weights,
-        prep.n_systems, *terms.arrays)
+    if geometry is not None:
+        g = slice(view, view + 1) if geometry.centre_m.shape[0] > 1 else slice(0, 1)
+        return inlier_kernels.robust_inlier_shares_single(
+            positions_m, log_w, geometry.centre_m[g], geometry.unit[g], geometry.base_m[g],
+            geometry.half_inv_range[g], geometry.max_offset_m[g], prep.sv_enu_m, prep.pr_m,
+            1.0 / prep.sigma_m, prep.sys_index, clock_weights.reshape(1, -1),
+            prep.n_systems, *terms.arrays)
+    return inlier_kernels.robust_inlier_shares(
+        positions_m, log_w, prep.sv_enu_m, prep.pr_m, 1.0 / prep.sigma_m, prep.sys_index,
+        clock_weights, prep.n_systems, *terms.arrays)
 
 
 @dataclass(frozen=True)
@@ -312,11 +327,14 @@ class GnssLikelihood:
         total: (S,) log-sum-exp of each set's joint (its log marginal likelihood).
         gamma: (S, k) satellite mixture weights of each set (Particle RAIM; None for the
             robust likelihood, whose weights are those of the chosen set only).
+        geometry: The views of the float32 likelihood, where it was taken (the inlier
+            shares of a set are then taken alike, :func:`robust_inlier_shares`).
     """
 
     joint: np.ndarray
     total: np.ndarray
     gamma: np.ndarray | None = None
+    geometry: 'RelativeGeometry | None' = None
 
 
 class Likelihood(Protocol):
@@ -420,7 +438,7 @@ class RobustLikelihood:
                 geometry.half_inv_range, geometry.max_offset_m, prep.sv_enu_m, prep.pr_m,
                 inv_sigma, prep.sys_index, clock_w, prep.n_systems, *terms.arrays,
                 terms.group, float(tempering), prior_log_w, joint)
-            return GnssLikelihood(joint=joint, total=total)
+            return GnssLikelihood(joint=joint, total=total, geometry=geometry)
         terms = robust_terms(prep, self.outlier_prob, self.outlier_range_m)
         total = gnss_kernels.robust_joint(
             sets, prep.sv_enu_m, prep.pr_m, inv_sigma, prep.sys_index,

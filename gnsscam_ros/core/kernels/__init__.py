@@ -2,7 +2,8 @@
 
 Everything an epoch does per particle or per particle and satellite runs here, fused into
 few passes over the arrays: propagation (``motion``), receiver clock and GNSS likelihood
-(``gnss``), camera distributions and their mixture (``camera``), posterior moments,
+(``gnss``), the satellites' inlier probabilities under it (``inliers``), camera
+distributions and their mixture (``camera``), posterior moments,
 hazard mass and protection level (``posterior``); and per epoch, the snapshot solution
 (``snapshot``) and the bias hypotheses' small matrices (``bias``), whose numpy calls cost
 more than their arithmetic. The modules of ``core``

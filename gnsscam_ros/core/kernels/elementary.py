@@ -19,6 +19,15 @@ too: the likelihood takes one per particle and group of satellites), within 1 ul
 exact value (libm's is within 0.52): libm's value, or its neighbour in 3 inputs in a
 thousand (2e8 random inputs, float32 products and every binade).
 
+:func:`sincos` is the sine and cosine of one argument of the same kind (a loop calling
+``math.sin`` and ``math.cos`` stays scalar: 10-20 ns per call), within 1 ulp of the exact
+values for ``|x| <= SINCOS_LARGEST`` (libm's, or its neighbour in 3 % of inputs; 2e6
+random inputs per binade of the range, and every multiple of pi / 4 to 200): fdlibm's
+reduction by pi / 2 in three parts (Cody-Waite; here each step's rounding error carried
+exactly, with no branch) and its kernels ``__kernel_sin`` and ``__kernel_cos`` on the
+reduced argument and its tail. :func:`sincos_into` fills arrays, falling back to libm
+when an argument lies beyond that range.
+
 :func:`largest` is the maximum of an array in four partial results (a loop into one
 scalar waits on each comparison; these chains run side by side).
 
@@ -27,6 +36,8 @@ kernel depends on its own file only: the package drops cached kernels older than
 its sources at import (``kernels.drop_stale_caches``), so a change here recompiles them.
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from llvmlite import ir
@@ -174,6 +185,86 @@ def exp32(x):
     out = out if x > _F32_LOWEST else _F32_ZERO
     out = out if x < _F32_HIGHEST else _F32_INF
     return out if x == x else x
+
+
+# ------------------------------------------------------------------ sine, cosine
+#: Largest ``|x|`` of :func:`sincos` (``k * _PIO2_1`` stays exact for ``|k| < 2^20``).
+SINCOS_LARGEST = 2.0 ** 18
+_INV_PIO2 = 6.36619772367581382433e-01
+# pi / 2 in 33-bit parts (fdlibm's pio2_1, pio2_2, pio2_3) and the rest: k times a part is
+# exact for |k| < 2^20.
+_PIO2_1 = 1.57079632673412561417e+00
+_PIO2_2 = 6.07710050630396597660e-11
+_PIO2_3 = 2.02226624871116645580e-21
+_PIO2_3T = 8.47842766036889956997e-32
+# fdlibm's __kernel_sin and __kernel_cos coefficients on [-pi / 4, pi / 4].
+_SIN = (-1.66666666666666324348e-01, 8.33333333332248946124e-03,
+        -1.98412698298579493134e-04, 2.75573137070700676789e-06,
+        -2.50507602534068634195e-08, 1.58969099521155010221e-10)
+_COS = (4.16666666666666019037e-02, -1.38888888888741095749e-03,
+        2.48015872894767294178e-05, -2.75573143513906633035e-07,
+        2.08757232129817482790e-09, -1.13596475577881948265e-11)
+
+
+@inline_kernel
+def _two_diff(a, b):
+    """``a - b`` and its rounding error, exactly (Knuth's TwoSum, no branch)."""
+    s = a - b
+    bb = s - a
+    return s, (a - (s - bb)) - (b + bb)
+
+
+@inline_kernel
+def sincos(x):
+    """``(sin x, cos x)`` (float64), vectorisable, for ``|x| <= SINCOS_LARGEST``; NaN for
+    NaN and infinite ``x``."""
+    shifted = x * _INV_PIO2 + _ROUND
+    k = shifted - _ROUND
+    a = x - k * _PIO2_1                      # exact (Sterbenz)
+    b, e1 = _two_diff(a, k * _PIO2_2)
+    c, e2 = _two_diff(b, k * _PIO2_3)
+    tail = (e1 + e2) - k * _PIO2_3T
+    # x - k pi / 2 = y0 + y1, |y0| <= pi / 4 (a zero tail keeps the sign of a zero c).
+    y0 = c + tail if tail != 0.0 else c
+    y1 = (c - y0) + tail
+    quadrant = _float_to_bits(shifted) - _ROUND_BITS
+    s1, s2, s3, s4, s5, s6 = _SIN
+    c1, c2, c3, c4, c5, c6 = _COS
+    z = y0 * y0
+    v = z * y0
+    rs = s2 + z * (s3 + z * (s4 + z * (s5 + z * s6)))
+    sin_y = y0 - ((z * (0.5 * y1 - v * rs) - y1) - v * s1)
+    zz = z * z
+    rc = z * (c1 + z * (c2 + z * c3)) + zz * zz * (c4 + z * (c5 + z * c6))
+    hz = 0.5 * z
+    w = 1.0 - hz
+    cos_y = w + (((1.0 - w) - hz) + (z * rc - y0 * y1))
+    odd = (quadrant & 1) != 0
+    sin_x = cos_y if odd else sin_y
+    cos_x = sin_y if odd else cos_y
+    sin_x = -sin_x if (quadrant & 2) != 0 else sin_x
+    cos_x = -cos_x if ((quadrant + 1) & 2) != 0 else cos_x
+    return sin_x, cos_x
+
+
+@inline_kernel
+def sincos_into(x, sin_out, cos_out):
+    """``sin_out[i], cos_out[i] = sin x[i], cos x[i]`` over the (N,) ``x``: :func:`sincos`
+    where every ``|x|`` is within ``SINCOS_LARGEST`` (a NaN is too: it stays NaN),
+    libm's otherwise."""
+    n = x.shape[0]
+    beyond = False
+    for i in range(n):
+        beyond |= abs(x[i]) > SINCOS_LARGEST
+    if beyond:
+        for i in range(n):
+            sin_out[i] = math.sin(x[i])
+            cos_out[i] = math.cos(x[i])
+        return
+    for i in range(n):
+        s, c = sincos(x[i])
+        sin_out[i] = s
+        cos_out[i] = c
 
 
 @inline_kernel

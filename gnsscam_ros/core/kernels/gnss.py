@@ -120,8 +120,11 @@ def _robust_densities(r_j, m, ls, isg, fl, wl, ratio, plateau, hi, dens, cores):
 
 
 @inline_kernel
-def _robust_densities32(r_j, clock_c, m, ls, isg, fl, wl, ratio, plateau, hi, dens):
-    """:func:`_robust_densities` in float32, for residuals ``r_j - clock_c``."""
+def _robust_densities32(r_j, clock_c, m, ls, isg, fl, wl, ratio, plateau, hi, dens, cores,
+                        want_cores):
+    """:func:`_robust_densities` in float32, for residuals ``r_j - clock_c``; the core
+    into ``cores`` only when ``want_cores`` (a constant of the caller: the branch is
+    compiled away)."""
     half = np.float32(0.5)
     zero = np.float32(0.0)
     above = False
@@ -131,6 +134,8 @@ def _robust_densities32(r_j, clock_c, m, ls, isg, fl, wl, ratio, plateau, hi, de
         core = elementary.exp32(ls - half * z * z)
         wide = core * ratio if e < zero else (plateau if e <= hi else zero)
         dens[b] = core + wide + fl
+        if want_cores:
+            cores[b] = core
         above |= e > hi
     if above and plateau > zero:
         for b in range(m):
@@ -138,6 +143,71 @@ def _robust_densities32(r_j, clock_c, m, ls, isg, fl, wl, ratio, plateau, hi, de
             t = (e - hi) * isg
             tail = elementary.exp32(wl - half * t * t)
             dens[b] += tail if e > hi else zero
+
+
+@inline_kernel
+def _single_constants(unit, base, half_inv_range, clock_w, inv_sigma, log_scale, floor,
+                      wide_log_scale, wide_high):
+    """The float32 kernels' per-satellite constants: the views' and the robust model's
+    arrays rounded to float32 (the wide component's two constants computed in float64
+    first, :func:`_wide_constants`)."""
+    f32 = np.float32
+    ratio, plateau = _wide_constants(log_scale, wide_log_scale)
+    return (unit.astype(f32), base.astype(f32), half_inv_range.astype(f32),
+            clock_w.astype(f32), inv_sigma.astype(f32), log_scale.astype(f32),
+            floor.astype(f32), np.maximum(wide_log_scale, -1000.0).astype(f32),
+            wide_high.astype(f32), ratio.astype(f32), plateau.astype(f32))
+
+
+@inline_kernel
+def _relative_residuals32(points, start, m, cx, cy, cz, limit, unit32, base32, half32,
+                          clock_w32, clock_w, g, sv, pr, sys_index, n_systems, dx32, dy32,
+                          dz32, q32, r, clock, exact_xyz, exact_r, exact_clock):
+    """Float32 residuals ``r[j, b]`` of the points ``start .. start + m`` of ``points``
+    relative to the centre ``(cx, cy, cz)`` (:func:`robust_joint_single` says how), and
+    each point's clock per constellation in ``clock`` (float32, (n_systems, BLOCK)): the
+    residual the densities take is ``r[j] - clock[sys_index[j]]``. A block with a point
+    whose squared offset exceeds ``limit`` takes the exact float64 residuals, their clock
+    already removed (``clock`` zero). ``unit32`` (k, 3), ``base32``, ``half32``,
+    ``clock_w32`` (k,): one view's float32 constants; ``clock_w`` (k,) its float64 clock
+    weights; ``dx32 .. q32`` (BLOCK,) float32 (offsets east, north, up and ``|d|^2``)
+    and ``exact_*`` float64 scratch (rows of scratch arrays are taken once by the
+    caller: a view made per block costs as much as a tenth of the block's arithmetic)."""
+    k = pr.shape[0]
+    f32 = np.float32
+    zero = f32(0.0)
+    for b in range(m):
+        dx = points[start + b, 0] - cx
+        dy = points[start + b, 1] - cy
+        dz = points[start + b, 2] - cz
+        dx32[b] = f32(dx)
+        dy32[b] = f32(dy)
+        dz32[b] = f32(dz)
+        q32[b] = f32(dx * dx + dy * dy + dz * dz)
+    far = False
+    for b in range(m):
+        far |= q32[b] > limit
+    for c in range(n_systems):
+        clock_c = clock[c]
+        for b in range(m):
+            clock_c[b] = zero
+    if far:
+        # Residuals r - clock in float64, the clock already removed.
+        _block_residuals(points, start, m, sv, pr, sys_index, clock_w[g], n_systems,
+                         exact_xyz, exact_r, exact_clock)
+        for j in range(k):
+            for b in range(m):
+                r[j, b] = f32(exact_r[j, b])
+    else:
+        for j in range(k):
+            ux, uy, uz = unit32[g, j, 0], unit32[g, j, 1], unit32[g, j, 2]
+            p, h, w = base32[g, j], half32[g, j], clock_w32[g, j]
+            r_j, clock_c = r[j], clock[sys_index[j]]
+            for b in range(m):
+                a = ux * dx32[b] + uy * dy32[b] + uz * dz32[b]
+                rj = p + a - (q32[b] - a * a) * h
+                r_j[b] = rj
+                clock_c[b] += w * rj
 
 
 @kernel
@@ -300,20 +370,11 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
     s_count, n = sets.shape[0], sets.shape[1]
     k = pr.shape[0]
     f32 = np.float32
-    unit32 = unit.astype(f32)
-    base32 = base.astype(f32)
-    half32 = half_inv_range.astype(f32)
-    clock_w32 = clock_w.astype(f32)
-    inv_sigma32 = inv_sigma.astype(f32)
-    log_scale32 = log_scale.astype(f32)
-    floor32 = floor.astype(f32)
-    wide_log32 = np.maximum(wide_log_scale, -1000.0).astype(f32)
-    wide_high32 = wide_high.astype(f32)
-    ratio, plateau = _wide_constants(log_scale, wide_log_scale)  # float64, then rounded
-    wide_ratio32 = ratio.astype(f32)
-    plateau32 = plateau.astype(f32)
+    (unit32, base32, half32, clock_w32, inv_sigma32, log_scale32, floor32, wide_log32,
+     wide_high32, wide_ratio32, plateau32) = _single_constants(
+        unit, base, half_inv_range, clock_w, inv_sigma, log_scale, floor, wide_log_scale,
+        wide_high)
     one = f32(1.0)
-    zero = f32(0.0)
     r = np.empty((k, BLOCK), dtype=f32)
     clock = np.empty((max(n_systems, 1), BLOCK), dtype=f32)
     d = np.empty((4, BLOCK), dtype=f32)            # offsets east, north, up; |d|^2
@@ -332,38 +393,9 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
         limit = f32(max_offset_m[g] * max_offset_m[g])
         for start in range(0, n, BLOCK):
             m = min(BLOCK, n - start)
-            for b in range(m):
-                dx = points[start + b, 0] - cx
-                dy = points[start + b, 1] - cy
-                dz = points[start + b, 2] - cz
-                dx32[b] = f32(dx)
-                dy32[b] = f32(dy)
-                dz32[b] = f32(dz)
-                q32[b] = f32(dx * dx + dy * dy + dz * dz)
-            far = False
-            for b in range(m):
-                far |= q32[b] > limit
-            for c in range(n_systems):
-                clock_c = clock[c]
-                for b in range(m):
-                    clock_c[b] = zero
-            if far:
-                # Residuals r - clock in float64, the clock already removed.
-                _block_residuals(points, start, m, sv, pr, sys_index, clock_w[g], n_systems,
-                                 exact_xyz, exact_r, exact_clock)
-                for j in range(k):
-                    for b in range(m):
-                        r[j, b] = f32(exact_r[j, b])
-            else:
-                for j in range(k):
-                    ux, uy, uz = unit32[g, j, 0], unit32[g, j, 1], unit32[g, j, 2]
-                    p, h, w = base32[g, j], half32[g, j], clock_w32[g, j]
-                    r_j, clock_c = r[j], clock[sys_index[j]]
-                    for b in range(m):
-                        a = ux * dx32[b] + uy * dy32[b] + uz * dz32[b]
-                        rj = p + a - (q32[b] - a * a) * h
-                        r_j[b] = rj
-                        clock_c[b] += w * rj
+            _relative_residuals32(points, start, m, cx, cy, cz, limit, unit32, base32, half32,
+                                  clock_w32, clock_w, g, sv, pr, sys_index, n_systems, dx32,
+                                  dy32, dz32, q32, r, clock, exact_xyz, exact_r, exact_clock)
             for b in range(m):
                 prod[b] = one
                 log_sum[b] = 0.0
@@ -371,7 +403,8 @@ def robust_joint_single(sets, centre, unit, base, half_inv_range, max_offset_m, 
             for j in range(k):
                 _robust_densities32(r[j], clock[sys_index[j]], m, log_scale32[j],
                                     inv_sigma32[j], floor32[j], wide_log32[j],
-                                    wide_ratio32[j], plateau32[j], wide_high32[j], dens)
+                                    wide_ratio32[j], plateau32[j], wide_high32[j], dens,
+                                    dens, False)
                 for b in range(m):
                     prod[b] *= dens[b]
                 count += 1
@@ -461,60 +494,6 @@ def particle_raim_joint(sets, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
                     gamma[s, j] = (gamma[s, j] + dirichlet_alpha - 1.0) / norm
         total[s] = _log_sum_exp(joint[s])
     return total
-
-
-@contracted_kernel
-def robust_inlier_shares(points, log_w, sv, pr, inv_sigma, sys_index, clock_w, n_systems,
-                         log_scale, floor, wide_log_scale, wide_high):
-    """Per-satellite inlier probabilities of one set under the robust model.
-
-    ``p_k = d_k / (d_k + v_k + floor_k)``, ``d_k = scale_k exp(-z_k^2 / 2)`` (the core)
-    and ``v_k`` the wide component (:func:`robust_joint`), per particle.
-
-    Returns:
-        ``(weighted (k,), share (k,))``: the average of ``p_k`` under ``log_w`` (what the
-        bias hypotheses weigh each satellite with) and the plain average over the
-        particles normalised to sum to one (the mixture weights reported per epoch).
-    """
-    n = points.shape[0]
-    k = pr.shape[0]
-    r = np.empty((k, BLOCK))
-    xyz = np.empty((3, BLOCK))
-    clock = np.empty((max(n_systems, 1), BLOCK))
-    w = np.empty(BLOCK)
-    dens = np.empty(BLOCK)
-    cores = np.empty(BLOCK)
-    ratio, plateau = _wide_constants(log_scale, wide_log_scale)
-    # Sums per satellite and lane of a block, added up once at the end: a loop that adds
-    # into one scalar stays scalar (each add waits for the previous one), this one
-    # vectorises with the exponential in it.
-    lanes_w = np.zeros((k, BLOCK))
-    lanes_p = np.zeros((k, BLOCK))
-    for start in range(0, n, BLOCK):
-        m = min(BLOCK, n - start)
-        _block_residuals(points, start, m, sv, pr, sys_index, clock_w, n_systems, xyz, r,
-                         clock)
-        for b in range(m):
-            w[b] = elementary.exp(log_w[start + b])
-        for j in range(k):
-            sum_w, sum_p = lanes_w[j], lanes_p[j]
-            _robust_densities(r[j], m, log_scale[j], inv_sigma[j], floor[j],
-                              wide_log_scale[j], ratio[j], plateau[j], wide_high[j], dens,
-                              cores)
-            for b in range(m):
-                p = cores[b] / dens[b]
-                sum_w[b] += w[b] * p
-                sum_p[b] += p
-    weighted = np.zeros(k)
-    share = np.zeros(k)
-    for j in range(k):
-        for b in range(BLOCK):
-            weighted[j] += lanes_w[j, b]
-            share[j] += lanes_p[j, b]
-    total = share.sum()
-    for j in range(k):
-        share[j] /= total
-    return weighted, share
 
 
 @kernel
