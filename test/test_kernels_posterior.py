@@ -13,6 +13,7 @@ from gnsscam_ros.core import integrity
 from gnsscam_ros.core.filter import UPDATED, FilterConfig, ParticleFilter
 from gnsscam_ros.core.kernels import kernel
 from gnsscam_ros.core.kernels import posterior as posterior_kernels
+from gnsscam_ros.core.kernels import weights as weight_kernels
 from gnsscam_ros.core.kernels.elementary import (SINCOS_LARGEST, exp, exp32, log,
                                                  sincos_into)
 from gnsscam_ros.core.particles import MotionIncrement
@@ -127,6 +128,32 @@ def test_fast_sincos_is_within_one_ulp_up_to_its_largest_argument():
     _sincos_arrays(beyond, sin_s, cos_s)
     assert list(sin_s) == [math.sin(v) for v in beyond]
     assert list(cos_s) == [math.cos(v) for v in beyond]
+
+
+@pytest.mark.parametrize('heading_scale', [3.0, 2.0 * SINCOS_LARGEST])
+def test_set_summary_and_displacement_equal_numpy(rng, heading_scale):
+    """The set's summary (weighted mean, covariance, circular mean heading, effective
+    sample size) and the weighted motion between two sets, against numpy; headings
+    within the fast sine's range and beyond it (libm's then)."""
+    n = 1037
+    before = np.column_stack([rng.normal(0.0, 20.0, (n, 3)),
+                              rng.uniform(-heading_scale, heading_scale, n)])
+    after = before + rng.normal(0.0, 3.0, (n, 4))
+    log_w = np.log(rng.dirichlet(np.full(n, 0.7)))
+    w = np.exp(log_w)
+    mean, cov, yaw, ess = weight_kernels.set_summary(before, log_w)
+    expected_mean = w @ before[:, :3]
+    d = before[:, :3] - expected_mean
+    np.testing.assert_allclose(mean, expected_mean, atol=1e-12)
+    np.testing.assert_allclose(cov, (w[:, None] * d).T @ d, rtol=1e-10, atol=1e-10)
+    assert yaw == pytest.approx(np.arctan2(w @ np.sin(before[:, 3]),
+                                           w @ np.cos(before[:, 3])), abs=1e-12)
+    assert ess == pytest.approx(1.0 / np.sum(w * w), rel=1e-12)
+    np.testing.assert_allclose(weight_kernels.weighted_displacement(before, after, log_w),
+                               w @ (after[:, :2] - before[:, :2]), atol=1e-13)
+    after[5, 1] = np.nan
+    shift = weight_kernels.weighted_displacement(before, after, log_w)
+    assert np.isfinite(shift[0]) and np.isnan(shift[1])
 
 
 def cloud(rng, s, n, m, ties=False, zeros=False, horizontal=True, shared=False,

@@ -334,8 +334,7 @@ class ParticleFilter:
         # The predicted motion of the estimate, for the dead-reckoned path the snapshot
         # solutions are compared with (core.persistence). A poisoned state gives NaN here,
         # which restarts the window; the filter discards that state itself.
-        with np.errstate(invalid='ignore'):
-            moved = np.exp(self.log_w) @ (priors[0, :, :2] - self.particles[:, :2])
+        moved = weight_kernels.weighted_displacement(self.particles, priors[0], self.log_w)
         self.persistence.move(moved)
         self.moved_from.move(moved)
         self._motion_unknown_s = float(motion.unknown_s)

@@ -73,6 +73,19 @@ def _moments_about(ref, m, c, w_sum):
 
 
 @kernel
+def weighted_displacement(before, after, log_w):
+    """``sum_i exp(log_w[i]) (after[i, :2] - before[i, :2])`` of two (N, >= 2) sets of the
+    same particles: the horizontal motion of their weighted mean (2,), in one pass
+    (NaN where a state is not finite)."""
+    shift = np.zeros(2)
+    for i in range(before.shape[0]):
+        w = elementary.exp(log_w[i])
+        shift[0] += w * (after[i, 0] - before[i, 0])
+        shift[1] += w * (after[i, 1] - before[i, 1])
+    return shift
+
+
+@kernel
 def weighted_moments(points, log_w):
     """Weighted mean (3,) and covariance (3, 3) of the first three columns of ``points``
     (N, >= 3) under normalised log-weights ``log_w`` (N,), in one pass about the first
