@@ -21,8 +21,9 @@ thousand (2e8 random inputs, float32 products and every binade).
 
 :func:`sincos` is the sine and cosine of one argument of the same kind (a loop calling
 ``math.sin`` and ``math.cos`` stays scalar: 10-20 ns per call), within 1 ulp of the exact
-values for ``|x| <= SINCOS_LARGEST`` (libm's, or its neighbour in 3 % of inputs; 2e6
-random inputs per binade of the range, and every multiple of pi / 4 to 200): fdlibm's
+values for ``|x| <= SINCOS_LARGEST`` (libm's, or its neighbour in 3 % of inputs: 2e6
+random inputs at each of the scales 1, 4, 100, 1e4 and 4e5 rad, and the multiples of
+pi / 4 up to 200 of them; the tests check every binade from 1e-9 rad): fdlibm's
 reduction by pi / 2 in three parts (Cody-Waite; here each step's rounding error carried
 exactly, with no branch) and its kernels ``__kernel_sin`` and ``__kernel_cos`` on the
 reduced argument and its tail. :func:`sincos_into` fills arrays, falling back to libm

@@ -35,7 +35,7 @@ def robust_inlier_shares(points, log_w, sv, pr, inv_sigma, sys_index, clock_w, n
     """Per-satellite inlier probabilities of one set under the robust model.
 
     ``p_k = d_k / (d_k + v_k + floor_k)``, ``d_k = scale_k exp(-z_k^2 / 2)`` (the core)
-    and ``v_k`` the wide component (:func:`robust_joint`), per particle.
+    and ``v_k`` the wide component (``core.kernels.gnss.robust_joint``), per particle.
 
     Returns:
         ``(weighted (k,), share (k,))``: the average of ``p_k`` under ``log_w`` (what the
