@@ -112,7 +112,7 @@ def weighted_moments(points, log_w):
 @kernel
 def set_summary(particles, log_w):
     """Weighted mean (3,), covariance (3, 3), circular mean heading and effective sample
-    size of one set (N, 4) with normalised log-weights (N,), in one pass (moments about
+    size of one set (N, 4) with normalised log-weights (N,), in one kernel (moments about
     the first particle, as :func:`weighted_moments`)."""
     n = particles.shape[0]
     ref = particles[0, :3].copy()
