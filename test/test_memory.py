@@ -249,3 +249,34 @@ def test_epoch_arrays_stay_in_the_process_instead_of_faulting_in_every_epoch():
     # glibc's default gives the freed 9.6 MB back and faults them in again every epoch.
     assert without > 20 * 1000
     assert with_setting < 0.05 * without
+
+
+_FREEZE = '''
+import gc, weakref
+import numba, scipy.stats  # a started node's share of tracked objects
+from gnsscam_ros.nodes.memory import freeze_start_up_objects
+
+
+class Node:
+    pass
+
+
+cycle = Node()
+cycle.me = cycle                        # garbage of the start-up: only the collector frees it
+gone = weakref.ref(cycle)
+del cycle
+kept = [Node() for _ in range(1000)]
+tracked = len(gc.get_objects())
+frozen = freeze_start_up_objects()
+print(tracked, frozen, len(gc.get_objects()), gone() is None, kept[0] in gc.get_objects())
+'''
+
+
+def test_start_up_objects_leave_the_collectors_full_collections():
+    out = subprocess.run([sys.executable, '-c', _FREEZE], capture_output=True, text=True,
+                         check=True).stdout.split()
+    tracked, frozen, after = (int(v) for v in out[:3])
+    assert tracked > 20_000                 # what a full collection walked before
+    assert frozen >= 0.9 * tracked          # nearly all of it frozen (garbage freed)
+    assert after < 100                      # and no longer walked
+    assert out[3:] == ['True', 'False']     # the start-up garbage was collected first

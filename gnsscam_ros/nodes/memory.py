@@ -38,6 +38,19 @@ resident memory of fusion_node stays at the high-water mark of its epochs (tens 
 N = 10,000). (``gnsscam_bench`` keeps glibc's defaults: its yardstick, plain numpy, gains
 even more from the setting than the epoch.)
 
+**Pauses: the garbage collector.** A node process holds about 150,000 objects the
+cyclic garbage collector tracks once it has started (rclpy, numba's dispatchers, the
+package, the kernels' warm-up), nearly all of them alive until it exits. Each full
+collection walks all of them: 54-60 ms measured on a started pipeline_node's modules, and
+one of them fell in about one epoch in a thousand of a running filter (``gnsscam_bench``'s
+epoch loop at N = 120: a 68 ms pause, 60 times the epoch). :func:`freeze_start_up_objects`
+(:func:`gnsscam_ros.nodes.runtime.start_nodes`, once every node of the process is built)
+collects once and moves what survives into the collector's permanent generation: the
+later collections walk only what the running nodes allocate (measured: 0.001 ms for a
+full collection after the freeze; no full collection over 3,000 epochs). Reference
+counting still frees a frozen object the moment it is no longer used; only a reference
+cycle among start-up objects that become garbage later would stay.
+
 **Discovery.** The same profile makes each participant announce itself every 0.5 s
 instead of Fast DDS's 3 s: a node that restarts meets the running ones at their next
 announcement, so within a second rather than up to 3 s (measured: a new participant saw a
@@ -49,6 +62,7 @@ settings must be in the environment before that; child processes inherit them.
 from __future__ import annotations
 
 import ctypes
+import gc
 import os
 from pathlib import Path
 from typing import MutableMapping
@@ -141,5 +155,13 @@ def keep_epoch_memory() -> bool:
     return set_malloc_thresholds(EPOCH_MMAP_THRESHOLD_BYTES, EPOCH_TRIM_THRESHOLD_BYTES)
 
 
-__all__ = ['PROFILE', 'configure_node_memory', 'keep_epoch_memory', 'set_malloc_thresholds',
-           'use_fastdds_profile']
+def freeze_start_up_objects() -> int:
+    """Collect once, then exempt every object alive now from later collections (see the
+    module docstring); returns how many were frozen."""
+    gc.collect()
+    gc.freeze()
+    return gc.get_freeze_count()
+
+
+__all__ = ['PROFILE', 'configure_node_memory', 'freeze_start_up_objects', 'keep_epoch_memory',
+           'set_malloc_thresholds', 'use_fastdds_profile']
