@@ -184,3 +184,57 @@ def test_epochs_too_far_apart_leave_the_correlation_unmeasured():
                       np.arange(12))
     assert model.samples > 0 and not model.correlation_measured
     assert model.correlation_time_s == 10.0
+
+
+def _weak_class_core(rate_hz: float, monkeypatch=None) -> float:
+    """The learned core of the weak class after 60 s of one city drive, its residuals
+    taken at ``rate_hz``: ten strong satellites (3 m) and two weak ones whose errors
+    (12 m) persist with tau = 10 s, the same realisation at every rate (decimated from
+    10 Hz, as the robustness matrix decimates a drive)."""
+    rng = np.random.default_rng(10)
+    dt, tau = 0.1, 10.0
+    phi = np.exp(-dt / tau)
+    sd = np.r_[np.full(10, 3.0), 12.0, 12.0]
+    cn0 = np.r_[np.full(10, 47.0), 27.0, 27.0]
+    e = rng.normal(0.0, 1.0, 12) * sd
+    model = AdaptiveErrorModel(window_s=60.0)
+    step = int(round(1.0 / (rate_hz * dt)))
+    for i in range(600):
+        e = phi * e + np.sqrt(1.0 - phi * phi) * rng.normal(0.0, 1.0, 12) * sd
+        if i % step == 0:
+            model.observe(int(i * dt * S), e, cn0, 0, np.arange(12))
+    return float(model.fit.core_sd_m[signal_class(np.array([27.0]))[0]])
+
+
+def test_the_same_drive_at_1_and_5_hz_learns_the_same_error_model(monkeypatch):
+    """The prior weighs the same seconds of residuals at every rate: a 1 Hz stream's
+    weak class is as wide as at 5 Hz. Counted in epochs (the prior at 30 pseudo-samples
+    at every rate) the 1 Hz class stays narrower, near the prior, by more."""
+    fast, slow = _weak_class_core(5.0), _weak_class_core(1.0)
+    assert slow == pytest.approx(fast, rel=0.05)
+    monkeypatch.setattr(error_model, 'RECEIVER_INTERVALS_S', (0.2,))
+    counted_fast, counted_slow = _weak_class_core(5.0), _weak_class_core(1.0)
+    assert counted_fast == fast                 # 5 Hz: the prior is 30 either way
+    assert abs(counted_slow - fast) > 2.0 * abs(slow - fast)
+    assert counted_slow < slow
+
+
+def test_the_streams_interval_is_a_receivers_rate_and_a_sparse_stream_keeps_the_prior():
+    rng = np.random.default_rng(11)
+    model = AdaptiveErrorModel()
+    assert model.prior_strength(30.0) == 30.0               # before any interval
+    # A 5 Hz receiver's jittered stamps, an epoch lost now and then: exactly 5 Hz.
+    stamps = np.cumsum(rng.choice([0.15, 0.2, 0.25, 0.4], size=60, p=[0.2, 0.5, 0.2, 0.1]))
+    for t in stamps:
+        model.observe(int(t * S), rng.normal(0.0, 3.0, 12), np.full(12, 47.0), 0)
+    assert model.epoch_interval_s == 0.2 and model.prior_strength(30.0) == 30.0
+    for rate_hz, strength in ((2.0, 12.0), (1.0, 6.0)):
+        model = AdaptiveErrorModel()
+        for i in range(20):
+            model.observe(int(i / rate_hz * S), rng.normal(0.0, 3.0, 12), np.full(12, 47.0), 0)
+        assert model.prior_strength(30.0) == pytest.approx(strength)
+    # 30 s epochs cannot be paired at the correlation lag: the count prior stays.
+    model = AdaptiveErrorModel()
+    for i in range(20):
+        model.observe(int(i * 30 * S), rng.normal(0.0, 3.0, 12), np.full(12, 47.0), 0)
+    assert model.epoch_interval_s is None and model.prior_strength(30.0) == 30.0

@@ -24,7 +24,11 @@ estimated from the residuals over a sliding window):
   and the pooled fit near physical scales (:class:`ErrorPriors`): conventions of the
   problem class (code noise of metres, NLOS errors of tens of metres), not values fitted
   to a data set. Before any residual the model is that prior, so the first fix is
-  weighted by C/N0 too, never by the stated variances.
+  weighted by C/N0 too, never by the stated variances. The priors weigh the same
+  seconds of residuals at every GNSS rate (their pseudo-samples are stated at 5 Hz and
+  scaled to the stream's interval, :meth:`AdaptiveErrorModel.prior_strength`): the
+  errors persist for seconds, so what a window knows grows with its duration, and the
+  same drive at 1, 2 and 5 Hz is learned alike.
 
 The residuals are those of the epoch's own robust snapshot solution (so that a filter
 locked onto a wrong place cannot teach the model that place), after its clock per
@@ -73,6 +77,12 @@ N_CLASSES = UNKNOWN_CLASS + 1
 EM_ITERATIONS = 3
 #: Most residuals the window holds (60 s of 60 satellites at 5 Hz fit).
 MAX_SAMPLES = 20_000
+#: Epoch intervals of receivers [s] the prior's weight is scaled to
+#: (:meth:`AdaptiveErrorModel.prior_strength`); the first is the one the priors'
+#: pseudo-samples are stated at (5 Hz).
+RECEIVER_INTERVALS_S = (0.2, 0.5, 1.0, 2.0)
+#: Last epoch intervals of the stream whose median is its interval.
+INTERVAL_EPOCHS = 50
 #: Lag at which the time correlation is measured [s]; a pair may be half of it off.
 CORRELATION_LAG_S = 2.0
 #: Residuals beyond this many core standard deviations of their class are clipped there
@@ -100,8 +110,10 @@ class ErrorPriors:
         core_sd_m: Line-of-sight code error standard deviation before any data [m].
         wide_sd_m: NLOS / multipath error standard deviation before any data [m].
         wide_share: Share of NLOS / multipath residuals before any data.
-        pooled_strength: Pseudo-samples of the pooled fit's prior.
-        class_strength: Pseudo-samples by which a class is drawn to the pooled fit.
+        pooled_strength: Pseudo-samples of the pooled fit's prior, at 5 Hz (scaled to the
+            stream's interval: :meth:`AdaptiveErrorModel.prior_strength`).
+        class_strength: Pseudo-samples by which a class is drawn to the pooled fit, at
+            5 Hz (likewise).
         min_core_sd_m: Smallest core spread: code noise never vanishes (0.3 m: a good
             receiver's code tracking) [m].
         max_shape: Largest factor of the SIGMA-epsilon shape (at the lowest C/N0).
@@ -196,6 +208,9 @@ class AdaptiveErrorModel:
             priors.core_sd_m, priors.wide_share, 0.0, priors.wide_sd_m))
         self.pooled = self._prior_fit(1)
         self.fit = self._prior_fit(N_CLASSES)
+        # The stream's last epoch intervals [s] and the last stamp (the prior's weight).
+        self._intervals: list[float] = []
+        self._last_stamp_ns: int | None = None
 
     def _prior_fit(self, n: int) -> MixtureFit:
         p = self.priors
@@ -221,6 +236,10 @@ class AdaptiveErrorModel:
             keys: (k,) one key per satellite across epochs, for the time correlation
                 (None: not measured).
         """
+        if self._last_stamp_ns is not None and stamp_ns > self._last_stamp_ns:
+            self._intervals.append((stamp_ns - self._last_stamp_ns) * 1e-9)
+            del self._intervals[:-INTERVAL_EPOCHS]
+        self._last_stamp_ns = stamp_ns
         r = np.asarray(residual_m, dtype=float)
         cn0 = np.asarray(cn0_dbhz, dtype=float)
         keep = np.isfinite(r)
@@ -322,15 +341,52 @@ class AdaptiveErrorModel:
         self._residual_m[m:m + k] = r[-k:]
         self._count = m + k
 
+    @property
+    def epoch_interval_s(self) -> float | None:
+        """The stream's epoch interval [s]: the median of its last intervals, taken as the
+        nearest of the receivers' intervals (:data:`RECEIVER_INTERVALS_S`: jitter and a
+        lost epoch must not move the prior); the first of them until an interval is seen.
+        None for a stream too sparse to pair its residuals at ``CORRELATION_LAG_S``."""
+        if not self._intervals:
+            return RECEIVER_INTERVALS_S[0]
+        median = float(np.median(self._intervals))
+        if median > 1.5 * CORRELATION_LAG_S:
+            return None
+        steps = np.abs(np.log(np.asarray(RECEIVER_INTERVALS_S) / max(median, 1e-9)))
+        return RECEIVER_INTERVALS_S[int(np.argmin(steps))]
+
+    def prior_strength(self, pseudo_samples: float) -> float:
+        """Pseudo-samples of a prior stated at 5 Hz, at the stream's interval: the same
+        seconds of residuals (30 at 5 Hz, 12 at 2 Hz, 6 at 1 Hz).
+
+        The window counts each residual as one sample, and the prior weighs against that
+        count; but the errors persist for seconds (``correlation_time_s``), so what the
+        window knows grows with its duration, not with its epochs. With the count prior a
+        1 Hz stream held its weak classes near the prior's core where the same drive at
+        5 Hz fitted one twice as wide, and the level missed (docs/robustness.md). A
+        stream too sparse to pair its residuals at ``CORRELATION_LAG_S`` (a static
+        station at 30 s) has nothing that says how long its errors persist, and keeps
+        the count prior: its errors persist for hours, and each epoch is little news.
+        The interval is snapped to a receiver's rate so that the jitter of a 5 Hz stream
+        leaves its prior at exactly 30: the warm-started EM is path dependent, and a
+        prior of 20-24 in the first refits of the file as it is sent it to its other fit.
+        """
+        interval = self.epoch_interval_s
+        if interval is None:
+            return pseudo_samples
+        return pseudo_samples * RECEIVER_INTERVALS_S[0] / interval
+
     def _refit(self) -> None:
         n = self._count
         r, cls = self._residual_m[:n], self._class[:n]
         w = self._ones[:n]
         p = self.priors
+        pooled_strength = self.prior_strength(p.pooled_strength)
+        class_strength = self.prior_strength(p.class_strength)
         fit = (self.pooled.core_sd_m, self.pooled.wide_share, self.pooled.wide_mean_m,
                self.pooled.wide_sd_m)
         fit = mixture_kernels.em_fit(r, w, self._zeros[:n], 1, *fit, *self._pooled_prior,
-                                     p.pooled_strength, p.min_core_sd_m, EM_ITERATIONS)
+                                     pooled_strength, p.min_core_sd_m, EM_ITERATIONS)
         self.pooled = MixtureFit(*fit, samples=np.array([float(n)]))
         # The classes' prior: the pooled fit, its spreads shaped by C/N0 about their
         # sample-weighted mean (so that the shape moves spreads between classes only).
@@ -341,7 +397,7 @@ class AdaptiveErrorModel:
         centre = (s0 * shape, np.repeat(pi, N_CLASSES), np.repeat(mu, N_CLASSES), s1 * shape)
         fit = (self.fit.core_sd_m, self.fit.wide_share, self.fit.wide_mean_m,
                self.fit.wide_sd_m)
-        fit = mixture_kernels.em_fit(r, w, cls, N_CLASSES, *fit, *centre, p.class_strength,
+        fit = mixture_kernels.em_fit(r, w, cls, N_CLASSES, *fit, *centre, class_strength,
                                      p.min_core_sd_m, EM_ITERATIONS)
         self.fit = MixtureFit(*fit, samples=counts)
 
