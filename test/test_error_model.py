@@ -186,7 +186,7 @@ def test_epochs_too_far_apart_leave_the_correlation_unmeasured():
     assert model.correlation_time_s == 10.0
 
 
-def _weak_class_core(rate_hz: float, monkeypatch=None) -> float:
+def _weak_class_core(rate_hz: float) -> float:
     """The learned core of the weak class after 60 s of one city drive, its residuals
     taken at ``rate_hz``: ten strong satellites (3 m) and two weak ones whose errors
     (12 m) persist with tau = 10 s, the same realisation at every rate (decimated from
