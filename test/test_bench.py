@@ -1,5 +1,6 @@
 """The benchmark's timing: the epoch and its yardstick take turns, and each ratio pairs
 the times of one round (``gnsscam_ros.bench.filter``)."""
+import json
 import os
 import subprocess
 import sys
@@ -44,3 +45,22 @@ def test_the_bench_runs_openblas_as_the_nodes_do_unless_told_otherwise(given, ex
     out = subprocess.run([sys.executable, '-c', code], env=env, capture_output=True,
                          text=True, timeout=120, check=True).stdout.split()
     assert out == ['False', expected]
+
+
+def test_the_pause_benchmark_runs_a_process_as_started_and_one_frozen():
+    """``bench.pauses``: the frozen process's collector no longer tracks its start-up
+    objects (the figures it prints are timings, read in its output, not asserted). Each
+    run in a process of its own, as the benchmark runs them: a freeze is for good."""
+    from gnsscam_ros.bench.pauses import MODES
+    rows = []
+    for mode in MODES:
+        out = subprocess.run([sys.executable, '-m', 'gnsscam_ros.bench.pauses', '--child',
+                              mode, '--epochs', '5', '--particles', '16'],
+                             capture_output=True, text=True, timeout=300, check=True)
+        rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    assert [r['mode'] for r in rows] == list(MODES)
+    as_started, frozen = rows
+    assert as_started['tracked_objects'] > 20_000
+    assert frozen['tracked_objects'] < 0.01 * as_started['tracked_objects']
+    assert all(r['epochs'] == 5 and r['epoch_ms_max'] >= r['epoch_ms_median'] > 0.0
+               for r in rows)

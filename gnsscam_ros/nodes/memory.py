@@ -41,15 +41,18 @@ even more from the setting than the epoch.)
 **Pauses: the garbage collector.** A node process holds about 150,000 objects the
 cyclic garbage collector tracks once it has started (rclpy, numba's dispatchers, the
 package, the kernels' warm-up), nearly all of them alive until it exits. Each full
-collection walks all of them: 54-60 ms measured on a started pipeline_node's modules, and
-one of them fell in about one epoch in a thousand of a running filter (``gnsscam_bench``'s
-epoch loop at N = 120: a 68 ms pause, 60 times the epoch). :func:`freeze_start_up_objects`
-(:func:`gnsscam_ros.nodes.runtime.start_nodes`, once every node of the process is built)
-collects once and moves what survives into the collector's permanent generation: the
-later collections walk only what the running nodes allocate (measured: 0.001 ms for a
-full collection after the freeze; no full collection over 3,000 epochs). Reference
-counting still frees a frozen object the moment it is no longer used; only a reference
-cycle among start-up objects that become garbage later would stay.
+collection walks all of them: 54-70 ms (a started pipeline_node's modules; ``python -m
+gnsscam_ros.bench.pauses``: 70 ms), the time of 60 epochs at N = 120 and far beyond the
+10 ms an epoch may take. The collector starts one when the objects that survived since
+the last exceed a quarter of the long-lived ones: soon after a start-up that left many
+pending (seen once in 2,000 epochs of ``gnsscam_bench``'s engine loop right after its
+warm-up: a 68 ms epoch), and whenever a running process has kept enough new objects.
+:func:`freeze_start_up_objects` (:func:`gnsscam_ros.nodes.runtime.start_nodes`, once every
+node of the process is built) collects once and moves what survives into the collector's
+permanent generation: later collections walk only what the running nodes allocate (the
+same benchmark: a full collection 0.4 ms after the freeze). Reference counting still
+frees a frozen object the moment it is no longer used; only a reference cycle among
+start-up objects that become garbage later would stay.
 
 **Discovery.** The same profile makes each participant announce itself every 0.5 s
 instead of Fast DDS's 3 s: a node that restarts meets the running ones at their next
