@@ -23,22 +23,23 @@ import time
 
 import numpy as np
 
+from ..core.filter import FilterConfig
+from ..core.frames import LocalFrame
+from ..core.warmup import warm_up_kernels
+from ..datasets.emulated.drive import make_emulated_drive
+from ..nodes.memory import freeze_start_up_objects
+from .filter import _timed_engine
+
+try:                                        # what a node process has imported
+    import gnsscam_ros.nodes.pipeline  # noqa: F401
+except ImportError:                         # no rclpy here: the package's core only
+    pass
+
 MODES = ('as started', 'frozen')
 
 
 def _child(mode: str, epochs: int, particles: int) -> dict:
     """One process's run (``mode`` of :data:`MODES`), as a dict."""
-    try:                                    # what a node process has imported
-        import gnsscam_ros.nodes.pipeline  # noqa: F401
-    except ImportError:                     # no rclpy here: the package's core only
-        pass
-    from ..core.filter import FilterConfig
-    from ..core.frames import LocalFrame
-    from ..core.warmup import warm_up_kernels
-    from ..datasets.emulated.drive import make_emulated_drive
-    from ..nodes.memory import freeze_start_up_objects
-    from .filter import _timed_engine
-
     warm_up_kernels()
     drive = make_emulated_drive(0, faults=4, duration_s=60.0)
     frame = LocalFrame(*drive.origin_llh)
