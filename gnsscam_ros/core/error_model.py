@@ -175,6 +175,14 @@ def _normal_pdf(r: np.ndarray, mean, sd) -> np.ndarray:
     return np.exp(-0.5 * z * z) / (sd * np.sqrt(2.0 * np.pi))
 
 
+def _at_interval(pseudo_samples: float, interval_s: float | None) -> float:
+    """Pseudo-samples stated at 5 Hz, at an epoch interval (None: a sparse stream, as
+    stated); :meth:`AdaptiveErrorModel.prior_strength`."""
+    if interval_s is None:
+        return pseudo_samples
+    return pseudo_samples * RECEIVER_INTERVALS_S[0] / interval_s
+
+
 class AdaptiveErrorModel:
     """Pseudorange error mixture per signal class over a sliding window.
 
@@ -371,18 +379,16 @@ class AdaptiveErrorModel:
         leaves its prior at exactly 30: the warm-started EM is path dependent, and a
         prior of 20-24 in the first refits of the file as it is sent it to its other fit.
         """
-        interval = self.epoch_interval_s
-        if interval is None:
-            return pseudo_samples
-        return pseudo_samples * RECEIVER_INTERVALS_S[0] / interval
+        return _at_interval(pseudo_samples, self.epoch_interval_s)
 
     def _refit(self) -> None:
         n = self._count
         r, cls = self._residual_m[:n], self._class[:n]
         w = self._ones[:n]
         p = self.priors
-        pooled_strength = self.prior_strength(p.pooled_strength)
-        class_strength = self.prior_strength(p.class_strength)
+        interval = self.epoch_interval_s              # once: a median of the last intervals
+        pooled_strength = _at_interval(p.pooled_strength, interval)
+        class_strength = _at_interval(p.class_strength, interval)
         fit = (self.pooled.core_sd_m, self.pooled.wide_share, self.pooled.wide_mean_m,
                self.pooled.wide_sd_m)
         fit = mixture_kernels.em_fit(r, w, self._zeros[:n], 1, *fit, *self._pooled_prior,
