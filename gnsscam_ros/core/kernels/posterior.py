@@ -34,6 +34,12 @@ _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 #: The crossing bin is sorted once it holds at most this many particles (else it is
 #: split into LEVEL_BINS bins again).
 LEVEL_SORT_MAX = 2048
+#: Distances per block of the crossing bin's gather (:func:`_gather_bin`): a block with
+#: no distance near the bin is skipped on a branch-free count, where a branch per distance
+#: was mispredicted on the tail's few. 32 was the fastest of 16-256 at the default
+#: configuration's 200 x 4000 distances (the gather 0.95 -> 0.61 ms, the level 1.80 ->
+#: 1.45 ms). Computing the histogram's bins a block at a time as well made it slower.
+LEVEL_BLOCK = 32
 
 
 @kernel
@@ -343,7 +349,8 @@ def _gather_bin(dist, w, index, scale, b_cross, values, weights):
     or -1 when they do not fit.
 
     Only the distances within a bin's width of the bin take the bin arithmetic (rounding
-    moves none further); the others, nearly all, pass on two comparisons.
+    moves none further); the others, nearly all, pass on two comparisons, counted a block
+    of ``LEVEL_BLOCK`` at a time without a branch (a block with none near is skipped).
     """
     m, n = dist.shape
     shared = w.shape[0] == 1
@@ -353,14 +360,21 @@ def _gather_bin(dist, w, index, scale, b_cross, values, weights):
     k = 0
     for j in range(m):
         row, wr = dist[j], w[0] if shared else w[index[j]]
-        for i in range(n):
-            d = row[i]
-            if d >= low and d < high and min(int(d * scale), top_bin) == b_cross:
-                if k == capacity:
-                    return -1
-                values[k] = d
-                weights[k] = wr[i]
-                k += 1
+        for start in range(0, n, LEVEL_BLOCK):
+            end = min(start + LEVEL_BLOCK, n)
+            near = 0
+            for i in range(start, end):
+                near += (row[i] >= low) & (row[i] < high)
+            if near == 0:
+                continue
+            for i in range(start, end):
+                d = row[i]
+                if d >= low and d < high and min(int(d * scale), top_bin) == b_cross:
+                    if k == capacity:
+                        return -1
+                    values[k] = d
+                    weights[k] = wr[i]
+                    k += 1
     return k
 
 
