@@ -400,7 +400,7 @@ def test_processes_sample(tmp_path):
     assert targets['integrity OK while a needed input is missing or reset == 0']
     assert targets['OK verdicts outside the windows']        # the check above bites
     assert targets['other nodes exited meanwhile == 0']
-    assert targets['every node exits 0 when stopped']
+    assert targets['every node exits 0 when stopped'], result['exit_codes_at_stop']
 
 
 @pytest.mark.slow
