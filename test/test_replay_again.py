@@ -93,7 +93,7 @@ def test_nodes_take_a_bag_played_again_at_once_without_a_reset(drive_bag, runnin
     control): the nodes facing it see a new publisher going back in time, fusion_node sees
     its inputs go back together; each takes the new time base at once."""
     monkeypatch.setattr(BagReplayer, '_reset_nodes_of_another_time_base', lambda self: None)
-    _, bag = drive_bag
+    drive, bag = drive_bag
     graph, namespace, nodes = running_nodes
 
     def play_plain():
@@ -135,7 +135,6 @@ def test_nodes_take_a_bag_played_again_at_once_without_a_reset(drive_bag, runnin
     extra = {k: v - refused['fusion_node'].get(k, 0)
              for k, v in nodes['fusion_node'].stats.rejected.items()}
     extra = {k: v for k, v in extra.items() if v}
-    drive, _ = drive_bag
     gnss_interval_s = (drive.gnss[1].stamp_ns - drive.gnss[0].stamp_ns) * 1e-9
     states_per_epoch = gnss_interval_s / nodes['imu_node'].param('output_period_s')
     assert set(extra) <= {'filter_rejected', 'out_of_order'}, extra
