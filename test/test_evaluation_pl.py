@@ -12,8 +12,8 @@ from conftest import SMARTLOC_EXCERPT
 from gnsscam_ros.core.filter import FilterConfig
 from gnsscam_ros.datasets.emulated.drive import make_emulated_drive
 from gnsscam_ros.evaluation import cli
-from gnsscam_ros.evaluation.metrics import (cloud_calibration, nees, percentile_with_inf,
-                                            protection_level_metrics)
+from gnsscam_ros.evaluation.metrics import (cloud_calibration, level_sizing, nees,
+                                            percentile_with_inf, protection_level_metrics)
 from gnsscam_ros.io.atomic import write_json_atomic
 from gnsscam_ros.evaluation.runner import EpochTable, run_filter, summarize
 
@@ -80,6 +80,36 @@ def test_cloud_calibration_known_answers():
     assert values[0] == pytest.approx(2.0) and np.isnan(values[1:]).all()
     assert cloud_calibration(values, 2)['epochs'] == 1
     assert cloud_calibration(np.zeros(0), 2)['spread_to_error'] is None
+
+
+def test_level_sizing_known_answers():
+    rng = np.random.default_rng(5)
+    miss = 0.0288
+    # 2D Gaussian errors whose spread changes from epoch to epoch, and a level five times
+    # each epoch's standard deviation: the level that misses ``miss`` of the epochs is
+    # sqrt(-2 ln miss) standard deviations (Rayleigh), so the scale is that over five.
+    sd = np.exp(rng.normal(scale=0.5, size=200_000))
+    err = sd * np.hypot(*rng.normal(size=(2, sd.size)))
+    sized = level_sizing(err, 5.0 * sd, miss)
+    rayleigh = math.sqrt(-2.0 * math.log(miss))
+    assert sized['epochs'] == sd.size and sized['miss_share'] == miss
+    assert sized['scale'] == pytest.approx(rayleigh / 5.0, rel=0.01)
+    assert np.mean(err > sized['scale'] * 5.0 * sd) <= miss
+    assert sized['pl_to_error'] == pytest.approx(
+        5.0 * np.median(sd) / np.median(err), rel=1e-12)
+    # One spread for all: the sized level over the median error is the Rayleigh quantile
+    # over its median, the floor docs/robustness.md gives for a calibrated cloud (2.26).
+    flat = level_sizing(err / sd, np.full(sd.size, 3.0), miss)
+    assert flat['pl_to_error_sized'] == pytest.approx(
+        rayleigh / math.sqrt(2.0 * math.log(2.0)), rel=0.01)
+    # Epochs without a finite level are left out; none left: nothing to say.
+    part = level_sizing(np.array([1.0, 2.0, 3.0, 50.0]),
+                        np.array([2.0, 2.0, 2.0, np.inf]), 0.0)
+    assert part['epochs'] == 3 and part['scale'] == pytest.approx(1.5)
+    empty = level_sizing(np.array([1.0]), np.array([np.inf]), miss)
+    assert empty['epochs'] == 0 and empty['scale'] is None
+    with pytest.raises(ValueError, match='differ in length'):
+        level_sizing(np.ones(3), np.ones(2), miss)
 
 
 def test_percentile_with_inf():

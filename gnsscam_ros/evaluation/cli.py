@@ -85,6 +85,13 @@ def print_result(label: str, result: dict, out=None) -> None:
               f"{calibration['epochs']} epochs ({calibration['calibrated_median_nees']:.3g} "
               f"when the reported covariance matches the errors, {calibration['dims']}D): "
               f"reported spread / error {calibration['spread_to_error']:.2f}", file=out)
+    sizing = result.get('level_sizing')
+    if sizing is not None and sizing['scale'] is not None:
+        print(f"Level sizing: median PL / median error {sizing['pl_to_error']:.2f}; a level "
+              f"of the same shape missing {100 * sizing['miss_share']:.2g} % of the "
+              f"{sizing['epochs']} epochs (what the bound allows) would be "
+              f"x{sizing['scale']:.2f} of it: median PL / error "
+              f"{sizing['pl_to_error_sized']:.2f}", file=out)
 
 
 def add_campaign_arguments(camp: argparse.ArgumentParser) -> None:

@@ -38,6 +38,16 @@ law of 2 (3) degrees of freedom, median 1.386 (2.366). ``spread_to_error`` =
 wide as its errors (a PL that large for that reason, not for the bound's margin),
 below 1 for an overconfident one. Epochs whose covariance is not finite or not positive
 definite are left out (``epochs`` counts those used).
+
+Level sizing (``level_sizing``): what the protection level's *shape* is worth apart from
+its size. The scale ``k`` that leaves exactly a share ``miss_share`` of the epochs with an
+error beyond ``k * PL`` (the ``1 - miss_share`` quantile of error / PL), and the median
+level over the median error after that scaling. With ``miss_share`` the share the risk
+bound itself allows to lie beyond its level (``q_max`` at a KL divergence of 0: 0.0288 at
+the defaults), ``pl_to_error_sized`` is the smallest median PL / error a level of this
+shape could have while missing no more often than the bound says it may; ``scale`` below 1
+says by how much the level is wider than that, above 1 that it misses more often. Epochs
+without a finite level are left out.
 """
 from __future__ import annotations
 
@@ -84,6 +94,32 @@ def cloud_calibration(nees_values: np.ndarray, dims: int) -> dict:
     return {'epochs': int(values.size), 'dims': int(dims), 'median_nees': median,
             'calibrated_median_nees': calibrated,
             'spread_to_error': (float(np.sqrt(calibrated / median)) if median else None)}
+
+
+def level_sizing(error_m: np.ndarray, protection_level_m: np.ndarray,
+                 miss_share: float) -> dict:
+    """The level's size against its shape (see the module docstring): ``epochs``,
+    ``miss_share``, ``pl_to_error`` (median PL over median error, as is), ``scale`` and
+    ``pl_to_error_sized`` (None without epochs with a finite level and a median error
+    above 0)."""
+    err = np.asarray(error_m, dtype=float).ravel()
+    pl = np.asarray(protection_level_m, dtype=float).ravel()
+    if err.shape != pl.shape:
+        raise ValueError(f'error ({err.size}) and protection level ({pl.size}) differ in '
+                         'length')
+    keep = np.isfinite(pl) & (pl > 0.0) & np.isfinite(err)
+    err, pl = err[keep], pl[keep]
+    out = {'epochs': int(err.size), 'miss_share': float(miss_share), 'pl_to_error': None,
+           'scale': None, 'pl_to_error_sized': None}
+    median_error = float(np.median(err)) if err.size else 0.0
+    if not median_error > 0.0:
+        return out
+    # The order statistic with at most ``miss_share`` of the epochs strictly beyond it.
+    ratio = np.sort(err / pl)
+    scale = float(ratio[min(int(np.ceil((1.0 - miss_share) * err.size)) - 1, err.size - 1)])
+    out.update(pl_to_error=float(np.median(pl)) / median_error, scale=scale,
+               pl_to_error_sized=scale * float(np.median(pl)) / median_error)
+    return out
 
 
 def _rate(numerator: int, denominator: int) -> float | None:

@@ -17,8 +17,8 @@ from ..core.gnss import check_epoch
 from ..core.motion import DeadReckoningConfig, DeadReckoningState, dead_reckon
 from ..core.snapshot import solve_snapshot
 from ..core.types import Drive, GnssEpoch
-from .metrics import (cloud_calibration, integrity_metrics, nees, protection_level_metrics,
-                      rmse)
+from .metrics import (cloud_calibration, integrity_metrics, level_sizing, nees,
+                      protection_level_metrics, rmse)
 
 
 @dataclass
@@ -407,6 +407,13 @@ def summarize(record: RunRecord, config: FilterConfig) -> dict:
     out['protection_level'] = protection_level_metrics(
         err, record.protection_level_m, config.alert_limit_m,
         integrity_ok=record.integrity_ok if record.integrity_ok.size == err.size else None)
+    if record.protection_level_m.size == err.size:
+        # What the bound lets lie beyond its level when the posteriors agree (KL 0).
+        miss_share = integrity.max_empirical_risk(
+            config.target_risk,
+            integrity.divergence_budget(0.0, config.n_posteriors, config.risk_delta),
+            config.inverse_bernoulli)
+        out['level_sizing'] = level_sizing(err, record.protection_level_m, miss_share)
     if record.covariance_m2.shape[0] == err.size:
         out['cloud_calibration'] = cloud_calibration(run_nees(record, config),
                                                      2 if config.horizontal_risk else 3)
