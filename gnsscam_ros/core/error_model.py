@@ -99,7 +99,7 @@ def signal_class(cn0_dbhz: np.ndarray) -> np.ndarray:
     """Signal class of each satellite (0 .. N_CLASSES - 1) from its C/N0 [dB-Hz]."""
     cn0 = np.asarray(cn0_dbhz, dtype=float)
     # A non-finite C/N0 lands anywhere here (NaN sorts last) and is UNKNOWN_CLASS below.
-    classes = np.searchsorted(CN0_EDGES_DBHZ, cn0, side='right')
+    classes = CN0_EDGES_DBHZ.searchsorted(cn0, side='right')
     return np.where(np.isfinite(cn0), classes, UNKNOWN_CLASS).astype(np.int64)
 
 
@@ -217,6 +217,10 @@ class AdaptiveErrorModel:
             priors.core_sd_m, priors.wide_share, 0.0, priors.wide_sd_m))
         self.pooled = self._prior_fit(1)
         self.fit = self._prior_fit(N_CLASSES)
+        # The classes of the last C/N0 values asked about: an epoch asks about the same
+        # satellites four times (its likelihood, its snapshot weights, its residuals, its
+        # bias hypotheses), each a few microseconds of small numpy calls.
+        self._classes_of: tuple[tuple, np.ndarray] | None = None
         # The stream's last epoch intervals [s] and the last stamp (the prior's weight).
         self._intervals: list[float] = []
         self._last_stamp_ns: int | None = None
@@ -255,7 +259,7 @@ class AdaptiveErrorModel:
         if not keep.all():
             r, cn0 = r[keep], cn0[keep]
             keys = None if keys is None else np.asarray(keys)[keep]
-        cls = signal_class(cn0)
+        cls = self._classes(cn0)
         # The fix rests on the line-of-sight satellites: their count, not all, says how
         # much of their errors it absorbed.
         f = self.fit
@@ -283,25 +287,33 @@ class AdaptiveErrorModel:
             self._pairs *= np.exp(-dt_s / self.window_s)
         self._pairs_stamp_ns = stamp_ns
         lag_ns = int(CORRELATION_LAG_S * 1e9)
+        # Older than two lags is forgotten; the stamp closest to one lag back pairs, if
+        # it is within half a lag of it (the loop runs per satellite: constants out).
+        forget, target, tolerance = stamp_ns - 2 * lag_ns, stamp_ns - lag_ns, lag_ns // 2
+        history = self._history
         pairs = []
         for key, value in zip(keys.tolist(), r.tolist()):
-            stamps, values = self._history.setdefault(key, ([], []))
+            known = history.get(key)
+            if known is None:
+                history[key] = ([stamp_ns], [value])
+                continue
+            stamps, values = known
             # Stamps rise (the filter refuses an epoch not after the last): bisections.
-            old = bisect_left(stamps, stamp_ns - 2 * lag_ns)
-            del stamps[:old], values[:old]
+            old = bisect_left(stamps, forget)
+            if old:
+                del stamps[:old], values[:old]
             if stamps:
                 # The stamp closest to one lag back; of two as close, the earlier.
-                target = stamp_ns - lag_ns
                 i = bisect_left(stamps, target)
                 if i == len(stamps) or (i > 0 and target - stamps[i - 1] <= stamps[i] - target):
                     i = bisect_left(stamps, stamps[i - 1])
-                if abs(target - stamps[i]) <= lag_ns // 2:
+                if abs(target - stamps[i]) <= tolerance:
                     pairs.append((value, values[i], (stamp_ns - stamps[i]) * 1e-9))
             stamps.append(stamp_ns)
             values.append(value)
-        for key in [k for k, (stamps, _) in self._history.items()
+        for key in [k for k, (stamps, _) in history.items()
                     if not stamps or stamp_ns - stamps[-1] > 2 * lag_ns]:
-            del self._history[key]
+            del history[key]
         if pairs:
             x, y, lag = np.array(pairs).T
             self._pairs += (float(x @ y), float(x @ x), float(y @ y), float(lag.sum()),
@@ -414,17 +426,28 @@ class AdaptiveErrorModel:
                                      p.min_core_sd_m, EM_ITERATIONS)
         self.fit = MixtureFit(*fit, samples=counts)
 
+    def _classes(self, cn0_dbhz: np.ndarray) -> np.ndarray:
+        """:func:`signal_class` of ``cn0_dbhz`` (read-only), computed once for the same
+        values asked about in a row."""
+        cn0 = np.asarray(cn0_dbhz, dtype=float)
+        key = (cn0.shape, cn0.tobytes())
+        if self._classes_of is None or self._classes_of[0] != key:
+            classes = signal_class(cn0)
+            classes.flags.writeable = False
+            self._classes_of = (key, classes)
+        return self._classes_of[1]
+
     def satellite_model(self, cn0_dbhz: np.ndarray) -> tuple[np.ndarray, ...]:
         """The mixture of each satellite's class: ``(core sd [m], wide share, wide mean
         [m], wide sd [m])``, arrays (k,)."""
-        cls = signal_class(cn0_dbhz)
+        cls = self._classes(cn0_dbhz)
         f = self.fit
         return (f.core_sd_m[cls], f.wide_share[cls], f.wide_mean_m[cls], f.wide_sd_m[cls])
 
     def total_sigma_m(self, cn0_dbhz: np.ndarray) -> np.ndarray:
         """Standard deviation of each satellite's whole error (core and wide) [m]: the
         weights of a snapshot solution."""
-        return self.fit.total_sd_m()[signal_class(cn0_dbhz)]
+        return self.fit.total_sd_m()[self._classes(cn0_dbhz)]
 
     def reset(self) -> None:
         """Forget the window (a new drive or a reset filter)."""
