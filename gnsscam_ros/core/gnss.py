@@ -23,7 +23,7 @@ from typing import Protocol
 import numpy as np
 
 from .error_model import AdaptiveErrorModel
-from .frames import LocalFrame, sagnac_corrected
+from .frames import LocalFrame, row_norms, sagnac_corrected
 # The checks need no kernel: gnss_node imports them alone (no numba).
 from .gnss_checks import (MAX_PSEUDORANGE_M, MAX_SATELLITE_RADIUS_M,  # noqa: F401
                           MAX_EPOCH_SATELLITES, MAX_VARIANCE_M2, GnssCheck, check_epoch,
@@ -159,7 +159,7 @@ def clock_weights(prep: PreparedEpoch, centre_m: np.ndarray, spread_m: float,
     Returns:
         (k,) non-negative weights; within a constellation they sum to one.
     """
-    residual = prep.pr_m - np.sqrt(((prep.sv_enu_m - centre_m) ** 2).sum(axis=1))
+    residual = prep.pr_m - row_norms(prep.sv_enu_m - centre_m)
     return gnss_kernels.clock_inlier_weights(residual, prep.sigma_m, prep.sys_index,
                                              prep.n_systems, float(spread_m), iterations)
 
