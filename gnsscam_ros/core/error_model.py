@@ -171,9 +171,12 @@ class MixtureFit:
         return np.sqrt(np.maximum(second - mean ** 2, 0.0))
 
 
+_SQRT_2PI = np.sqrt(2.0 * np.pi)
+
+
 def _normal_pdf(r: np.ndarray, mean, sd) -> np.ndarray:
     z = (r - mean) / sd
-    return np.exp(-0.5 * z * z) / (sd * np.sqrt(2.0 * np.pi))
+    return np.exp(-0.5 * z * z) / (sd * _SQRT_2PI)
 
 
 def _at_interval(pseudo_samples: float, interval_s: float | None) -> float:
@@ -340,8 +343,9 @@ class AdaptiveErrorModel:
             return MIN_CORRELATION_TIME_S
         if rho >= 1.0:
             return self.window_s
-        return float(np.clip(-(lag / count) / np.log(rho), MIN_CORRELATION_TIME_S,
-                             self.window_s))
+        # np.clip's result on one value, without its dispatch.
+        return float(min(max(-(lag / count) / np.log(rho), MIN_CORRELATION_TIME_S),
+                         self.window_s))
 
     def _append(self, stamp_ns: int, r: np.ndarray, cls: np.ndarray) -> None:
         horizon = stamp_ns - int(self.window_s * 1e9)
