@@ -421,9 +421,10 @@ class AdaptiveErrorModel:
         # sample-weighted mean (so that the shape moves spreads between classes only).
         counts = np.bincount(cls, minlength=N_CLASSES).astype(float)
         shape = self._shape
-        shape = shape / (np.sum(counts * shape) / max(counts.sum(), 1.0))
+        # (The arrays' own methods: numpy's functions add a wrapper call each.)
+        shape = shape / ((counts * shape).sum() / max(counts.sum(), 1.0))
         s0, pi, mu, s1 = fit
-        centre = (s0 * shape, np.repeat(pi, N_CLASSES), np.repeat(mu, N_CLASSES), s1 * shape)
+        centre = (s0 * shape, pi.repeat(N_CLASSES), mu.repeat(N_CLASSES), s1 * shape)
         fit = (self.fit.core_sd_m, self.fit.wide_share, self.fit.wide_mean_m,
                self.fit.wide_sd_m)
         fit = mixture_kernels.em_fit(r, w, cls, N_CLASSES, *fit, *centre, class_strength,
