@@ -269,11 +269,11 @@ class AdaptiveErrorModel:
         s0, pi, mu, s1 = (v[cls] for v in (f.core_sd_m, f.wide_share, f.wide_mean_m,
                                            f.wide_sd_m))
         core = (1.0 - pi) * _normal_pdf(r, 0.0, s0)
-        line_of_sight = float(np.sum(core / np.maximum(core + pi * _normal_pdf(r, mu, s1),
-                                                       1e-300)))
+        line_of_sight = float((core / np.maximum(core + pi * _normal_pdf(r, mu, s1),
+                                                 1e-300)).sum())
         if line_of_sight <= n_unknowns + 1.0:
             return                         # too little redundancy to say anything
-        r = r * np.sqrt(line_of_sight / (line_of_sight - n_unknowns))
+        r = r * math.sqrt(line_of_sight / (line_of_sight - n_unknowns))
         if keys is not None:
             clip = CORRELATION_CLIP_SD * s0
             # np.clip's result, without its dispatch (a dozen values).

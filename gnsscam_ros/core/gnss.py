@@ -192,12 +192,15 @@ def robust_terms(prep: PreparedEpoch, outlier_prob: float, outlier_range_m: floa
     density may already lie outside it (a zero floor).
     """
     key = (float(outlier_prob), float(outlier_range_m))
-    derived = prep._derived.get(key)
-    if derived is None:
-        derived = prep._derived[key] = _robust_arrays(prep, *key)
-    *arrays, per_term = derived
-    group = int(log_range / per_term) if np.isfinite(per_term) else 0
-    return RobustTerms(*arrays, group)
+    terms = prep._derived.get(key + (log_range,))
+    if terms is None:
+        derived = prep._derived.get(key)
+        if derived is None:
+            derived = prep._derived[key] = _robust_arrays(prep, *key)
+        *arrays, per_term = derived
+        group = int(log_range / per_term) if np.isfinite(per_term) else 0
+        terms = prep._derived[key + (log_range,)] = RobustTerms(*arrays, group)
+    return terms
 
 
 def _robust_arrays(prep: PreparedEpoch, outlier_prob: float, outlier_range_m: float
@@ -362,7 +365,9 @@ def _sets(sets: np.ndarray) -> np.ndarray:
 
 def _clock_rows(clock_weights: np.ndarray) -> np.ndarray:
     """Clock weights as the kernels take them: (1, k) for every set or (S, k)."""
-    return np.ascontiguousarray(np.atleast_2d(clock_weights), dtype=float)
+    rows = np.asarray(clock_weights)
+    # np.atleast_2d's result without its dispatch.
+    return np.ascontiguousarray(rows[None] if rows.ndim == 1 else rows, dtype=float)
 
 
 @dataclass(frozen=True)
