@@ -44,6 +44,7 @@ The estimate itself is unchanged; the offsets only displace the posteriors the b
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -131,12 +132,23 @@ def with_hidden_faults(biases_m: np.ndarray, sizes_m: np.ndarray) -> np.ndarray:
     k, m = biases_m.shape
     if k == 0:
         return biases_m
-    which = np.arange(m)
-    satellite = which % k
-    sign = np.where((which // k) % 2 == 0, 1.0, -1.0)
+    which, satellite, sign = _hidden_fault_pattern(k, m)
     out = biases_m.copy()
     out[satellite, which] += sign * sizes_m[satellite]
     return out
+
+
+@lru_cache(maxsize=64)
+def _hidden_fault_pattern(k: int, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`with_hidden_faults`' hypotheses (m,), the satellite each biases and the
+    sign, read-only: the same for every epoch with as many satellites (five small numpy
+    calls less an epoch)."""
+    which = np.arange(m)
+    satellite = which % k
+    sign = np.where((which // k) % 2 == 0, 1.0, -1.0)
+    for array in (which, satellite, sign):
+        array.flags.writeable = False
+    return which, satellite, sign
 
 
 def beyond_cloud(offsets_m: np.ndarray, fault_offsets_m: np.ndarray,

@@ -121,6 +121,13 @@ class ConsistencyState:
     recover: bool = False
     shift_m: np.ndarray | None = None
 
+    def withdrawn(self) -> 'ConsistencyState':
+        """This state with neither alarm nor recovery (the filter's, when the separation
+        is within the cloud's own protection level)."""
+        # dataclasses.replace's result without its walk over the fields: most epochs of a
+        # drive with faults take this.
+        return ConsistencyState(**{**vars(self), 'inconsistent': False, 'recover': False})
+
 
 class ConsistencyMonitor:
     """Page's CUSUM of the log likelihood ratio "cloud moved to the snapshot solution"

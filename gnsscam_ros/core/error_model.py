@@ -99,7 +99,7 @@ def signal_class(cn0_dbhz: np.ndarray) -> np.ndarray:
     """Signal class of each satellite (0 .. N_CLASSES - 1) from its C/N0 [dB-Hz]."""
     cn0 = np.asarray(cn0_dbhz, dtype=float)
     # A non-finite C/N0 lands anywhere here (NaN sorts last) and is UNKNOWN_CLASS below.
-    classes = np.searchsorted(CN0_EDGES_DBHZ, cn0, side='right')
+    classes = CN0_EDGES_DBHZ.searchsorted(cn0, side='right')
     return np.where(np.isfinite(cn0), classes, UNKNOWN_CLASS).astype(np.int64)
 
 
@@ -171,9 +171,12 @@ class MixtureFit:
         return np.sqrt(np.maximum(second - mean ** 2, 0.0))
 
 
+_SQRT_2PI = np.sqrt(2.0 * np.pi)
+
+
 def _normal_pdf(r: np.ndarray, mean, sd) -> np.ndarray:
     z = (r - mean) / sd
-    return np.exp(-0.5 * z * z) / (sd * np.sqrt(2.0 * np.pi))
+    return np.exp(-0.5 * z * z) / (sd * _SQRT_2PI)
 
 
 def _at_interval(pseudo_samples: float, interval_s: float | None) -> float:
@@ -217,6 +220,10 @@ class AdaptiveErrorModel:
             priors.core_sd_m, priors.wide_share, 0.0, priors.wide_sd_m))
         self.pooled = self._prior_fit(1)
         self.fit = self._prior_fit(N_CLASSES)
+        # The classes of the last C/N0 values asked about: an epoch asks about the same
+        # satellites four times (its likelihood, its snapshot weights, its residuals, its
+        # bias hypotheses), each a few microseconds of small numpy calls.
+        self._classes_of: tuple[tuple, np.ndarray] | None = None
         # The stream's last epoch intervals [s] and the last stamp (the prior's weight).
         self._intervals: list[float] = []
         self._last_stamp_ns: int | None = None
@@ -255,18 +262,18 @@ class AdaptiveErrorModel:
         if not keep.all():
             r, cn0 = r[keep], cn0[keep]
             keys = None if keys is None else np.asarray(keys)[keep]
-        cls = signal_class(cn0)
+        cls = self._classes(cn0)
         # The fix rests on the line-of-sight satellites: their count, not all, says how
         # much of their errors it absorbed.
         f = self.fit
         s0, pi, mu, s1 = (v[cls] for v in (f.core_sd_m, f.wide_share, f.wide_mean_m,
                                            f.wide_sd_m))
         core = (1.0 - pi) * _normal_pdf(r, 0.0, s0)
-        line_of_sight = float(np.sum(core / np.maximum(core + pi * _normal_pdf(r, mu, s1),
-                                                       1e-300)))
+        line_of_sight = float((core / np.maximum(core + pi * _normal_pdf(r, mu, s1),
+                                                 1e-300)).sum())
         if line_of_sight <= n_unknowns + 1.0:
             return                         # too little redundancy to say anything
-        r = r * np.sqrt(line_of_sight / (line_of_sight - n_unknowns))
+        r = r * math.sqrt(line_of_sight / (line_of_sight - n_unknowns))
         if keys is not None:
             clip = CORRELATION_CLIP_SD * s0
             # np.clip's result, without its dispatch (a dozen values).
@@ -283,25 +290,33 @@ class AdaptiveErrorModel:
             self._pairs *= np.exp(-dt_s / self.window_s)
         self._pairs_stamp_ns = stamp_ns
         lag_ns = int(CORRELATION_LAG_S * 1e9)
+        # Older than two lags is forgotten; the stamp closest to one lag back pairs, if
+        # it is within half a lag of it (the loop runs per satellite: constants out).
+        forget, target, tolerance = stamp_ns - 2 * lag_ns, stamp_ns - lag_ns, lag_ns // 2
+        history = self._history
         pairs = []
         for key, value in zip(keys.tolist(), r.tolist()):
-            stamps, values = self._history.setdefault(key, ([], []))
+            known = history.get(key)
+            if known is None:
+                history[key] = ([stamp_ns], [value])
+                continue
+            stamps, values = known
             # Stamps rise (the filter refuses an epoch not after the last): bisections.
-            old = bisect_left(stamps, stamp_ns - 2 * lag_ns)
-            del stamps[:old], values[:old]
+            old = bisect_left(stamps, forget)
+            if old:
+                del stamps[:old], values[:old]
             if stamps:
                 # The stamp closest to one lag back; of two as close, the earlier.
-                target = stamp_ns - lag_ns
                 i = bisect_left(stamps, target)
                 if i == len(stamps) or (i > 0 and target - stamps[i - 1] <= stamps[i] - target):
                     i = bisect_left(stamps, stamps[i - 1])
-                if abs(target - stamps[i]) <= lag_ns // 2:
+                if abs(target - stamps[i]) <= tolerance:
                     pairs.append((value, values[i], (stamp_ns - stamps[i]) * 1e-9))
             stamps.append(stamp_ns)
             values.append(value)
-        for key in [k for k, (stamps, _) in self._history.items()
+        for key in [k for k, (stamps, _) in history.items()
                     if not stamps or stamp_ns - stamps[-1] > 2 * lag_ns]:
-            del self._history[key]
+            del history[key]
         if pairs:
             x, y, lag = np.array(pairs).T
             self._pairs += (float(x @ y), float(x @ x), float(y @ y), float(lag.sum()),
@@ -328,8 +343,9 @@ class AdaptiveErrorModel:
             return MIN_CORRELATION_TIME_S
         if rho >= 1.0:
             return self.window_s
-        return float(np.clip(-(lag / count) / np.log(rho), MIN_CORRELATION_TIME_S,
-                             self.window_s))
+        # np.clip's result on one value, without its dispatch.
+        return float(min(max(-(lag / count) / np.log(rho), MIN_CORRELATION_TIME_S),
+                         self.window_s))
 
     def _append(self, stamp_ns: int, r: np.ndarray, cls: np.ndarray) -> None:
         horizon = stamp_ns - int(self.window_s * 1e9)
@@ -405,26 +421,38 @@ class AdaptiveErrorModel:
         # sample-weighted mean (so that the shape moves spreads between classes only).
         counts = np.bincount(cls, minlength=N_CLASSES).astype(float)
         shape = self._shape
-        shape = shape / (np.sum(counts * shape) / max(counts.sum(), 1.0))
+        # (The arrays' own methods: numpy's functions add a wrapper call each.)
+        shape = shape / ((counts * shape).sum() / max(counts.sum(), 1.0))
         s0, pi, mu, s1 = fit
-        centre = (s0 * shape, np.repeat(pi, N_CLASSES), np.repeat(mu, N_CLASSES), s1 * shape)
+        centre = (s0 * shape, pi.repeat(N_CLASSES), mu.repeat(N_CLASSES), s1 * shape)
         fit = (self.fit.core_sd_m, self.fit.wide_share, self.fit.wide_mean_m,
                self.fit.wide_sd_m)
         fit = mixture_kernels.em_fit(r, w, cls, N_CLASSES, *fit, *centre, class_strength,
                                      p.min_core_sd_m, EM_ITERATIONS)
         self.fit = MixtureFit(*fit, samples=counts)
 
+    def _classes(self, cn0_dbhz: np.ndarray) -> np.ndarray:
+        """:func:`signal_class` of ``cn0_dbhz`` (read-only), computed once for the same
+        values asked about in a row."""
+        cn0 = np.asarray(cn0_dbhz, dtype=float)
+        key = (cn0.shape, cn0.tobytes())
+        if self._classes_of is None or self._classes_of[0] != key:
+            classes = signal_class(cn0)
+            classes.flags.writeable = False
+            self._classes_of = (key, classes)
+        return self._classes_of[1]
+
     def satellite_model(self, cn0_dbhz: np.ndarray) -> tuple[np.ndarray, ...]:
         """The mixture of each satellite's class: ``(core sd [m], wide share, wide mean
         [m], wide sd [m])``, arrays (k,)."""
-        cls = signal_class(cn0_dbhz)
+        cls = self._classes(cn0_dbhz)
         f = self.fit
         return (f.core_sd_m[cls], f.wide_share[cls], f.wide_mean_m[cls], f.wide_sd_m[cls])
 
     def total_sigma_m(self, cn0_dbhz: np.ndarray) -> np.ndarray:
         """Standard deviation of each satellite's whole error (core and wide) [m]: the
         weights of a snapshot solution."""
-        return self.fit.total_sd_m()[signal_class(cn0_dbhz)]
+        return self.fit.total_sd_m()[self._classes(cn0_dbhz)]
 
     def reset(self) -> None:
         """Forget the window (a new drive or a reset filter)."""

@@ -25,7 +25,7 @@ from .consistency import (ConsistencyMonitor, ConsistencyState, MovedFrom,
                           snapshot_position)
 from .error_model import AdaptiveErrorModel
 from .fusion import MAX_CAMERA_MATCHES, CameraMeasurement, camera_fusion
-from .frames import LocalFrame
+from .frames import LocalFrame, row_norms
 from .gnss import LIKELIHOODS, PARTICLE_RAIM, ROBUST
 from .kernels import weights as weight_kernels
 from .noise import ProcessNoise
@@ -562,7 +562,7 @@ class ParticleFilter:
                 consistency.separation_m > level):
             # The alternative is within the level the cloud claims: covered either way, no
             # alarm and nothing to recover to (a consistent cloud's statistic drifts up).
-            consistency = replace(consistency, inconsistent=False, recover=False)
+            consistency = consistency.withdrawn()
         # The estimate may be the wrong one of two places: while the test says so, and
         # until integrity has settled (the cloud has not yet shown that it is consistent;
         # the verdict is not OK then either), the level covers the other.
@@ -646,7 +646,7 @@ class ParticleFilter:
                                             3 + prep.n_systems)
             weights = tempering * inlier / prep.sigma_m ** 2
             line = prep.sv_enu_m - mean
-            line /= np.linalg.norm(line, axis=1, keepdims=True)
+            line /= row_norms(line)[:, None]
             # The whole rows: a kernel that reads three columns needs no copy of them.
             _, prior_cov = weighted_mean_cov(sets[chosen], prior_log_w)
             biases = self.bias.biases_at(stamp_ns, prep.sv_key, prep.cn0_dbhz, sigma, tau)
@@ -686,9 +686,10 @@ class ParticleFilter:
             fit_prior_log_w = normalize_log_weights(fit_prior_log_w)
         fits = integrity.PosteriorSet(pos[:, fit_thin], fit_log_w, index, offsets,
                                       cfg.horizontal_risk)
+        # One row of the priors' weights for all (np.broadcast_to cost 12 us at N = 120).
         kl = fits.divergence_from(integrity.PosteriorSet(
-            fits.positions_m, np.broadcast_to(fit_prior_log_w, fit_log_w.shape), index,
-            prior_offsets, cfg.horizontal_risk))
+            fits.positions_m, fit_prior_log_w[None], index, prior_offsets,
+            cfg.horizontal_risk))
         eps = integrity.divergence_budget(kl, cfg.n_posteriors, cfg.risk_delta)
         q_max = integrity.max_empirical_risk(cfg.target_risk, eps, cfg.inverse_bernoulli)
         limits = cfg.alert_limits_m

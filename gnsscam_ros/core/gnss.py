@@ -23,7 +23,7 @@ from typing import Protocol
 import numpy as np
 
 from .error_model import AdaptiveErrorModel
-from .frames import LocalFrame, sagnac_corrected
+from .frames import LocalFrame, row_norms, sagnac_corrected
 # The checks need no kernel: gnss_node imports them alone (no numba).
 from .gnss_checks import (MAX_PSEUDORANGE_M, MAX_SATELLITE_RADIUS_M,  # noqa: F401
                           MAX_EPOCH_SATELLITES, MAX_VARIANCE_M2, GnssCheck, check_epoch,
@@ -159,7 +159,7 @@ def clock_weights(prep: PreparedEpoch, centre_m: np.ndarray, spread_m: float,
     Returns:
         (k,) non-negative weights; within a constellation they sum to one.
     """
-    residual = prep.pr_m - np.sqrt(((prep.sv_enu_m - centre_m) ** 2).sum(axis=1))
+    residual = prep.pr_m - row_norms(prep.sv_enu_m - centre_m)
     return gnss_kernels.clock_inlier_weights(residual, prep.sigma_m, prep.sys_index,
                                              prep.n_systems, float(spread_m), iterations)
 
@@ -192,12 +192,15 @@ def robust_terms(prep: PreparedEpoch, outlier_prob: float, outlier_range_m: floa
     density may already lie outside it (a zero floor).
     """
     key = (float(outlier_prob), float(outlier_range_m))
-    derived = prep._derived.get(key)
-    if derived is None:
-        derived = prep._derived[key] = _robust_arrays(prep, *key)
-    *arrays, per_term = derived
-    group = int(log_range / per_term) if np.isfinite(per_term) else 0
-    return RobustTerms(*arrays, group)
+    terms = prep._derived.get(key + (log_range,))
+    if terms is None:
+        derived = prep._derived.get(key)
+        if derived is None:
+            derived = prep._derived[key] = _robust_arrays(prep, *key)
+        *arrays, per_term = derived
+        group = int(log_range / per_term) if np.isfinite(per_term) else 0
+        terms = prep._derived[key + (log_range,)] = RobustTerms(*arrays, group)
+    return terms
 
 
 def _robust_arrays(prep: PreparedEpoch, outlier_prob: float, outlier_range_m: float
@@ -362,7 +365,9 @@ def _sets(sets: np.ndarray) -> np.ndarray:
 
 def _clock_rows(clock_weights: np.ndarray) -> np.ndarray:
     """Clock weights as the kernels take them: (1, k) for every set or (S, k)."""
-    return np.ascontiguousarray(np.atleast_2d(clock_weights), dtype=float)
+    rows = np.asarray(clock_weights)
+    # np.atleast_2d's result without its dispatch.
+    return np.ascontiguousarray(rows[None] if rows.ndim == 1 else rows, dtype=float)
 
 
 @dataclass(frozen=True)

@@ -140,9 +140,9 @@ def satellite_reasons(epoch: GnssEpoch, elevation_mask_deg: float = 0.0,
         codes[np.asarray(epoch.cn0_dbhz, dtype=float) < cn0_mask_dbhz] = 6
         codes[np.asarray(epoch.elevation_deg, dtype=float) < elevation_mask_deg] = 5
         key = satellite_key(epoch, 100000)
-        order = np.argsort(key)
-        same = key[order[1:]] == key[order[:-1]]
-        if same.any():
+        if len(set(key.tolist())) < key.shape[0]:      # (a set is the quicker screen)
+            order = np.argsort(key)
+            same = key[order[1:]] == key[order[:-1]]
             codes[order[1:][same]] = 4
             codes[order[:-1][same]] = 4
         codes[(np.einsum('ij,ij->i', sv, sv) > MAX_SATELLITE_RADIUS_M ** 2)

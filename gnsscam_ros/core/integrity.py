@@ -303,7 +303,8 @@ class PosteriorSet:
 
     Attributes:
         positions_m: (S, N, 3) particle positions of the S motion samples [m].
-        log_w: (S, N) normalised log-weights.
+        log_w: (S, N) normalised log-weights, or (1, N): one row for every sample (the
+            priors').
         motion_index: (M,) motion sample of each posterior.
         offsets_m: (M, 3) estimate error of each posterior's hypothesis [m].
         horizontal: Measure horizontal (east-north) distance; else 3D.
@@ -322,7 +323,7 @@ class PosteriorSet:
     @cached_property
     def weights(self) -> np.ndarray:
         """Linear weights ``exp(log_w)``: (S, N), or (1, N) when every sample has the
-        same row (``log_w`` broadcast from one row, as the priors are)."""
+        same row (``log_w`` one row, or broadcast from one, as the priors are)."""
         log_w = np.asarray(self.log_w, dtype=float)
         if log_w.shape[0] > 1 and log_w.strides[0] == 0:
             log_w = log_w[:1]

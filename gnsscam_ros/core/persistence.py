@@ -25,6 +25,8 @@ persists: the tempering of a fully correlated error).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .kernels import persistence as persistence_kernels
@@ -116,7 +118,8 @@ class SnapshotPersistence:
         if n_short < MIN_PAIRS or n_long < MIN_PAIRS or not long > 0.0:
             return 1.0
         share = 1.0 - short / long
-        return float(np.clip(share, 0.0, 1.0)) if np.isfinite(share) else 1.0
+        # np.clip's and np.isfinite's results on a float, without their dispatch.
+        return min(max(share, 0.0), 1.0) if math.isfinite(share) else 1.0
 
     def reset(self) -> None:
         """Forget the window (a new drive or a reset filter)."""
