@@ -95,6 +95,12 @@ def test_cell_figures_follow_from_the_runs():
     assert cell['cloud_calibration']['spread_to_error'] == pytest.approx(
         np.sqrt(2.0 * np.log(2.0) / 2.0))
     assert all('nees' not in r for r in cell['runs'])
+    # The level's size against its shape, when the bound's miss share is given: every
+    # error is 5/12 of its level, so the level scaled to miss nothing is the error itself.
+    assert 'level_sizing' not in cell
+    sized = summarize_cell(runs, 0.03)['level_sizing']
+    assert sized['epochs'] == 600 and sized['scale'] == pytest.approx(5.0 / 12.0)
+    assert sized['pl_to_error_sized'] == pytest.approx(1.0)
     assert all(t['pass'] for t in cell['targets'].values()) and cell['pass']
     # Each target fails on its own.
     assert not summarize_cell([run(0, 60, 200, 8.0), run(1, 70, 200, 8.0)])['targets'][

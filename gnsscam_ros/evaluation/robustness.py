@@ -87,8 +87,8 @@ from ..datasets.variants import (decimate_gnss, drive_digest, drop_cn0, gnss_rat
 from .campaign_cluster import CaseRunner
 from .evaluate import evaluate_drive_record
 from .intervals import between_seed_interval, mean_interval
-from .metrics import cloud_calibration, percentile_with_inf
-from .runner import run_nees
+from .metrics import cloud_calibration, level_sizing, percentile_with_inf
+from .runner import bound_miss_share, run_nees
 
 #: Satellites a single-system cell needs in an epoch (4 unknowns and one redundant range).
 SINGLE_SYSTEM_MIN_SATELLITES = 5
@@ -276,8 +276,10 @@ def _target(value, limit) -> dict:
     return {'value': value, 'limit': limit, 'pass': bool(ok)}
 
 
-def summarize_cell(runs: list[dict]) -> dict:
-    """The figures of one cell from its runs (:func:`run_seed`), targets included."""
+def summarize_cell(runs: list[dict], miss_share: float | None = None) -> dict:
+    """The figures of one cell from its runs (:func:`run_seed`), targets included; with
+    ``miss_share`` (:func:`.runner.bound_miss_share`) also the level's size against its
+    shape over the pooled epochs (``level_sizing``, not a target)."""
     runs = sorted(runs, key=lambda r: r['seed'])
     mi_counts = [r['mi_epochs'] for r in runs]
     mi_totals = [r['epochs'] for r in runs]
@@ -313,6 +315,8 @@ def summarize_cell(runs: list[dict]) -> dict:
                   if k not in ('error_m', 'protection_level_m', 'nees', 'nees_dims')}
                  for r in runs],
     }
+    if miss_share is not None:
+        out['level_sizing'] = level_sizing(error, pl, miss_share)
     out['targets'] = {
         'mi_mean': _target(mi['mean'], TARGETS['mi_mean'][1]),
         'mi_upper': _target(mi['upper'], TARGETS['mi_upper'][1]),
@@ -400,7 +404,8 @@ def run_robustness(drive: Drive, cells: list[Cell], seeds: list[int],
         bar.close()
     running = time.monotonic() - ready
     cluster['startup_seconds'] = ready - start
-    summaries = [_cell_entry(cell, data, same_as, runs) for cell in cells]
+    miss_share = bound_miss_share(config)
+    summaries = [_cell_entry(cell, data, same_as, runs, miss_share) for cell in cells]
     wall = [r['wall_seconds'] for rs in runs.values() for r in rs]
     return {'cells': summaries, 'failed': failed, 'seeds': seeds,
             'fault_seed': int(fault_seed), 'duration_s': duration_s,
@@ -434,7 +439,8 @@ def _cell_drives(drive: Drive, cells: list[Cell], duration_s, fault_seed):
     return drives, data, same_as, failed
 
 
-def _cell_entry(cell: Cell, data: dict, same_as: dict, runs: dict) -> dict:
+def _cell_entry(cell: Cell, data: dict, same_as: dict, runs: dict,
+                miss_share: float | None = None) -> dict:
     """A cell's entry of the JSON: what it is, its data, and its figures (or why none)."""
     entry = {'name': cell.name, 'description': cell.description,
              'variation': {'kind': cell.kind, 'value': _plain(cell.value)},
@@ -443,7 +449,7 @@ def _cell_entry(cell: Cell, data: dict, same_as: dict, runs: dict) -> dict:
     if 'error' in data[cell.name]:
         entry.update(seeds=[], error=data[cell.name]['error'])
     elif mine:
-        entry.update(summarize_cell(mine))
+        entry.update(summarize_cell(mine, miss_share))
     else:
         entry.update(seeds=[], error='every run failed')
     entry.setdefault('pass', False)

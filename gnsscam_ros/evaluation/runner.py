@@ -375,6 +375,16 @@ def run_nees(record: RunRecord, config: FilterConfig) -> np.ndarray:
                 record.covariance_m2[:, :d, :d])
 
 
+def bound_miss_share(config: FilterConfig) -> float:
+    """The share of the pooled posterior mass the risk bound lets lie beyond its level
+    when the posteriors agree with their priors (``q_max`` at a KL divergence of 0): what
+    a level exactly as wide as the bound says may miss (``metrics.level_sizing``)."""
+    return integrity.max_empirical_risk(
+        config.target_risk,
+        integrity.divergence_budget(0.0, config.n_posteriors, config.risk_delta),
+        config.inverse_bernoulli)
+
+
 def summarize(record: RunRecord, config: FilterConfig) -> dict:
     """Accuracy and integrity metrics of a run, keyed like the evaluation JSON."""
     out = accuracy(record.estimate_enu_m, record.truth_enu_m)
@@ -408,12 +418,8 @@ def summarize(record: RunRecord, config: FilterConfig) -> dict:
         err, record.protection_level_m, config.alert_limit_m,
         integrity_ok=record.integrity_ok if record.integrity_ok.size == err.size else None)
     if record.protection_level_m.size == err.size:
-        # What the bound lets lie beyond its level when the posteriors agree (KL 0).
-        miss_share = integrity.max_empirical_risk(
-            config.target_risk,
-            integrity.divergence_budget(0.0, config.n_posteriors, config.risk_delta),
-            config.inverse_bernoulli)
-        out['level_sizing'] = level_sizing(err, record.protection_level_m, miss_share)
+        out['level_sizing'] = level_sizing(err, record.protection_level_m,
+                                           bound_miss_share(config))
     if record.covariance_m2.shape[0] == err.size:
         out['cloud_calibration'] = cloud_calibration(run_nees(record, config),
                                                      2 if config.horizontal_risk else 3)
