@@ -117,8 +117,9 @@ def level_sizing(error_m: np.ndarray, protection_level_m: np.ndarray,
     # The order statistic with at most ``miss_share`` of the epochs strictly beyond it.
     ratio = np.sort(err / pl)
     scale = float(ratio[min(int(np.ceil((1.0 - miss_share) * err.size)) - 1, err.size - 1)])
-    out.update(pl_to_error=float(np.median(pl)) / median_error, scale=scale,
-               pl_to_error_sized=scale * float(np.median(pl)) / median_error)
+    median_level = float(np.median(pl))
+    out.update(pl_to_error=median_level / median_error, scale=scale,
+               pl_to_error_sized=scale * median_level / median_error)
     return out
 
 
