@@ -288,10 +288,9 @@ def test_propagation_is_the_oracle_to_rounding(rng):
 
 
 def test_snapshot_position_is_the_numpy_oracle():
-    # The kernel does numpy's arithmetic step for step with LAPACK's gelsd (numba's lstsq,
-    # numpy's cut-off): bit-identical where numba's LAPACK is numpy's (checked on this
-    # project's tier over these cases); 1e-6 m leaves room for another LAPACK build,
-    # whose last bits move a solution on 2e7 m ranges by nanometres.
+    # The kernel does numpy's arithmetic step for step, its least squares by a Householder
+    # QR where numpy's lstsq takes LAPACK's SVD: the two agree to rounding, which on 2e7 m
+    # ranges moves a solution by nanometres (1e-8 m over these cases); 1e-6 m bounds it.
     rng = np.random.default_rng(4)
     for trial in range(60):
         n_systems = 1 + trial % 3
@@ -306,6 +305,13 @@ def test_snapshot_position_is_the_numpy_oracle():
         got = snapshot_position(sv, pr, sigma, sys_index, n_systems, start)
         want = oracles.snapshot_position(sv, pr, sigma, sys_index, n_systems, start)
         np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-6)
+    # A constellation index without a satellite leaves its clock column empty: rank
+    # deficient, the QR hands the system to LAPACK's minimum-norm solution, numpy's own.
+    gap = np.arange(12) % 2 * 2
+    got = snapshot_position(sv, pr, sigma, gap, 3, start)
+    want = oracles.snapshot_position(sv, pr, sigma, gap, 3, start)
+    assert got is not None
+    np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-6)
     # No solution: too few satellites, a poisoned start, a zero sigma.
     assert snapshot_position(sv[:5], pr[:5], sigma[:5], sys_index[:5], 2, start) is None
     assert snapshot_position(sv, pr, sigma, sys_index, n_systems, start * np.nan) is None
