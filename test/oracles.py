@@ -291,14 +291,17 @@ def em_step(r: np.ndarray, w: np.ndarray, cls: np.ndarray, n_classes: int,
         strength: Pseudo-samples of the prior.
         min_core_sd_m: Floor of s0 [m].
     """
-    def pdf(x, mean, sd):
-        z = (x - mean) / sd
-        return np.exp(-0.5 * z * z) / (sd * np.sqrt(2.0 * np.pi))
+    def normal_pdf_scale(sd):
+        return 1.0 / (sd * np.sqrt(2.0 * np.pi))
 
     s0, pi, mu, s1 = (f[cls] for f in fit)
-    core = (1.0 - pi) * pdf(r, 0.0, s0)
-    wide = pi * pdf(r, mu, s1)
-    resp = wide / np.maximum(core + wide, 1e-300)       # E-step: P(NLOS | r)
+    # E-step: P(NLOS | r) = 1 / (1 + core / wide), the ratio from the log densities (it
+    # stays finite where both densities underflow).
+    log_ratio = (np.log((1.0 - pi) * normal_pdf_scale(s0))
+                 - np.log(pi * normal_pdf_scale(s1))
+                 - 0.5 * (r / s0) ** 2 + 0.5 * ((r - mu) / s1) ** 2)
+    with np.errstate(over='ignore'):
+        resp = 1.0 / (1.0 + np.exp(log_ratio))
     w1 = w * resp
     w0 = w - w1
 

@@ -48,6 +48,21 @@ def test_the_compiled_em_iterations_are_the_numpy_oracle(n_classes):
     assert got[1][0] > 0.2 and got[2][0] > 10.0      # the fit moved towards the data
 
 
+def test_a_residual_of_kilometres_is_the_wide_components_not_the_cores():
+    # Both densities underflow 5 km out; the responsibility is their ratio, which does
+    # not: the residuals go to the wide component and the core keeps its metres, in the
+    # first iteration already (as 0 / 0 they went to the core, whose spread read 500 m
+    # for an iteration: the epoch's model, the EM being warm-started a few at a time).
+    rng = np.random.default_rng(3)
+    r = np.concatenate([rng.normal(0.0, 3.0, 500), np.full(5, 5000.0)])
+    one = np.ones(1)
+    fit = (3.0 * one, 0.2 * one, 0.0 * one, 20.0 * one)
+    s0, pi, mu, s1 = mixture_kernels.em_fit(r, np.ones(r.shape[0]), np.zeros(r.shape[0],
+                                            dtype=np.int64), 1, *fit, *fit, 30.0, 0.3, 1)
+    assert 2.5 < s0[0] < 3.5
+    assert s1[0] > 500.0 and mu[0] > 20.0
+
+
 def test_signal_classes_follow_the_cn0_bins_and_unknown_has_its_own():
     cn0 = np.array([np.nan, 10.0, 25.0, 27.0, 44.9, 45.0, 60.0])
     assert signal_class(cn0).tolist() == [UNKNOWN_CLASS, 0, 1, 1, 4, 5, 5]
