@@ -207,19 +207,18 @@ def _robust_arrays(prep: PreparedEpoch, outlier_prob: float, outlier_range_m: fl
                    ) -> tuple:
     """:func:`robust_terms`' arrays and the largest ``|log|`` of a single density."""
     k = prep.pr_m.shape[0]
-    if prep.wide_share is None:
-        core = np.full(k, 1.0 - outlier_prob)
-        floor_share = outlier_prob
-        wide_log = np.full(k, ABSENT_LOG)
-        high = np.zeros(k)
-    else:
-        core = 1.0 - prep.wide_share - FAULT_SHARE
-        floor_share = FAULT_SHARE
-        high = np.asarray(prep.wide_mean_m, dtype=float) + 2.0 * prep.wide_sd_m
-        # Flat part plus the two half-Gaussian ends carry the component's weight.
-        wide_log = np.log(prep.wide_share) - np.log(high + np.sqrt(2.0 * np.pi) * prep.sigma_m)
+    if prep.wide_share is not None:
+        arrays = tuple(np.empty(k) for _ in range(4))
+        per_term = gnss_kernels.learned_robust_terms(
+            prep.sigma_m, np.asarray(prep.wide_share, dtype=float),
+            np.asarray(prep.wide_mean_m, dtype=float), np.asarray(prep.wide_sd_m, dtype=float),
+            FAULT_SHARE, float(outlier_range_m), *arrays)
+        return (*arrays, per_term)
+    core = np.full(k, 1.0 - outlier_prob)
+    wide_log = np.full(k, ABSENT_LOG)
+    high = np.zeros(k)
     log_scale = np.log(core) - np.log(prep.sigma_m) - LOG_SQRT_2PI
-    floor = np.full(k, floor_share / outlier_range_m)
+    floor = np.full(k, outlier_prob / outlier_range_m)
     # Every density lies between its floor and the sum of its scales and its floor.
     with np.errstate(divide='ignore'):                  # no floor: log 0 = -inf
         log_floor = np.log(floor)

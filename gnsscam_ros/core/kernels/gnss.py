@@ -616,3 +616,35 @@ def constellation_index(system):
             n_systems += 1
         a = b + 1
     return index, n_systems
+
+
+@inline_kernel
+def _log_add_exp(a, b):
+    """``log(e^a + e^b)`` (``np.logaddexp``), -inf for two -inf."""
+    high = max(a, b)
+    if high == -np.inf:
+        return high
+    return high + math.log1p(math.exp(-abs(a - b)))
+
+
+@kernel
+def learned_robust_terms(sigma, wide_share, wide_mean, wide_sd, fault_share, outlier_range_m,
+                         log_scale, floor, wide_log_scale, wide_high):
+    """The robust density's per-satellite terms under the learned mixture
+    (``core.gnss.robust_terms`` says what they are), written into the last four (k,)
+    arrays; returns the largest ``|log|`` of a single density (its largest value or its
+    floor). A dozen numpy calls on a dozen values each cost more than their arithmetic."""
+    log_floor = math.log(fault_share / outlier_range_m) if fault_share > 0.0 else -np.inf
+    per_term = 1e-3
+    for j in range(sigma.shape[0]):
+        floor[j] = fault_share / outlier_range_m
+        # Flat part plus the two half-Gaussian ends carry the component's weight.
+        wide_high[j] = wide_mean[j] + 2.0 * wide_sd[j]
+        wide_log_scale[j] = (math.log(wide_share[j])
+                             - math.log(wide_high[j] + math.sqrt(2.0 * math.pi) * sigma[j]))
+        log_scale[j] = (math.log(1.0 - wide_share[j] - fault_share) - math.log(sigma[j])
+                        - LOG_SQRT_2PI)
+        # Every density lies between its floor and the sum of its scales and its floor.
+        largest = _log_add_exp(_log_add_exp(log_scale[j], wide_log_scale[j]), log_floor)
+        per_term = max(per_term, abs(log_floor), abs(largest))
+    return per_term
