@@ -348,19 +348,20 @@ class AdaptiveErrorModel:
                          self.window_s))
 
     def _append(self, stamp_ns: int, r: np.ndarray, cls: np.ndarray) -> None:
-        horizon = stamp_ns - int(self.window_s * 1e9)
         n = self._count
         k = min(r.shape[0], MAX_SAMPLES)
         # Drop what left the window (and, if still full, the oldest), then append; while
         # the window holds fewer than MIN_WINDOW_RESIDUALS, the newest of the older ones
-        # stay (residuals arrive in time order: they are the last in the buffer).
-        live = self._stamp_ns[:n] >= horizon
-        live[max(0, n - max(0, MIN_WINDOW_RESIDUALS - k)):] = True
-        start = max(0, int(live.sum()) + k - MAX_SAMPLES)
-        idx = np.flatnonzero(live)[start:]
-        m = idx.shape[0]
-        for arr in (self._stamp_ns, self._class, self._residual_m):
-            arr[:m] = arr[idx]
+        # stay. Stamps rise (the filter refuses an epoch not after the last), so what
+        # stays is a suffix of the buffer: from the first stamp within the window, and
+        # moved to the front by slices (a bisection and a copy, no mask over the window).
+        first = int(self._stamp_ns[:n].searchsorted(stamp_ns - int(self.window_s * 1e9)))
+        first = min(first, max(0, n - max(0, MIN_WINDOW_RESIDUALS - k)))
+        first = max(first, n + k - MAX_SAMPLES)
+        m = n - first
+        if first:
+            for arr in (self._stamp_ns, self._class, self._residual_m):
+                arr[:m] = arr[first:n]
         self._stamp_ns[m:m + k] = stamp_ns
         self._class[m:m + k] = cls[-k:]
         self._residual_m[m:m + k] = r[-k:]
