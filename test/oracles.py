@@ -733,6 +733,30 @@ def median_increment_m2(t: np.ndarray, d: np.ndarray, lag_s: float,
         return float(np.median(np.sum(step * step, axis=1))), int(ok.sum())
 
 
+# -------------------------------------------- lagged residual pairs (core.kernels.correlation)
+class LaggedPairs:
+    """The error model's residual pairs about ``lag_ns`` apart, from per-satellite lists:
+    each satellite's stamp closest to one lag back (of two as close, the earlier) pairs
+    if it is within half a lag of it; stamps older than two lags are forgotten."""
+
+    def __init__(self, lag_ns: int):
+        self.lag_ns = lag_ns
+        self.history: dict[int, list[tuple[int, float]]] = {}
+
+    def pairs(self, stamp_ns: int, keys: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """(p, 3) pairs of an epoch: value now, value then, their spacing [s]."""
+        target, out = stamp_ns - self.lag_ns, []
+        for key, value in zip(keys.tolist(), values.tolist()):
+            rows = [row for row in self.history.get(key, [])
+                    if row[0] >= stamp_ns - 2 * self.lag_ns]
+            if rows:
+                then, old = min(rows, key=lambda row: abs(row[0] - target))
+                if abs(then - target) <= self.lag_ns // 2:
+                    out.append((value, old, (stamp_ns - then) * 1e-9))
+            self.history[key] = rows + [(stamp_ns, value)]
+        return np.array(out).reshape(-1, 3)
+
+
 # ---------------------------------------------------------------- bias hypotheses
 def projected_weights(weights: np.ndarray, sys_index: np.ndarray, n_systems: int
                       ) -> np.ndarray:

@@ -51,11 +51,11 @@ solutions the consistency test compares with (:meth:`AdaptiveErrorModel.total_si
 from __future__ import annotations
 
 import math
-from bisect import bisect_left
 from dataclasses import dataclass
 
 import numpy as np
 
+from .kernels import correlation as correlation_kernels
 from .kernels import mixture as mixture_kernels
 
 #: C/N0 bin edges of the signal classes [dB-Hz]: 5 dB-Hz bins over the range where code
@@ -203,8 +203,12 @@ class AdaptiveErrorModel:
         self.priors = priors
         # The priors' C/N0 shape of the class spreads (a constant of the priors).
         self._shape = priors.shape()
-        # Per satellite key: the stamps [ns] and residuals [m] of the last two lags.
-        self._history: dict[int, tuple[list[int], list[float]]] = {}
+        # The residuals of the last two lags: stamps [ns], satellite keys and residuals
+        # [m], rows ``_lagged_first .. _lagged_end`` of three buffers in time order that
+        # grow as needed (core.kernels.correlation).
+        self._lagged = (np.empty(256, dtype=np.int64), np.empty(256, dtype=np.int64),
+                        np.empty(256))
+        self._lagged_first = self._lagged_end = 0
         # Sums of the lagged pairs, forgotten over the window: xy, xx, yy, lag, count.
         self._pairs = np.zeros(5)
         self._pairs_stamp_ns: int | None = None
@@ -289,36 +293,26 @@ class AdaptiveErrorModel:
             dt_s = max((stamp_ns - self._pairs_stamp_ns) * 1e-9, 0.0)
             self._pairs *= np.exp(-dt_s / self.window_s)
         self._pairs_stamp_ns = stamp_ns
-        lag_ns = int(CORRELATION_LAG_S * 1e9)
+        first, end, k = self._lagged_first, self._lagged_end, keys.shape[0]
+        size = self._lagged[0].shape[0]
+        if end + k > size:
+            # No room after the rows: to the front of buffers at least twice what they and
+            # the epoch's rows need.
+            count, size = end - first, max(size, 2 * (end - first + k))
+            self._lagged = tuple(np.concatenate((buffer[first:end],
+                                                 np.empty(size - count, buffer.dtype)))
+                                 for buffer in self._lagged)
+            first, end = 0, count
         # Older than two lags is forgotten; the stamp closest to one lag back pairs, if
-        # it is within half a lag of it (the loop runs per satellite: constants out).
-        forget, target, tolerance = stamp_ns - 2 * lag_ns, stamp_ns - lag_ns, lag_ns // 2
-        history = self._history
-        pairs = []
-        for key, value in zip(keys.tolist(), r.tolist()):
-            known = history.get(key)
-            if known is None:
-                history[key] = ([stamp_ns], [value])
-                continue
-            stamps, values = known
-            # Stamps rise (the filter refuses an epoch not after the last): bisections.
-            old = bisect_left(stamps, forget)
-            if old:
-                del stamps[:old], values[:old]
-            if stamps:
-                # The stamp closest to one lag back; of two as close, the earlier.
-                i = bisect_left(stamps, target)
-                if i == len(stamps) or (i > 0 and target - stamps[i - 1] <= stamps[i] - target):
-                    i = bisect_left(stamps, stamps[i - 1])
-                if abs(target - stamps[i]) <= tolerance:
-                    pairs.append((value, values[i], (stamp_ns - stamps[i]) * 1e-9))
-            stamps.append(stamp_ns)
-            values.append(value)
-        for key in [k for k, (stamps, _) in history.items()
-                    if not stamps or stamp_ns - stamps[-1] > 2 * lag_ns]:
-            del history[key]
-        if pairs:
-            x, y, lag = np.array(pairs).T
+        # it is within half a lag of it. Stamps rise (the filter refuses an epoch not
+        # after the last): the rows are in time order.
+        self._lagged_first, self._lagged_end, pairs = correlation_kernels.lagged_pairs(
+            *self._lagged, first, end, stamp_ns, np.ascontiguousarray(keys, dtype=np.int64),
+            r, int(CORRELATION_LAG_S * 1e9))
+        if pairs.shape[0]:
+            # numpy's products (BLAS on the strided columns): a loop's sums would round
+            # differently.
+            x, y, lag = pairs.T
             self._pairs += (float(x @ y), float(x @ x), float(y @ y), float(lag.sum()),
                             float(x.shape[0]))
 
