@@ -10,7 +10,7 @@ import numpy as np
 from scipy.special import logsumexp, rel_entr
 
 from gnsscam_ros.core.fusion import FusionResult
-from gnsscam_ros.core.bias import COV_FLOOR_M2
+from gnsscam_ros.core.bias import COV_FLOOR_M2, FORGET_AFTER_TAU
 from gnsscam_ros.core.gnss import (LOG_SQRT_2PI, SINGLE_EXPANSION_TOLERANCE_M, SINGLE_MAX_OFFSET_M,
                                    PreparedEpoch)
 from gnsscam_ros.core.particles import STATE_DIM, YAW, MotionIncrement
@@ -758,6 +758,32 @@ class LaggedPairs:
 
 
 # ---------------------------------------------------------------- bias hypotheses
+class GaussMarkovBiases:
+    """The hypotheses' per-satellite Gauss-Markov biases (``BiasHypotheses.biases_at``)
+    as a dictionary of rows, numpy's arithmetic on the epoch's satellites at once."""
+
+    def __init__(self, m: int, rng: np.random.Generator):
+        self.m, self.rng, self.biases = m, rng, {}
+
+    def step(self, stamp_ns: int, keys: np.ndarray, sigma: np.ndarray, tau: float
+             ) -> np.ndarray:
+        draws = self.rng.standard_normal((keys.shape[0], self.m))
+        known = [self.biases.get(key) for key in keys.tolist()]
+        seen = np.array([k is not None for k in known], dtype=bool)
+        then = np.array([k[0] if k is not None else stamp_ns for k in known], dtype=np.int64)
+        previous = np.array([k[1] if k is not None else np.zeros(self.m) for k in known])
+        dt_s = (stamp_ns - then) * 1e-9
+        phi = np.exp(-np.maximum(dt_s, 0.0) / tau) if tau > 0 else np.zeros_like(dt_s)
+        phi = np.where(~seen, 0.0, np.where(dt_s <= 0.0, 1.0, phi))
+        out = (phi[:, None] * previous.reshape(-1, self.m)
+               + (np.sqrt(1.0 - phi * phi) * sigma)[:, None] * draws)
+        for key, row in zip(keys.tolist(), out.copy()):
+            self.biases[key] = (stamp_ns, row)
+        horizon = stamp_ns - int(FORGET_AFTER_TAU * tau * 1e9)
+        self.biases = {k: v for k, v in self.biases.items() if v[0] >= horizon}
+        return out
+
+
 def projected_weights(weights: np.ndarray, sys_index: np.ndarray, n_systems: int
                       ) -> np.ndarray:
     """``Wp = W - W S (S^T W S)^-1 S^T W``: the weight matrix with each constellation's

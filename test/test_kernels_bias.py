@@ -51,6 +51,21 @@ def test_leverages_and_update_equal_numpy_to_the_bit(rng, k, systems, m):
             np.testing.assert_array_equal(hyp.fault_offsets_m, expected[1])
 
 
+@pytest.mark.parametrize('tau', [0.0, 2.0, 50.0])
+def test_biases_step_as_numpy_to_the_bit(rng, tau):
+    seed = int(rng.integers(1 << 30))
+    hyp = BiasHypotheses(BiasModel(1.0, 0.0, 40.0, 50.0), 7, np.random.default_rng(seed))
+    oracle = oracles.GaussMarkovBiases(7, np.random.default_rng(seed))
+    stamp = 10**18
+    for _ in range(200):
+        # Satellites coming and going, a repeated stamp, gaps beyond the memory.
+        stamp += int(rng.choice([0, 10**8, 10**9, 10**9, 3 * 10**9, 10**12]))
+        keys = rng.choice(80, size=int(rng.integers(1, 30)), replace=False)
+        sigma = rng.uniform(0.5, 10.0, keys.shape[0])
+        np.testing.assert_array_equal(hyp.biases_at(stamp, keys, None, sigma, tau),
+                                      oracle.step(stamp, keys, sigma, tau))
+
+
 @pytest.mark.parametrize('dims', [2, 3])
 def test_beyond_cloud_equals_numpy_to_the_bit(rng, dims):
     for m in (1, 3, 200):

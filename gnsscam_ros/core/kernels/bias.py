@@ -121,6 +121,28 @@ def update_offsets(offsets, fault_offsets, biases, fault_biases, line_of_sight, 
 
 
 @kernel
+def advance_biases(table, stamps, rows, seen, dt_s, decay, sigma, draws, stamp_ns):
+    """The Gauss-Markov step of the satellites' biases (``core.bias.BiasHypotheses.
+    biases_at``), ``b <- phi b + sqrt(1 - phi^2) sigma xi``, in numpy's arithmetic element
+    for element: ``phi`` is 0 for a satellite not ``seen`` before, 1 for one whose bias
+    is not behind the stamp (``dt_s <= 0``), else its ``decay`` (numpy's exp, taken by
+    the caller). Satellite i's bias is row ``rows[i]`` of ``table`` (M per row), which
+    takes the new bias, and of ``stamps``, which takes ``stamp_ns``. Returns the (k, M)
+    biases, a new array."""
+    k, m = draws.shape
+    out = np.empty((k, m))
+    for i in range(k):
+        row = rows[i]
+        phi = 0.0 if not seen[i] else (1.0 if dt_s[i] <= 0.0 else decay[i])
+        scale = np.sqrt(1.0 - phi * phi) * sigma[i]
+        for j in range(m):
+            out[i, j] = phi * table[row, j] + scale * draws[i, j]
+            table[row, j] = out[i, j]
+        stamps[row] = stamp_ns
+    return out
+
+
+@kernel
 def beyond_cloud(offsets, fault_offsets, moment, cloud_cov, dims):
     """The offsets the bound displaces the posteriors by (``core.bias.beyond_cloud``), a
     new (M, 3) array; ``moment`` is the (dims, dims) second moment of the Gauss-Markov
