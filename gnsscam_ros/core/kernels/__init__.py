@@ -5,9 +5,9 @@ few passes over the arrays: propagation (``motion``), receiver clock and GNSS li
 (``gnss``), the satellites' inlier probabilities under it (``inliers``), camera
 distributions and their mixture (``camera``), posterior moments,
 hazard mass and protection level (``posterior``); and per epoch, the snapshot solution
-(``snapshot``), the bias hypotheses' small matrices (``bias``) and the error model's lagged
-residual pairs (``correlation``), whose numpy or Python calls cost more than their
-arithmetic. The modules of ``core``
+(``snapshot``), the clock weights at a point with its residuals (``clock``), the bias
+hypotheses' small matrices (``bias``) and the error model's lagged residual pairs
+(``correlation``), whose numpy or Python calls cost more than their arithmetic. The modules of ``core``
 call these; the plain numpy forms they replaced survive only as test oracles
 (``test/oracles.py``).
 
