@@ -733,7 +733,18 @@ def median_increment_m2(t: np.ndarray, d: np.ndarray, lag_s: float,
         return float(np.median(np.sum(step * step, axis=1))), int(ok.sum())
 
 
-# -------------------------------------------- lagged residual pairs (core.kernels.correlation)
+# ------------------------------------- the error model's residuals (core.kernels.residuals)
+def core_shares(r: np.ndarray, core_sd: np.ndarray, wide_share: np.ndarray,
+                wide_mean: np.ndarray, wide_sd: np.ndarray) -> np.ndarray:
+    """Each residual's probability of the line-of-sight core of its (k,) mixture."""
+    def normal_pdf(x, mean, sd):
+        z = (x - mean) / sd
+        return np.exp(-0.5 * z * z) / (sd * np.sqrt(2.0 * np.pi))
+
+    core = (1.0 - wide_share) * normal_pdf(r, 0.0, core_sd)
+    return core / np.maximum(core + wide_share * normal_pdf(r, wide_mean, wide_sd), 1e-300)
+
+
 class LaggedPairs:
     """The error model's residual pairs about ``lag_ns`` apart, from per-satellite lists:
     each satellite's stamp closest to one lag back (of two as close, the earlier) pairs

@@ -55,7 +55,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .kernels import correlation as correlation_kernels
+from .kernels import residuals as residual_kernels
 from .kernels import mixture as mixture_kernels
 
 #: C/N0 bin edges of the signal classes [dB-Hz]: 5 dB-Hz bins over the range where code
@@ -171,14 +171,6 @@ class MixtureFit:
         return np.sqrt(np.maximum(second - mean ** 2, 0.0))
 
 
-_SQRT_2PI = np.sqrt(2.0 * np.pi)
-
-
-def _normal_pdf(r: np.ndarray, mean, sd) -> np.ndarray:
-    z = (r - mean) / sd
-    return np.exp(-0.5 * z * z) / (sd * _SQRT_2PI)
-
-
 def _at_interval(pseudo_samples: float, interval_s: float | None) -> float:
     """Pseudo-samples stated at 5 Hz, at an epoch interval (None: a sparse stream, as
     stated); :meth:`AdaptiveErrorModel.prior_strength`."""
@@ -205,7 +197,7 @@ class AdaptiveErrorModel:
         self._shape = priors.shape()
         # The residuals of the last two lags: stamps [ns], satellite keys and residuals
         # [m], rows ``_lagged_first .. _lagged_end`` of three buffers in time order that
-        # grow as needed (core.kernels.correlation).
+        # grow as needed (core.kernels.residuals).
         self._lagged = (np.empty(256, dtype=np.int64), np.empty(256, dtype=np.int64),
                         np.empty(256))
         self._lagged_first = self._lagged_end = 0
@@ -268,18 +260,19 @@ class AdaptiveErrorModel:
             keys = None if keys is None else np.asarray(keys)[keep]
         cls = self._classes(cn0)
         # The fix rests on the line-of-sight satellites: their count, not all, says how
-        # much of their errors it absorbed.
+        # much of their errors it absorbed. Two compiled passes around numpy's exp (the
+        # kernels' rounds differently) and numpy's sum: the densities were some twenty
+        # numpy calls on a dozen values.
         f = self.fit
-        s0, pi, mu, s1 = (v[cls] for v in (f.core_sd_m, f.wide_share, f.wide_mean_m,
-                                           f.wide_sd_m))
-        core = (1.0 - pi) * _normal_pdf(r, 0.0, s0)
-        line_of_sight = float((core / np.maximum(core + pi * _normal_pdf(r, mu, s1),
-                                                 1e-300)).sum())
+        exponents = residual_kernels.mixture_exponents(r, cls, f.core_sd_m, f.wide_mean_m,
+                                                       f.wide_sd_m)
+        line_of_sight = float(residual_kernels.core_shares(
+            np.exp(exponents), cls, f.core_sd_m, f.wide_share, f.wide_sd_m).sum())
         if line_of_sight <= n_unknowns + 1.0:
             return                         # too little redundancy to say anything
         r = r * math.sqrt(line_of_sight / (line_of_sight - n_unknowns))
         if keys is not None:
-            clip = CORRELATION_CLIP_SD * s0
+            clip = CORRELATION_CLIP_SD * f.core_sd_m[cls]
             # np.clip's result, without its dispatch (a dozen values).
             self._observe_pairs(stamp_ns, np.asarray(keys), np.minimum(np.maximum(r, -clip),
                                                                        clip))
@@ -306,7 +299,7 @@ class AdaptiveErrorModel:
         # Older than two lags is forgotten; the stamp closest to one lag back pairs, if
         # it is within half a lag of it. Stamps rise (the filter refuses an epoch not
         # after the last): the rows are in time order.
-        self._lagged_first, self._lagged_end, pairs = correlation_kernels.lagged_pairs(
+        self._lagged_first, self._lagged_end, pairs = residual_kernels.lagged_pairs(
             *self._lagged, first, end, stamp_ns, np.ascontiguousarray(keys, dtype=np.int64),
             r, int(CORRELATION_LAG_S * 1e9))
         if pairs.shape[0]:
