@@ -769,6 +769,21 @@ class LaggedPairs:
 
 
 # ---------------------------------------------------------------- bias hypotheses
+def hidden_faults(biases: np.ndarray, core_sd: np.ndarray, leverage: np.ndarray,
+                  core_sds: float, largest: np.ndarray) -> np.ndarray:
+    """The biases (k, M) with each hypothesis's hidden fault (``core.bias``): satellite
+    ``m mod k`` of hypothesis m by ``+-min(c s / sqrt(1 - h), largest)``, the sign
+    alternating with each round over the satellites."""
+    k, m = biases.shape
+    sizes = np.minimum(core_sds * core_sd / np.sqrt(np.maximum(1.0 - leverage, 1e-12)),
+                       largest)
+    which = np.arange(m)
+    sign = np.where((which // k) % 2 == 0, 1.0, -1.0)
+    out = biases.copy()
+    out[which % k, which] += sign * sizes[which % k]
+    return out
+
+
 class GaussMarkovBiases:
     """The hypotheses' per-satellite Gauss-Markov biases (``BiasHypotheses.biases_at``)
     as a dictionary of rows, numpy's arithmetic on the epoch's satellites at once."""

@@ -44,7 +44,6 @@ The estimate itself is unchanged; the offsets only displace the posteriors the b
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 
@@ -124,34 +123,19 @@ def hidden_fault_sizes(core_sd_m: np.ndarray, leverage: np.ndarray, core_sds: fl
     ``largest_m``, the largest error the error model knows (a satellite without
     redundancy, ``h_k = 1``, would otherwise hide any bias).
     """
-    unseen = core_sds * core_sd_m / np.sqrt(np.maximum(1.0 - leverage, 1e-12))
-    return np.minimum(unseen, largest_m)
+    # One compiled call: some six numpy calls on a dozen values cost more than their
+    # arithmetic.
+    return bias_kernels.hidden_fault_sizes(_array(core_sd_m), _array(leverage),
+                                           float(core_sds), _array(largest_m))
 
 
 def with_hidden_faults(biases_m: np.ndarray, sizes_m: np.ndarray) -> np.ndarray:
     """The biases (k, M) with one hidden fault per hypothesis added: hypothesis m biases
     satellite ``m mod k`` by ``+size`` in its first round over the satellites, ``-size``
     in the next, and so on (a copy; the Gauss-Markov draws are unchanged)."""
-    k, m = biases_m.shape
-    if k == 0:
+    if biases_m.shape[0] == 0:
         return biases_m
-    which, satellite, sign = _hidden_fault_pattern(k, m)
-    out = biases_m.copy()
-    out[satellite, which] += sign * sizes_m[satellite]
-    return out
-
-
-@lru_cache(maxsize=64)
-def _hidden_fault_pattern(k: int, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`with_hidden_faults`' hypotheses (m,), the satellite each biases and the
-    sign, read-only: the same for every epoch with as many satellites (five small numpy
-    calls less an epoch)."""
-    which = np.arange(m)
-    satellite = which % k
-    sign = np.where((which // k) % 2 == 0, 1.0, -1.0)
-    for array in (which, satellite, sign):
-        array.flags.writeable = False
-    return which, satellite, sign
+    return bias_kernels.with_hidden_faults(_array(biases_m), _array(sizes_m))
 
 
 def beyond_cloud(offsets_m: np.ndarray, fault_offsets_m: np.ndarray,

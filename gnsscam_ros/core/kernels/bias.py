@@ -121,6 +121,36 @@ def update_offsets(offsets, fault_offsets, biases, fault_biases, line_of_sight, 
 
 
 @kernel
+def hidden_fault_sizes(core_sd, leverage, core_sds, largest):
+    """``core.bias.hidden_fault_sizes``, (k,): ``min(c s / sqrt(max(1 - h, 1e-12)),
+    largest)`` per satellite in numpy's arithmetic (a NaN stays NaN, as in np.maximum and
+    np.minimum)."""
+    k = core_sd.shape[0]
+    out = np.empty(k)
+    for i in range(k):
+        room = 1.0 - leverage[i]
+        if room < 1e-12:
+            room = 1e-12
+        unseen = core_sds * core_sd[i] / np.sqrt(room)
+        out[i] = largest[i] if largest[i] < unseen or largest[i] != largest[i] else unseen
+    return out
+
+
+@kernel
+def with_hidden_faults(biases, sizes):
+    """``core.bias.with_hidden_faults``: a copy of the (k, M) biases, k > 0, with
+    hypothesis j biasing satellite ``j mod k`` by ``+size`` in even rounds over the
+    satellites and ``-size`` in odd ones (numpy's values; a NaN size, which the filter's
+    state check resets on, may differ in its sign bit)."""
+    k, m = biases.shape
+    out = biases.copy()
+    for j in range(m):
+        s = j % k
+        out[s, j] += sizes[s] if (j // k) % 2 == 0 else -sizes[s]
+    return out
+
+
+@kernel
 def advance_biases(table, stamps, rows, seen, dt_s, decay, sigma, draws, stamp_ns):
     """The Gauss-Markov step of the satellites' biases (``core.bias.BiasHypotheses.
     biases_at``), ``b <- phi b + sqrt(1 - phi^2) sigma xi``, in numpy's arithmetic element
