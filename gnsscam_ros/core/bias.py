@@ -227,19 +227,19 @@ class BiasHypotheses:
         if len(set(key_list)) < len(key_list):
             out = self._advance_one_by_one(stamp_ns, key_list, sigma, draws, tau)
         else:
-            rows = np.array([self._rows.get(key, -1) for key in key_list], dtype=np.int64)
-            seen = rows >= 0
-            if not seen.all():
-                for i in np.flatnonzero(~seen).tolist():
-                    rows[i] = self._take_row(key_list[i], stamp_ns)
+            rows = [self._rows.get(key, -1) for key in key_list]
+            if -1 in rows:
+                rows = [self._take_row(key) if row < 0 else row
+                        for key, row in zip(key_list, rows)]
+            rows = np.array(rows, dtype=np.int64)
             # Every satellite at once: a new one draws from the stationary distribution
-            # (phi = 0), one at or after this stamp keeps its bias (phi = 1); numpy's exp
-            # for the rest (the kernel's rounds differently).
-            dt_s = (stamp_ns - self._bias_stamp_ns[rows]) * 1e-9
-            decay = (np.exp(-np.maximum(dt_s, 0.0) / tau) if tau > 0
-                     else np.zeros_like(dt_s))
-            out = bias_kernels.advance_biases(self._bias_m, self._bias_stamp_ns, rows, seen,
-                                              dt_s, decay, _array(sigma), draws, stamp_ns)
+            # (phi = 0), one at or after this stamp keeps its bias (phi = 1), the rest
+            # decay by numpy's exp (the kernels' rounds differently).
+            decay = (np.exp(bias_kernels.decay_exponents(self._bias_stamp_ns, rows, stamp_ns,
+                                                         tau))
+                     if tau > 0 else np.zeros(rows.shape[0]))
+            out = bias_kernels.advance_biases(self._bias_m, self._bias_stamp_ns, rows, decay,
+                                              _array(sigma), draws, stamp_ns)
         horizon = stamp_ns - int(FORGET_AFTER_TAU * tau * 1e9)
         for row in np.flatnonzero(self._bias_stamp_ns < horizon).tolist():
             self._free_row(row)
@@ -252,9 +252,9 @@ class BiasHypotheses:
                 self._free_row(self._rows[key])
         return out
 
-    def _take_row(self, key: int, stamp_ns: int) -> int:
-        """A free row of the bias table for a satellite not remembered: zero biases at
-        ``stamp_ns``."""
+    def _take_row(self, key: int) -> int:
+        """A free row of the bias table for a satellite not remembered, holding no bias
+        yet (``core.kernels.bias.NEW_ROW_NS``)."""
         if not self._free_rows:
             size = self._bias_stamp_ns.shape[0]
             grown = max(min(2 * size, MAX_TRACKED_SATELLITES + MAX_EPOCH_SATELLITES),
@@ -268,7 +268,7 @@ class BiasHypotheses:
         self._rows[key] = row
         self._row_keys[row] = key
         self._bias_m[row] = 0.0
-        self._bias_stamp_ns[row] = stamp_ns
+        self._bias_stamp_ns[row] = bias_kernels.NEW_ROW_NS
         return row
 
     def _free_row(self, row: int) -> None:
@@ -287,7 +287,7 @@ class BiasHypotheses:
             row = self._rows.get(key)
             if row is None:
                 bias = sigma[i] * draws[i]
-                row = self._take_row(key, stamp_ns)
+                row = self._take_row(key)
             elif stamp_ns <= self._bias_stamp_ns[row]:
                 bias = self._bias_m[row]
             else:

@@ -21,6 +21,8 @@ import numpy as np
 
 from . import kernel
 
+#: Stamp of a row of the bias table taken for a satellite whose bias is not drawn yet.
+NEW_ROW_NS = np.iinfo(np.int64).min
 #: ``rcond`` of numpy's ``pinv`` (its default): singular values up to this share of the
 #: largest count as zero.
 PINV_RCOND = 1e-15
@@ -151,19 +153,35 @@ def with_hidden_faults(biases, sizes):
 
 
 @kernel
-def advance_biases(table, stamps, rows, seen, dt_s, decay, sigma, draws, stamp_ns):
+def decay_exponents(stamps, rows, stamp_ns, tau):
+    """``-max(dt, 0) / tau`` of each satellite's bias (numpy's arithmetic, for numpy's
+    exp), ``dt = (stamp_ns - stamps[rows[i]]) * 1e-9`` [s] (0 for a row without a bias
+    yet: ``NEW_ROW_NS``)."""
+    k = rows.shape[0]
+    out = np.zeros(k)
+    for i in range(k):
+        then = stamps[rows[i]]
+        if then != NEW_ROW_NS:
+            dt = (stamp_ns - then) * 1e-9
+            out[i] = -(dt if dt > 0.0 else 0.0) / tau
+    return out
+
+
+@kernel
+def advance_biases(table, stamps, rows, decay, sigma, draws, stamp_ns):
     """The Gauss-Markov step of the satellites' biases (``core.bias.BiasHypotheses.
     biases_at``), ``b <- phi b + sqrt(1 - phi^2) sigma xi``, in numpy's arithmetic element
-    for element: ``phi`` is 0 for a satellite not ``seen`` before, 1 for one whose bias
-    is not behind the stamp (``dt_s <= 0``), else its ``decay`` (numpy's exp, taken by
-    the caller). Satellite i's bias is row ``rows[i]`` of ``table`` (M per row), which
-    takes the new bias, and of ``stamps``, which takes ``stamp_ns``. Returns the (k, M)
-    biases, a new array."""
+    for element: ``phi`` is 0 for a row without a bias yet (``NEW_ROW_NS``), 1 for a bias
+    not behind the stamp, else its ``decay`` (numpy's exp, taken by the caller).
+    Satellite i's bias is row ``rows[i]`` of ``table`` (M per row), which takes the new
+    bias, and of ``stamps``, which takes ``stamp_ns``. Returns the (k, M) biases, a new
+    array."""
     k, m = draws.shape
     out = np.empty((k, m))
     for i in range(k):
         row = rows[i]
-        phi = 0.0 if not seen[i] else (1.0 if dt_s[i] <= 0.0 else decay[i])
+        then = stamps[row]
+        phi = 0.0 if then == NEW_ROW_NS else (1.0 if stamp_ns <= then else decay[i])
         scale = np.sqrt(1.0 - phi * phi) * sigma[i]
         for j in range(m):
             out[i, j] = phi * table[row, j] + scale * draws[i, j]
