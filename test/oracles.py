@@ -10,7 +10,7 @@ import numpy as np
 from scipy.special import logsumexp, rel_entr
 
 from gnsscam_ros.core.fusion import FusionResult
-from gnsscam_ros.core.bias import COV_FLOOR_M2
+from gnsscam_ros.core.bias import COV_FLOOR_M2, FORGET_AFTER_TAU
 from gnsscam_ros.core.gnss import (LOG_SQRT_2PI, SINGLE_EXPANSION_TOLERANCE_M, SINGLE_MAX_OFFSET_M,
                                    PreparedEpoch)
 from gnsscam_ros.core.particles import STATE_DIM, YAW, MotionIncrement
@@ -736,7 +736,83 @@ def median_increment_m2(t: np.ndarray, d: np.ndarray, lag_s: float,
         return float(np.median(np.sum(step * step, axis=1))), int(ok.sum())
 
 
+# ------------------------------------- the error model's residuals (core.kernels.residuals)
+def core_shares(r: np.ndarray, core_sd: np.ndarray, wide_share: np.ndarray,
+                wide_mean: np.ndarray, wide_sd: np.ndarray) -> np.ndarray:
+    """Each residual's probability of the line-of-sight core of its (k,) mixture."""
+    def normal_pdf(x, mean, sd):
+        z = (x - mean) / sd
+        return np.exp(-0.5 * z * z) / (sd * np.sqrt(2.0 * np.pi))
+
+    core = (1.0 - wide_share) * normal_pdf(r, 0.0, core_sd)
+    return core / np.maximum(core + wide_share * normal_pdf(r, wide_mean, wide_sd), 1e-300)
+
+
+class LaggedPairs:
+    """The error model's residual pairs about ``lag_ns`` apart, from per-satellite lists:
+    each satellite's stamp closest to one lag back (of two as close, the earlier) pairs
+    if it is within half a lag of it; stamps older than two lags are forgotten."""
+
+    def __init__(self, lag_ns: int):
+        self.lag_ns = lag_ns
+        self.history: dict[int, list[tuple[int, float]]] = {}
+
+    def pairs(self, stamp_ns: int, keys: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """(p, 3) pairs of an epoch: value now, value then, their spacing [s]."""
+        target, out = stamp_ns - self.lag_ns, []
+        for key, value in zip(keys.tolist(), values.tolist()):
+            rows = [row for row in self.history.get(key, [])
+                    if row[0] >= stamp_ns - 2 * self.lag_ns]
+            if rows:
+                then, old = min(rows, key=lambda row: abs(row[0] - target))
+                if abs(then - target) <= self.lag_ns // 2:
+                    out.append((value, old, (stamp_ns - then) * 1e-9))
+            self.history[key] = rows + [(stamp_ns, value)]
+        return np.array(out).reshape(-1, 3)
+
+
 # ---------------------------------------------------------------- bias hypotheses
+def hidden_faults(biases: np.ndarray, core_sd: np.ndarray, leverage: np.ndarray,
+                  core_sds: float, largest: np.ndarray) -> np.ndarray:
+    """The biases (k, M) with each hypothesis's hidden fault (``core.bias``): satellite
+    ``m mod k`` of hypothesis m by ``+-min(c s / sqrt(1 - h), largest)``, the sign
+    alternating with each round over the satellites."""
+    k, m = biases.shape
+    sizes = np.minimum(core_sds * core_sd / np.sqrt(np.maximum(1.0 - leverage, 1e-12)),
+                       largest)
+    which = np.arange(m)
+    sign = np.where((which // k) % 2 == 0, 1.0, -1.0)
+    out = biases.copy()
+    out[which % k, which] += sign * sizes[which % k]
+    return out
+
+
+class GaussMarkovBiases:
+    """The hypotheses' per-satellite Gauss-Markov biases (``BiasHypotheses.biases_at``)
+    as a dictionary of rows, numpy's arithmetic on the epoch's satellites at once."""
+
+    def __init__(self, m: int, rng: np.random.Generator):
+        self.m, self.rng, self.biases = m, rng, {}
+
+    def step(self, stamp_ns: int, keys: np.ndarray, sigma: np.ndarray, tau: float
+             ) -> np.ndarray:
+        draws = self.rng.standard_normal((keys.shape[0], self.m))
+        known = [self.biases.get(key) for key in keys.tolist()]
+        seen = np.array([k is not None for k in known], dtype=bool)
+        then = np.array([k[0] if k is not None else stamp_ns for k in known], dtype=np.int64)
+        previous = np.array([k[1] if k is not None else np.zeros(self.m) for k in known])
+        dt_s = (stamp_ns - then) * 1e-9
+        phi = np.exp(-np.maximum(dt_s, 0.0) / tau) if tau > 0 else np.zeros_like(dt_s)
+        phi = np.where(~seen, 0.0, np.where(dt_s <= 0.0, 1.0, phi))
+        out = (phi[:, None] * previous.reshape(-1, self.m)
+               + (np.sqrt(1.0 - phi * phi) * sigma)[:, None] * draws)
+        for key, row in zip(keys.tolist(), out.copy()):
+            self.biases[key] = (stamp_ns, row)
+        horizon = stamp_ns - int(FORGET_AFTER_TAU * tau * 1e9)
+        self.biases = {k: v for k, v in self.biases.items() if v[0] >= horizon}
+        return out
+
+
 def projected_weights(weights: np.ndarray, sys_index: np.ndarray, n_systems: int
                       ) -> np.ndarray:
     """``Wp = W - W S (S^T W S)^-1 S^T W``: the weight matrix with each constellation's

@@ -9,7 +9,8 @@ import numpy as np
 import oracles
 import pytest
 
-from gnsscam_ros.core.bias import BiasHypotheses, BiasModel, beyond_cloud, leverages
+from gnsscam_ros.core.bias import (BiasHypotheses, BiasModel, beyond_cloud, hidden_fault_sizes,
+                                   leverages, with_hidden_faults)
 
 
 def geometry(rng, k):
@@ -49,6 +50,33 @@ def test_leverages_and_update_equal_numpy_to_the_bit(rng, k, systems, m):
                              posterior, fault_biases)
             np.testing.assert_array_equal(got, expected[0])
             np.testing.assert_array_equal(hyp.fault_offsets_m, expected[1])
+
+
+@pytest.mark.parametrize('k, m', [(1, 1), (5, 12), (12, 10), (12, 200), (64, 30)])
+def test_hidden_faults_equal_numpy_to_the_bit(rng, k, m):
+    for _ in range(20):
+        biases = rng.normal(0.0, 5.0, (k, m))
+        core, largest = rng.uniform(0.3, 20.0, k), rng.uniform(10.0, 200.0, k)
+        leverage = rng.uniform(0.0, 1.0, k)
+        leverage[rng.integers(0, k)] = 1.0                # no redundancy: capped
+        np.testing.assert_array_equal(
+            with_hidden_faults(biases, hidden_fault_sizes(core, leverage, 1.5, largest)),
+            oracles.hidden_faults(biases, core, leverage, 1.5, largest))
+
+
+@pytest.mark.parametrize('tau', [0.0, 2.0, 50.0])
+def test_biases_step_as_numpy_to_the_bit(rng, tau):
+    seed = int(rng.integers(1 << 30))
+    hyp = BiasHypotheses(BiasModel(1.0, 0.0, 40.0, 50.0), 7, np.random.default_rng(seed))
+    oracle = oracles.GaussMarkovBiases(7, np.random.default_rng(seed))
+    stamp = 10**18
+    for _ in range(200):
+        # Satellites coming and going, a repeated stamp, gaps beyond the memory.
+        stamp += int(rng.choice([0, 10**8, 10**9, 10**9, 3 * 10**9, 10**12]))
+        keys = rng.choice(80, size=int(rng.integers(1, 30)), replace=False)
+        sigma = rng.uniform(0.5, 10.0, keys.shape[0])
+        np.testing.assert_array_equal(hyp.biases_at(stamp, keys, None, sigma, tau),
+                                      oracle.step(stamp, keys, sigma, tau))
 
 
 @pytest.mark.parametrize('dims', [2, 3])

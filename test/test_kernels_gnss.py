@@ -16,6 +16,7 @@ from synthetic import FRAME, epoch_at, sky
 
 from gnsscam_ros.core import gnss
 from gnsscam_ros.core.consistency import snapshot_position
+from gnsscam_ros.core.frames import row_norms
 from gnsscam_ros.core.kernels import gnss as gnss_kernels
 from gnsscam_ros.core.particles import propagate, weighted_mean_cov
 from gnsscam_ros.core.types import GLONASS, GPS
@@ -54,6 +55,18 @@ def test_clock_weights_match_the_oracle(case):
     expected = oracles.clock_inlier_weights(residual, prep.sigma_m, prep.sys_index,
                                             prep.n_systems, 3.0)
     np.testing.assert_allclose(gnss.clock_weights(prep, centre, 3.0), expected, atol=1e-12)
+
+
+def test_clock_weights_take_the_ranges_of_frames_row_norms_to_the_bit(rng):
+    # The kernel sums the squares left to right, as numpy's add.reduce does for three.
+    for seed in range(20):
+        prep = faulty_two_system_epoch(seed)
+        for centre in TRUTH_ENU + rng.normal(scale=[50.0, 50.0, 20.0], size=(10, 3)):
+            residual = prep.pr_m - row_norms(prep.sv_enu_m - centre)
+            np.testing.assert_array_equal(
+                gnss.clock_weights(prep, centre, 3.0),
+                gnss_kernels.clock_inlier_weights(residual, prep.sigma_m, prep.sys_index,
+                                                  prep.n_systems, 3.0, 3))
 
 
 def test_residuals_match_the_oracle(case):

@@ -355,7 +355,7 @@ def test_an_epoch_of_1000_satellites_costs_what_one_of_64_does():
     assert r64.status == r1000.status == UPDATED
     assert r1000.n_satellites <= 64 and r1000.rejected['satellite_limit'] == 936
     assert peak_1000 < 1.5 * peak_64 + 2 ** 20, (peak_1000, peak_64)
-    assert len(filt.bias._biases) <= MAX_TRACKED_SATELLITES
+    assert len(filt.bias._rows) <= MAX_TRACKED_SATELLITES
 
 
 @pytest.mark.slow

@@ -44,10 +44,10 @@ The estimate itself is unchanged; the offsets only displace the posteriors the b
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 
+from .gnss_checks import MAX_EPOCH_SATELLITES
 from .kernels import bias as bias_kernels
 
 # Bias models of the posteriors behind the risk bound (the ``bias_model`` parameter).
@@ -65,6 +65,8 @@ FORGET_AFTER_TAU = 5.0
 #: satellites one epoch may use (``gnss.MAX_EPOCH_SATELLITES``), so that the sky turning over
 #: keeps its history while a stream of made-up satellite numbers cannot grow the table.
 MAX_TRACKED_SATELLITES = 256
+#: Stamp of a row of the bias table that no satellite holds (never forgotten).
+_FREE_ROW_NS = np.iinfo(np.int64).max
 
 
 @dataclass(frozen=True)
@@ -121,34 +123,19 @@ def hidden_fault_sizes(core_sd_m: np.ndarray, leverage: np.ndarray, core_sds: fl
     ``largest_m``, the largest error the error model knows (a satellite without
     redundancy, ``h_k = 1``, would otherwise hide any bias).
     """
-    unseen = core_sds * core_sd_m / np.sqrt(np.maximum(1.0 - leverage, 1e-12))
-    return np.minimum(unseen, largest_m)
+    # One compiled call: some six numpy calls on a dozen values cost more than their
+    # arithmetic.
+    return bias_kernels.hidden_fault_sizes(_array(core_sd_m), _array(leverage),
+                                           float(core_sds), _array(largest_m))
 
 
 def with_hidden_faults(biases_m: np.ndarray, sizes_m: np.ndarray) -> np.ndarray:
     """The biases (k, M) with one hidden fault per hypothesis added: hypothesis m biases
     satellite ``m mod k`` by ``+size`` in its first round over the satellites, ``-size``
     in the next, and so on (a copy; the Gauss-Markov draws are unchanged)."""
-    k, m = biases_m.shape
-    if k == 0:
+    if biases_m.shape[0] == 0:
         return biases_m
-    which, satellite, sign = _hidden_fault_pattern(k, m)
-    out = biases_m.copy()
-    out[satellite, which] += sign * sizes_m[satellite]
-    return out
-
-
-@lru_cache(maxsize=64)
-def _hidden_fault_pattern(k: int, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`with_hidden_faults`' hypotheses (m,), the satellite each biases and the
-    sign, read-only: the same for every epoch with as many satellites (five small numpy
-    calls less an epoch)."""
-    which = np.arange(m)
-    satellite = which % k
-    sign = np.where((which // k) % 2 == 0, 1.0, -1.0)
-    for array in (which, satellite, sign):
-        array.flags.writeable = False
-    return which, satellite, sign
+    return bias_kernels.with_hidden_faults(_array(biases_m), _array(sizes_m))
 
 
 def beyond_cloud(offsets_m: np.ndarray, fault_offsets_m: np.ndarray,
@@ -202,8 +189,15 @@ class BiasHypotheses:
         # Smoothed residual variance at the estimate [m^2] and its stamp (None: none yet).
         self.residual_var_m2: float | None = None
         self._residual_stamp_ns: int | None = None
-        # (system, sv) key -> (stamp_ns of the bias, (M,) biases [m]).
-        self._biases: dict[int, tuple[int, np.ndarray]] = {}
+        # The remembered biases: (system, sv) key -> row of a table of their (M,) biases
+        # [m] and the stamp [ns] they are at, so that an epoch gathers, steps and stores
+        # them in one compiled call (core.kernels.bias.advance_biases). The table grows
+        # in steps up to what MAX_TRACKED_SATELLITES and one epoch's satellites need.
+        self._rows: dict[int, int] = {}
+        self._row_keys: list = []
+        self._bias_m = np.zeros((0, self.n))
+        self._bias_stamp_ns = np.zeros(0, dtype=np.int64)
+        self._free_rows: list[int] = []
 
     def biases_at(self, stamp_ns: int, keys: np.ndarray, cn0_dbhz: np.ndarray,
                   sigma_m: np.ndarray | None = None,
@@ -233,31 +227,56 @@ class BiasHypotheses:
         if len(set(key_list)) < len(key_list):
             out = self._advance_one_by_one(stamp_ns, key_list, sigma, draws, tau)
         else:
-            known = [self._biases.get(key) for key in key_list]
-            # Every satellite at once: a new one (no stamp) draws from the stationary
-            # distribution (phi = 0), one at or after this stamp keeps its bias (phi = 1).
-            seen = np.array([k is not None for k in known])
-            then = np.array([k[0] if k is not None else stamp_ns for k in known],
-                            dtype=np.int64)
-            previous = np.array([k[1] if k is not None else np.zeros(self.n) for k in known])
-            dt_s = (stamp_ns - then) * 1e-9
-            phi = (np.exp(-np.maximum(dt_s, 0.0) / tau) if tau > 0
-                   else np.zeros_like(dt_s))
-            phi = np.where(~seen, 0.0, np.where(dt_s <= 0.0, 1.0, phi))
-            out = (phi[:, None] * previous
-                   + (np.sqrt(1.0 - phi * phi) * sigma)[:, None] * draws)
-            # Rows of a copy: the caller may change what it is handed.
-            for key, row in zip(key_list, out.copy()):
-                self._biases[key] = (stamp_ns, row)
+            rows = [self._rows.get(key, -1) for key in key_list]
+            if -1 in rows:
+                rows = [self._take_row(key) if row < 0 else row
+                        for key, row in zip(key_list, rows)]
+            rows = np.array(rows, dtype=np.int64)
+            # Every satellite at once: a new one draws from the stationary distribution
+            # (phi = 0), one at or after this stamp keeps its bias (phi = 1), the rest
+            # decay by numpy's exp (the kernels' rounds differently).
+            decay = (np.exp(bias_kernels.decay_exponents(self._bias_stamp_ns, rows, stamp_ns,
+                                                         tau))
+                     if tau > 0 else np.zeros(rows.shape[0]))
+            out = bias_kernels.advance_biases(self._bias_m, self._bias_stamp_ns, rows, decay,
+                                              _array(sigma), draws, stamp_ns)
         horizon = stamp_ns - int(FORGET_AFTER_TAU * tau * 1e9)
-        for key in [k for k, (t, _) in self._biases.items() if t < horizon]:
-            del self._biases[key]
-        excess = len(self._biases) - MAX_TRACKED_SATELLITES
+        for row in np.flatnonzero(self._bias_stamp_ns < horizon).tolist():
+            self._free_row(row)
+        excess = len(self._rows) - MAX_TRACKED_SATELLITES
         if excess > 0:
-            # The satellites seen longest ago go first (those in view now are the newest).
-            for key in sorted(self._biases, key=lambda k: self._biases[k][0])[:excess]:
-                del self._biases[key]
+            # The satellites seen longest ago go first (those in view now are the newest;
+            # of those seen as long ago, the first remembered).
+            for key in sorted(self._rows,
+                              key=lambda k: self._bias_stamp_ns[self._rows[k]])[:excess]:
+                self._free_row(self._rows[key])
         return out
+
+    def _take_row(self, key: int) -> int:
+        """A free row of the bias table for a satellite not remembered, holding no bias
+        yet (``core.kernels.bias.NEW_ROW_NS``)."""
+        if not self._free_rows:
+            size = self._bias_stamp_ns.shape[0]
+            grown = max(min(2 * size, MAX_TRACKED_SATELLITES + MAX_EPOCH_SATELLITES),
+                        size + 16)
+            self._bias_m = np.concatenate((self._bias_m, np.zeros((grown - size, self.n))))
+            self._bias_stamp_ns = np.concatenate(
+                (self._bias_stamp_ns, np.full(grown - size, _FREE_ROW_NS, dtype=np.int64)))
+            self._row_keys.extend([None] * (grown - size))
+            self._free_rows = list(range(grown - 1, size - 1, -1))
+        row = self._free_rows.pop()
+        self._rows[key] = row
+        self._row_keys[row] = key
+        self._bias_m[row] = 0.0
+        self._bias_stamp_ns[row] = bias_kernels.NEW_ROW_NS
+        return row
+
+    def _free_row(self, row: int) -> None:
+        """Forget the satellite of a row of the bias table."""
+        del self._rows[self._row_keys[row]]
+        self._row_keys[row] = None
+        self._bias_stamp_ns[row] = _FREE_ROW_NS
+        self._free_rows.append(row)
 
     def _advance_one_by_one(self, stamp_ns: int, keys: list, sigma: np.ndarray,
                             draws: np.ndarray, tau: float) -> np.ndarray:
@@ -265,13 +284,18 @@ class BiasHypotheses:
         the first's bias)."""
         out = np.empty((len(keys), self.n))
         for i, key in enumerate(keys):
-            known = self._biases.get(key)
-            if known is None or stamp_ns <= known[0]:
-                bias = sigma[i] * draws[i] if known is None else known[1]
+            row = self._rows.get(key)
+            if row is None:
+                bias = sigma[i] * draws[i]
+                row = self._take_row(key)
+            elif stamp_ns <= self._bias_stamp_ns[row]:
+                bias = self._bias_m[row]
             else:
-                phi = np.exp(-(stamp_ns - known[0]) * 1e-9 / tau) if tau > 0 else 0.0
-                bias = phi * known[1] + np.sqrt(1.0 - phi * phi) * sigma[i] * draws[i]
-            self._biases[key] = (stamp_ns, bias)
+                then = int(self._bias_stamp_ns[row])
+                phi = np.exp(-(stamp_ns - then) * 1e-9 / tau) if tau > 0 else 0.0
+                bias = phi * self._bias_m[row] + np.sqrt(1.0 - phi * phi) * sigma[i] * draws[i]
+            self._bias_m[row] = bias
+            self._bias_stamp_ns[row] = stamp_ns
             out[i] = bias
         return out
 

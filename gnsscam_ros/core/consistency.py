@@ -45,6 +45,7 @@ update, so the time to detect a given separation does not depend on the GNSS rat
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -167,7 +168,7 @@ class ConsistencyMonitor:
             tempering: The epoch's tempering exponent (scales the allowance).
             shift_m: (2,) snapshot solution minus cloud centre, east and north [m].
         """
-        if np.isfinite(step_nats) and shift_m is not None:
+        if math.isfinite(step_nats) and shift_m is not None:
             self.statistic_nats = max(
                 0.0, self.statistic_nats + float(step_nats) - SHIFT_DOF / 2.0 * tempering)
             if self.shift_m is None or self._stamp_ns is None:
@@ -177,8 +178,9 @@ class ConsistencyMonitor:
                 keep = float(np.exp(-dt_s / SHIFT_SMOOTHING_S))
                 self.shift_m = keep * self.shift_m + (1.0 - keep) * np.asarray(shift_m)
             self._stamp_ns = stamp_ns
+        # np.hypot (libm's, which math.hypot is not) on the two values as floats.
         separation = (float('nan') if self.shift_m is None
-                      else float(np.hypot(*self.shift_m)))
+                      else float(np.hypot(*self.shift_m.tolist())))
         return ConsistencyState(
             statistic_nats=self.statistic_nats, step_nats=float(step_nats),
             separation_m=separation, inconsistent=self.statistic_nats >= self.suspect_nats,

@@ -51,11 +51,11 @@ solutions the consistency test compares with (:meth:`AdaptiveErrorModel.total_si
 from __future__ import annotations
 
 import math
-from bisect import bisect_left
 from dataclasses import dataclass
 
 import numpy as np
 
+from .kernels import residuals as residual_kernels
 from .kernels import mixture as mixture_kernels
 
 #: C/N0 bin edges of the signal classes [dB-Hz]: 5 dB-Hz bins over the range where code
@@ -171,14 +171,6 @@ class MixtureFit:
         return np.sqrt(np.maximum(second - mean ** 2, 0.0))
 
 
-_SQRT_2PI = np.sqrt(2.0 * np.pi)
-
-
-def _normal_pdf(r: np.ndarray, mean, sd) -> np.ndarray:
-    z = (r - mean) / sd
-    return np.exp(-0.5 * z * z) / (sd * _SQRT_2PI)
-
-
 def _at_interval(pseudo_samples: float, interval_s: float | None) -> float:
     """Pseudo-samples stated at 5 Hz, at an epoch interval (None: a sparse stream, as
     stated); :meth:`AdaptiveErrorModel.prior_strength`."""
@@ -203,8 +195,12 @@ class AdaptiveErrorModel:
         self.priors = priors
         # The priors' C/N0 shape of the class spreads (a constant of the priors).
         self._shape = priors.shape()
-        # Per satellite key: the stamps [ns] and residuals [m] of the last two lags.
-        self._history: dict[int, tuple[list[int], list[float]]] = {}
+        # The residuals of the last two lags: stamps [ns], satellite keys and residuals
+        # [m], rows ``_lagged_first .. _lagged_end`` of three buffers in time order that
+        # grow as needed (core.kernels.residuals).
+        self._lagged = (np.empty(256, dtype=np.int64), np.empty(256, dtype=np.int64),
+                        np.empty(256))
+        self._lagged_first = self._lagged_end = 0
         # Sums of the lagged pairs, forgotten over the window: xy, xx, yy, lag, count.
         self._pairs = np.zeros(5)
         self._pairs_stamp_ns: int | None = None
@@ -264,18 +260,19 @@ class AdaptiveErrorModel:
             keys = None if keys is None else np.asarray(keys)[keep]
         cls = self._classes(cn0)
         # The fix rests on the line-of-sight satellites: their count, not all, says how
-        # much of their errors it absorbed.
+        # much of their errors it absorbed. Two compiled passes around numpy's exp (the
+        # kernels' rounds differently) and numpy's sum: the densities were some twenty
+        # numpy calls on a dozen values.
         f = self.fit
-        s0, pi, mu, s1 = (v[cls] for v in (f.core_sd_m, f.wide_share, f.wide_mean_m,
-                                           f.wide_sd_m))
-        core = (1.0 - pi) * _normal_pdf(r, 0.0, s0)
-        line_of_sight = float((core / np.maximum(core + pi * _normal_pdf(r, mu, s1),
-                                                 1e-300)).sum())
+        exponents = residual_kernels.mixture_exponents(r, cls, f.core_sd_m, f.wide_mean_m,
+                                                       f.wide_sd_m)
+        line_of_sight = float(residual_kernels.core_shares(
+            np.exp(exponents), cls, f.core_sd_m, f.wide_share, f.wide_sd_m).sum())
         if line_of_sight <= n_unknowns + 1.0:
             return                         # too little redundancy to say anything
         r = r * math.sqrt(line_of_sight / (line_of_sight - n_unknowns))
         if keys is not None:
-            clip = CORRELATION_CLIP_SD * s0
+            clip = CORRELATION_CLIP_SD * f.core_sd_m[cls]
             # np.clip's result, without its dispatch (a dozen values).
             self._observe_pairs(stamp_ns, np.asarray(keys), np.minimum(np.maximum(r, -clip),
                                                                        clip))
@@ -289,36 +286,26 @@ class AdaptiveErrorModel:
             dt_s = max((stamp_ns - self._pairs_stamp_ns) * 1e-9, 0.0)
             self._pairs *= np.exp(-dt_s / self.window_s)
         self._pairs_stamp_ns = stamp_ns
-        lag_ns = int(CORRELATION_LAG_S * 1e9)
+        first, end, k = self._lagged_first, self._lagged_end, keys.shape[0]
+        size = self._lagged[0].shape[0]
+        if end + k > size:
+            # No room after the rows: to the front of buffers at least twice what they and
+            # the epoch's rows need.
+            count, size = end - first, max(size, 2 * (end - first + k))
+            self._lagged = tuple(np.concatenate((buffer[first:end],
+                                                 np.empty(size - count, buffer.dtype)))
+                                 for buffer in self._lagged)
+            first, end = 0, count
         # Older than two lags is forgotten; the stamp closest to one lag back pairs, if
-        # it is within half a lag of it (the loop runs per satellite: constants out).
-        forget, target, tolerance = stamp_ns - 2 * lag_ns, stamp_ns - lag_ns, lag_ns // 2
-        history = self._history
-        pairs = []
-        for key, value in zip(keys.tolist(), r.tolist()):
-            known = history.get(key)
-            if known is None:
-                history[key] = ([stamp_ns], [value])
-                continue
-            stamps, values = known
-            # Stamps rise (the filter refuses an epoch not after the last): bisections.
-            old = bisect_left(stamps, forget)
-            if old:
-                del stamps[:old], values[:old]
-            if stamps:
-                # The stamp closest to one lag back; of two as close, the earlier.
-                i = bisect_left(stamps, target)
-                if i == len(stamps) or (i > 0 and target - stamps[i - 1] <= stamps[i] - target):
-                    i = bisect_left(stamps, stamps[i - 1])
-                if abs(target - stamps[i]) <= tolerance:
-                    pairs.append((value, values[i], (stamp_ns - stamps[i]) * 1e-9))
-            stamps.append(stamp_ns)
-            values.append(value)
-        for key in [k for k, (stamps, _) in history.items()
-                    if not stamps or stamp_ns - stamps[-1] > 2 * lag_ns]:
-            del history[key]
-        if pairs:
-            x, y, lag = np.array(pairs).T
+        # it is within half a lag of it. Stamps rise (the filter refuses an epoch not
+        # after the last): the rows are in time order.
+        self._lagged_first, self._lagged_end, pairs = residual_kernels.lagged_pairs(
+            *self._lagged, first, end, stamp_ns, np.ascontiguousarray(keys, dtype=np.int64),
+            r, int(CORRELATION_LAG_S * 1e9))
+        if pairs.shape[0]:
+            # numpy's products (BLAS on the strided columns): a loop's sums would round
+            # differently.
+            x, y, lag = pairs.T
             self._pairs += (float(x @ y), float(x @ x), float(y @ y), float(lag.sum()),
                             float(x.shape[0]))
 
@@ -348,19 +335,20 @@ class AdaptiveErrorModel:
                          self.window_s))
 
     def _append(self, stamp_ns: int, r: np.ndarray, cls: np.ndarray) -> None:
-        horizon = stamp_ns - int(self.window_s * 1e9)
         n = self._count
         k = min(r.shape[0], MAX_SAMPLES)
         # Drop what left the window (and, if still full, the oldest), then append; while
         # the window holds fewer than MIN_WINDOW_RESIDUALS, the newest of the older ones
-        # stay (residuals arrive in time order: they are the last in the buffer).
-        live = self._stamp_ns[:n] >= horizon
-        live[max(0, n - max(0, MIN_WINDOW_RESIDUALS - k)):] = True
-        start = max(0, int(live.sum()) + k - MAX_SAMPLES)
-        idx = np.flatnonzero(live)[start:]
-        m = idx.shape[0]
-        for arr in (self._stamp_ns, self._class, self._residual_m):
-            arr[:m] = arr[idx]
+        # stay. Stamps rise (the filter refuses an epoch not after the last), so what
+        # stays is a suffix of the buffer: from the first stamp within the window, and
+        # moved to the front by slices (a bisection and a copy, no mask over the window).
+        first = int(self._stamp_ns[:n].searchsorted(stamp_ns - int(self.window_s * 1e9)))
+        first = min(first, max(0, n - max(0, MIN_WINDOW_RESIDUALS - k)))
+        first = max(first, n + k - MAX_SAMPLES)
+        m = n - first
+        if first:
+            for arr in (self._stamp_ns, self._class, self._residual_m):
+                arr[:m] = arr[first:n]
         self._stamp_ns[m:m + k] = stamp_ns
         self._class[m:m + k] = cls[-k:]
         self._residual_m[m:m + k] = r[-k:]

@@ -23,11 +23,12 @@ from typing import Protocol
 import numpy as np
 
 from .error_model import AdaptiveErrorModel
-from .frames import LocalFrame, row_norms, sagnac_corrected
+from .frames import LocalFrame, sagnac_corrected
 # The checks need no kernel: gnss_node imports them alone (no numba).
 from .gnss_checks import (MAX_PSEUDORANGE_M, MAX_SATELLITE_RADIUS_M,  # noqa: F401
                           MAX_EPOCH_SATELLITES, MAX_VARIANCE_M2, GnssCheck, check_epoch,
                           epoch_problem, satellite_key)
+from .kernels import clock as clock_kernels
 from .kernels import gnss as gnss_kernels
 from .kernels import inliers as inlier_kernels
 from .types import GnssEpoch
@@ -159,9 +160,11 @@ def clock_weights(prep: PreparedEpoch, centre_m: np.ndarray, spread_m: float,
     Returns:
         (k,) non-negative weights; within a constellation they sum to one.
     """
-    residual = prep.pr_m - row_norms(prep.sv_enu_m - centre_m)
-    return gnss_kernels.clock_inlier_weights(residual, prep.sigma_m, prep.sys_index,
-                                             prep.n_systems, float(spread_m), iterations)
+    # The residuals at the point inside the kernel (five numpy calls less, three times an
+    # epoch).
+    return clock_kernels.clock_weights_at(
+        prep.sv_enu_m, prep.pr_m, np.ascontiguousarray(centre_m, dtype=float).reshape(3),
+        prep.sigma_m, prep.sys_index, prep.n_systems, float(spread_m), iterations)
 
 
 def clock_corrected_residuals(positions_m: np.ndarray, prep: PreparedEpoch,

@@ -65,7 +65,8 @@ class SnapshotPersistence:
         """Add the filter's predicted horizontal motion of one epoch [m]. A motion that is
         not finite (a poisoned state, which the filter discards) starts the window again."""
         step = np.asarray(motion_xy_m, dtype=float)[:2]
-        if not np.all(np.isfinite(step)):
+        # math.isfinite on the two values: np.isfinite and np.all dispatch for 2 us.
+        if not all(map(math.isfinite, step.tolist())):
             self.reset()
             return
         self._path_m = self._path_m + step
@@ -74,7 +75,7 @@ class SnapshotPersistence:
         """Add one epoch's snapshot solution (horizontal, map frame) [m]; one that is not
         finite is left out."""
         offset = np.asarray(snapshot_xy_m, dtype=float)[:2] - self._path_m
-        if not np.all(np.isfinite(offset)):
+        if not all(map(math.isfinite, offset.tolist())):
             return
         horizon = stamp_ns - int(self.window_s * 1e9)
         first, count = self._first, self._count
@@ -95,13 +96,13 @@ class SnapshotPersistence:
         self._share = self._measure()
 
     @staticmethod
-    def _median_increment_m2(t: np.ndarray, d: np.ndarray, lag_s: float
-                             ) -> tuple[float, int]:
-        """Median squared increment of the offsets ``d`` (n, 2) at times ``t`` (n,) about
-        ``lag_s`` apart, and the pairs (a compiled pass: ``core.kernels.persistence``)."""
-        median, pairs = persistence_kernels.median_increment_m2(
-            t, np.ascontiguousarray(d, dtype=float), int(lag_s * 1e9), PAIR_TOLERANCE)
-        return float(median), int(pairs)
+    def _median_increments_m2(t: np.ndarray, d: np.ndarray) -> tuple[float, int, float, int]:
+        """Median squared increments of the offsets ``d`` (n, 2) at times ``t`` (n,) about
+        ``SHORT_LAG_S`` and about ``LONG_LAG_S`` apart, each with its pairs (one compiled
+        call: ``core.kernels.persistence``)."""
+        return persistence_kernels.median_increments_m2(
+            t, np.ascontiguousarray(d, dtype=float), int(SHORT_LAG_S * 1e9),
+            int(LONG_LAG_S * 1e9), PAIR_TOLERANCE)
 
     @property
     def persistent_share(self) -> float:
@@ -112,9 +113,8 @@ class SnapshotPersistence:
         if self._count < 2:
             return 1.0
         window = slice(self._first, self._first + self._count)
-        t, d = self._stamps[window], self._offsets[window]
-        short, n_short = self._median_increment_m2(t, d, SHORT_LAG_S)
-        long, n_long = self._median_increment_m2(t, d, LONG_LAG_S)
+        short, n_short, long, n_long = self._median_increments_m2(self._stamps[window],
+                                                                  self._offsets[window])
         if n_short < MIN_PAIRS or n_long < MIN_PAIRS or not long > 0.0:
             return 1.0
         share = 1.0 - short / long

@@ -21,6 +21,8 @@ import numpy as np
 
 from . import kernel
 
+#: Stamp of a row of the bias table taken for a satellite whose bias is not drawn yet.
+NEW_ROW_NS = np.iinfo(np.int64).min
 #: ``rcond`` of numpy's ``pinv`` (its default): singular values up to this share of the
 #: largest count as zero.
 PINV_RCOND = 1e-15
@@ -118,6 +120,74 @@ def update_offsets(offsets, fault_offsets, biases, fault_biases, line_of_sight, 
     if fault_biases.shape[1] == biases.shape[1]:
         moved = moved + np.dot(gain, fault_biases).T
     return new_offsets, np.dot(moved, cov)
+
+
+@kernel
+def hidden_fault_sizes(core_sd, leverage, core_sds, largest):
+    """``core.bias.hidden_fault_sizes``, (k,): ``min(c s / sqrt(max(1 - h, 1e-12)),
+    largest)`` per satellite in numpy's arithmetic (a NaN stays NaN, as in np.maximum and
+    np.minimum)."""
+    k = core_sd.shape[0]
+    out = np.empty(k)
+    for i in range(k):
+        room = 1.0 - leverage[i]
+        if room < 1e-12:
+            room = 1e-12
+        unseen = core_sds * core_sd[i] / np.sqrt(room)
+        out[i] = largest[i] if largest[i] < unseen or largest[i] != largest[i] else unseen
+    return out
+
+
+@kernel
+def with_hidden_faults(biases, sizes):
+    """``core.bias.with_hidden_faults``: a copy of the (k, M) biases, k > 0, with
+    hypothesis j biasing satellite ``j mod k`` by ``+size`` in even rounds over the
+    satellites and ``-size`` in odd ones (numpy's values; a NaN size, which the filter's
+    state check resets on, may differ in its sign bit)."""
+    k, m = biases.shape
+    out = biases.copy()
+    for j in range(m):
+        s = j % k
+        out[s, j] += sizes[s] if (j // k) % 2 == 0 else -sizes[s]
+    return out
+
+
+@kernel
+def decay_exponents(stamps, rows, stamp_ns, tau):
+    """``-max(dt, 0) / tau`` of each satellite's bias (numpy's arithmetic, for numpy's
+    exp), ``dt = (stamp_ns - stamps[rows[i]]) * 1e-9`` [s] (0 for a row without a bias
+    yet: ``NEW_ROW_NS``)."""
+    k = rows.shape[0]
+    out = np.zeros(k)
+    for i in range(k):
+        then = stamps[rows[i]]
+        if then != NEW_ROW_NS:
+            dt = (stamp_ns - then) * 1e-9
+            out[i] = -(dt if dt > 0.0 else 0.0) / tau
+    return out
+
+
+@kernel
+def advance_biases(table, stamps, rows, decay, sigma, draws, stamp_ns):
+    """The Gauss-Markov step of the satellites' biases (``core.bias.BiasHypotheses.
+    biases_at``), ``b <- phi b + sqrt(1 - phi^2) sigma xi``, in numpy's arithmetic element
+    for element: ``phi`` is 0 for a row without a bias yet (``NEW_ROW_NS``), 1 for a bias
+    not behind the stamp, else its ``decay`` (numpy's exp, taken by the caller).
+    Satellite i's bias is row ``rows[i]`` of ``table`` (M per row), which takes the new
+    bias, and of ``stamps``, which takes ``stamp_ns``. Returns the (k, M) biases, a new
+    array."""
+    k, m = draws.shape
+    out = np.empty((k, m))
+    for i in range(k):
+        row = rows[i]
+        then = stamps[row]
+        phi = 0.0 if then == NEW_ROW_NS else (1.0 if stamp_ns <= then else decay[i])
+        scale = np.sqrt(1.0 - phi * phi) * sigma[i]
+        for j in range(m):
+            out[i, j] = phi * table[row, j] + scale * draws[i, j]
+            table[row, j] = out[i, j]
+        stamps[row] = stamp_ns
+    return out
 
 
 @kernel

@@ -44,3 +44,12 @@ def median_increment_m2(t, d, lag_ns, tolerance):
     if count % 2:
         return values[half], count
     return (values[half - 1] + values[half]) / 2.0, count
+
+
+@kernel
+def median_increments_m2(t, d, short_lag_ns, long_lag_ns, tolerance):
+    """:func:`median_increment_m2` at the short and the long lag in one call:
+    ``(median, pairs)`` of each, in that order."""
+    short, n_short = median_increment_m2(t, d, short_lag_ns, tolerance)
+    long, n_long = median_increment_m2(t, d, long_lag_ns, tolerance)
+    return short, n_short, long, n_long
