@@ -55,8 +55,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .kernels import residuals as residual_kernels
 from .kernels import mixture as mixture_kernels
+from .kernels import residuals as residual_kernels
 
 #: C/N0 bin edges of the signal classes [dB-Hz]: 5 dB-Hz bins over the range where code
 #: tracking errors change most (below 25 a signal is mostly reflected, above 45 mostly

@@ -28,7 +28,6 @@ from .frames import LocalFrame, sagnac_corrected
 from .gnss_checks import (MAX_PSEUDORANGE_M, MAX_SATELLITE_RADIUS_M,  # noqa: F401
                           MAX_EPOCH_SATELLITES, MAX_VARIANCE_M2, GnssCheck, check_epoch,
                           epoch_problem, satellite_key)
-from .kernels import clock as clock_kernels
 from .kernels import gnss as gnss_kernels
 from .kernels import inliers as inlier_kernels
 from .types import GnssEpoch
@@ -162,7 +161,7 @@ def clock_weights(prep: PreparedEpoch, centre_m: np.ndarray, spread_m: float,
     """
     # The residuals at the point inside the kernel (five numpy calls less, three times an
     # epoch).
-    return clock_kernels.clock_weights_at(
+    return gnss_kernels.clock_weights_at(
         prep.sv_enu_m, prep.pr_m, np.ascontiguousarray(centre_m, dtype=float).reshape(3),
         prep.sigma_m, prep.sys_index, prep.n_systems, float(spread_m), iterations)
 

@@ -5,11 +5,11 @@ few passes over the arrays: propagation (``motion``), receiver clock and GNSS li
 (``gnss``), the satellites' inlier probabilities under it (``inliers``), camera
 distributions and their mixture (``camera``), posterior moments,
 hazard mass and protection level (``posterior``); and per epoch, the snapshot solution
-(``snapshot``), the clock weights at a point with its residuals (``clock``), the bias
-hypotheses' small matrices (``bias``) and the error model's passes over the residuals
-(``residuals``), whose numpy or Python calls cost more than their arithmetic. The
-modules of ``core`` call these; the plain numpy forms they replaced survive only as test
-oracles (``test/oracles.py``).
+(``snapshot``), the bias hypotheses' small matrices (``bias``), the error model's EM
+(``mixture``) and its passes over the residuals (``residuals``), and the persistence's
+semivariogram (``persistence``), whose numpy or Python calls cost more than their
+arithmetic. The modules of ``core`` call these; the plain numpy forms they replaced
+survive only as test oracles (``test/oracles.py``).
 
 Kernels are compiled on first use and cached on disk (``cache=True``: the next process
 loads them instead of compiling); ``core.warmup`` runs each once on a tiny input so that a

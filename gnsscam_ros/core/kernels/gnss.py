@@ -546,6 +546,22 @@ def clock_inlier_weights(residual_m, sigma_m, sys_index, n_systems, spread_m, it
 
 
 @kernel
+def clock_weights_at(sv_enu, pr, centre, sigma, sys_index, n_systems, spread_m, iterations):
+    """:func:`clock_inlier_weights` of the residuals ``pr - |sv_enu - centre|`` (k,) at a
+    point (``core.gnss.clock_weights``), each range numpy's ``sqrt(add.reduce(d * d,
+    axis=1))``: the squares summed left to right. An epoch asks at three points; the
+    residuals were five numpy calls before the kernel, more than their arithmetic."""
+    k = pr.shape[0]
+    residual = np.empty(k)
+    for j in range(k):
+        dx = sv_enu[j, 0] - centre[0]
+        dy = sv_enu[j, 1] - centre[1]
+        dz = sv_enu[j, 2] - centre[2]
+        residual[j] = pr[j] - math.sqrt((dx * dx + dy * dy) + dz * dz)
+    return clock_inlier_weights(residual, sigma, sys_index, n_systems, spread_m, iterations)
+
+
+@kernel
 def relative_views(sets, sv, pr, sys_index, n_systems, clock_w):
     """The float32 likelihood's views of an epoch (``core.gnss.relative_geometry``): from
     the centre of every 32nd particle of all (S, N, >= 3) sets (``clock_w`` (1, k)), or of
