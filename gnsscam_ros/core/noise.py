@@ -8,8 +8,8 @@ releases the interpreter lock while it fills an array), so a node's epoch finds 
 ready and the draw runs while the node waits for the next epoch (or on another core).
 The blocks are drawn in chunks of about :data:`CHUNK_VALUES` values: one block per chunk
 at the default size, some fifty at N = 120. Handing a chunk over costs about 0.1 ms here
-(the worker cannot start its draw, nor hand the chunk back, before the epoch lets go of
-the interpreter lock: the compiled kernels keep it), more than drawing one small block; a
+(the worker needs the interpreter lock to start its draw and to hand the chunk back, and
+the epoch's Python code holds it most of the time), more than drawing one small block; a
 chunk spreads that over many epochs and gives the worker time to finish (a block per
 chunk at N = 120 cost the epoch more than drawing it). The worker is one thread per
 stream, started once: a thread started per epoch cost the epoch about 0.17 ms here
