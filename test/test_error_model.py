@@ -48,6 +48,35 @@ def test_the_compiled_em_iterations_are_the_numpy_oracle(n_classes):
     assert got[1][0] > 0.2 and got[2][0] > 10.0      # the fit moved towards the data
 
 
+def test_the_refit_is_the_pooled_fit_then_the_classes_towards_it_to_the_bit():
+    """One call for an epoch's two fits: the same arithmetic as two em_fit calls with
+    numpy's class prior between them (the pooled spreads shaped about their
+    sample-weighted mean), on classes of which some are empty."""
+    rng = np.random.default_rng(7)
+    n = 700
+    r = np.where(rng.random(n) < 0.3, rng.normal(25.0, 12.0, n), rng.normal(0.0, 3.0, n))
+    w = np.ones(n)
+    cls = rng.choice([0, 2, 3, 6], n).astype(np.int64)
+    one, ones = np.ones(1), np.ones(N_CLASSES)
+    pooled = (4.0 * one, 0.1 * one, 5.0 * one, 20.0 * one)
+    pooled_prior = (5.0 * one, 0.3 * one, 0.0 * one, 30.0 * one)
+    fit = (3.0 * ones, 0.2 * ones, 1.0 * ones, 25.0 * ones)
+    shape = ErrorPriors().shape()
+    got_pooled, got_fit, counts = mixture_kernels.refit(
+        r, w, cls, N_CLASSES, pooled, pooled_prior, 12.0, fit, shape, 6.0, 0.3, 3)
+    want_pooled = mixture_kernels.em_fit(r, w, np.zeros(n, dtype=np.int64), 1, *pooled,
+                                         *pooled_prior, 12.0, 0.3, 3)
+    want_counts = np.bincount(cls, minlength=N_CLASSES).astype(float)
+    shaped = shape / ((want_counts * shape).sum() / max(want_counts.sum(), 1.0))
+    s0, pi, mu, s1 = want_pooled
+    centre = (s0 * shaped, pi.repeat(N_CLASSES), mu.repeat(N_CLASSES), s1 * shaped)
+    want_fit = mixture_kernels.em_fit(r, w, cls, N_CLASSES, *fit, *centre, 6.0, 0.3, 3)
+    np.testing.assert_array_equal(counts, want_counts)
+    for got, want in zip(got_pooled + got_fit, want_pooled + want_fit, strict=True):
+        np.testing.assert_array_equal(got, want)
+    assert not np.array_equal(got_fit[0], fit[0])        # the fit moved
+
+
 def test_a_residual_of_kilometres_is_the_wide_components_not_the_cores():
     # Both densities underflow 5 km out; the responsibility is their ratio, which does
     # not: the residuals go to the wide component and the core keeps its metres, in the

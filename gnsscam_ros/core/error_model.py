@@ -208,10 +208,8 @@ class AdaptiveErrorModel:
         self._class = np.zeros(MAX_SAMPLES, dtype=np.int64)
         self._residual_m = np.zeros(MAX_SAMPLES)
         self._count = 0
-        # Constants of every refit: unit weights, the one class of the pooled fit, and
-        # its prior's centre.
+        # Constants of every refit: unit weights and the pooled prior's centre.
         self._ones = np.ones(MAX_SAMPLES)
-        self._zeros = np.zeros(MAX_SAMPLES, dtype=np.int64)
         self._pooled_prior = tuple(np.array([v]) for v in (
             priors.core_sd_m, priors.wide_share, 0.0, priors.wide_sd_m))
         self.pooled = self._prior_fit(1)
@@ -394,30 +392,20 @@ class AdaptiveErrorModel:
 
     def _refit(self) -> None:
         n = self._count
-        r, cls = self._residual_m[:n], self._class[:n]
-        w = self._ones[:n]
         p = self.priors
         interval = self.epoch_interval_s              # once: a median of the last intervals
-        pooled_strength = _at_interval(p.pooled_strength, interval)
-        class_strength = _at_interval(p.class_strength, interval)
-        fit = (self.pooled.core_sd_m, self.pooled.wide_share, self.pooled.wide_mean_m,
-               self.pooled.wide_sd_m)
-        fit = mixture_kernels.em_fit(r, w, self._zeros[:n], 1, *fit, *self._pooled_prior,
-                                     pooled_strength, p.min_core_sd_m, EM_ITERATIONS)
-        self.pooled = MixtureFit(*fit, samples=np.array([float(n)]))
-        # The classes' prior: the pooled fit, its spreads shaped by C/N0 about their
-        # sample-weighted mean (so that the shape moves spreads between classes only).
-        counts = np.bincount(cls, minlength=N_CLASSES).astype(float)
-        shape = self._shape
-        # (The arrays' own methods: numpy's functions add a wrapper call each.)
-        shape = shape / ((counts * shape).sum() / max(counts.sum(), 1.0))
-        s0, pi, mu, s1 = fit
-        centre = (s0 * shape, pi.repeat(N_CLASSES), mu.repeat(N_CLASSES), s1 * shape)
-        fit = (self.fit.core_sd_m, self.fit.wide_share, self.fit.wide_mean_m,
-               self.fit.wide_sd_m)
-        fit = mixture_kernels.em_fit(r, w, cls, N_CLASSES, *fit, *centre, class_strength,
-                                     p.min_core_sd_m, EM_ITERATIONS)
+        pooled, fit, counts = mixture_kernels.refit(
+            self._residual_m[:n], self._ones[:n], self._class[:n], N_CLASSES,
+            self._fit_arrays(self.pooled), self._pooled_prior,
+            _at_interval(p.pooled_strength, interval), self._fit_arrays(self.fit),
+            self._shape, _at_interval(p.class_strength, interval), p.min_core_sd_m,
+            EM_ITERATIONS)
+        self.pooled = MixtureFit(*pooled, samples=np.array([float(n)]))
         self.fit = MixtureFit(*fit, samples=counts)
+
+    @staticmethod
+    def _fit_arrays(fit: MixtureFit) -> tuple[np.ndarray, ...]:
+        return (fit.core_sd_m, fit.wide_share, fit.wide_mean_m, fit.wide_sd_m)
 
     def _classes(self, cn0_dbhz: np.ndarray) -> np.ndarray:
         """:func:`signal_class` of ``cn0_dbhz`` (read-only), computed once for the same

@@ -107,3 +107,50 @@ def em_fit(r, w, cls, n_classes, s0, pi, mu, s1, p_s0, p_pi, p_mu, p_s1, strengt
             s0[c] = max(s0[c], min_core_sd_m)
             s1[c] = max(s1[c], 2.0 * s0[c])
     return s0, pi, mu, s1
+
+
+@kernel
+def refit(r, w, cls, n_classes, pooled, pooled_prior, pooled_strength, fit, shape,
+          class_strength, min_core_sd_m, iterations):
+    """The error model's refit of an epoch (``core.error_model``) in one call: the
+    pooled fit (:func:`em_fit` with every residual in one class, from ``pooled`` towards
+    ``pooled_prior``), then the classes' (from ``fit``) towards their prior, the pooled
+    fit's spreads shaped by ``shape`` about their sample-weighted mean (so that the shape
+    moves spreads between classes only). The arithmetic between the two fits is numpy's
+    on (n_classes,) arrays, element for element (a sum of a few values is a loop there
+    too).
+
+    Args:
+        r: (n,) residuals [m]; w: (n,) their weights; cls: (n,) their classes (int64).
+        n_classes: Number of classes.
+        pooled, pooled_prior: ``(s0, pi, mu, s1)``, arrays (1,): the pooled fit and its
+            prior's centre.
+        pooled_strength, class_strength: Pseudo-samples of the two priors.
+        fit: ``(s0, pi, mu, s1)``, arrays (n_classes,): the classes' fit.
+        shape: (n_classes,) the priors' C/N0 shape of the class spreads.
+        min_core_sd_m, iterations: As :func:`em_fit`.
+
+    Returns:
+        ``(pooled fit, class fit, counts)``: two ``(s0, pi, mu, s1)`` tuples and the
+        residuals per class (float, (n_classes,)).
+    """
+    one = np.zeros(r.shape[0], dtype=np.int64)
+    s0, pi, mu, s1 = em_fit(r, w, one, 1, pooled[0], pooled[1], pooled[2], pooled[3],
+                            pooled_prior[0], pooled_prior[1], pooled_prior[2],
+                            pooled_prior[3], pooled_strength, min_core_sd_m, iterations)
+    counts = np.zeros(n_classes)
+    for i in range(cls.shape[0]):
+        counts[cls[i]] += 1.0
+    weighted = 0.0
+    total = 0.0
+    for c in range(n_classes):
+        weighted += counts[c] * shape[c]
+        total += counts[c]
+    mean_shape = weighted / max(total, 1.0)
+    shaped = np.empty(n_classes)
+    for c in range(n_classes):
+        shaped[c] = shape[c] / mean_shape
+    fitted = em_fit(r, w, cls, n_classes, fit[0], fit[1], fit[2], fit[3], s0[0] * shaped,
+                    np.full(n_classes, pi[0]), np.full(n_classes, mu[0]), s1[0] * shaped,
+                    class_strength, min_core_sd_m, iterations)
+    return (s0, pi, mu, s1), fitted, counts
