@@ -154,3 +154,36 @@ def test_the_compiled_semivariogram_is_the_numpy_oracle():
             want = oracles.median_increment_m2(t, d, lag, PAIR_TOLERANCE)
             assert got[1] == want[1]
             assert got[0] == want[0] or (np.isnan(got[0]) and np.isnan(want[0]))
+
+
+def test_the_window_is_every_finite_offset_of_the_last_window_s():
+    # Irregular stamps and a few non-finite snapshots, through the buffers' growth and
+    # moves: after every epoch the share is that of the oracle over the window's rows.
+    rng = np.random.default_rng(5)
+    model = SnapshotPersistence(window_s=20.0)
+    stamps, rows = [], []
+    t = 0
+    for k in range(600):
+        t += int(rng.choice([200_000_000, 10**9, 3 * 10**9], p=[0.85, 0.1, 0.05]))
+        t += int(rng.integers(0, 10**8))
+        step = rng.normal(size=2)
+        model.move(step)
+        snap = rng.normal(scale=3.0, size=2) + (0.0 if k % 53 else np.nan)
+        before = model.persistent_share
+        model.observe(t, snap)
+        if not np.isfinite(snap).all():
+            assert model.persistent_share == before        # left out: nothing changes
+            continue
+        stamps.append(t)
+        rows.append(snap - model._path_m)
+        keep = [i for i, s in enumerate(stamps) if s >= t - 20 * S]
+        ts = np.array([stamps[i] for i in keep], dtype=np.int64)
+        d = np.array([rows[i] for i in keep]).reshape(-1, 2)
+        short = oracles.median_increment_m2(ts, d, SHORT_LAG_S, PAIR_TOLERANCE)
+        long = oracles.median_increment_m2(ts, d, LONG_LAG_S, PAIR_TOLERANCE)
+        if short[1] < MIN_PAIRS or long[1] < MIN_PAIRS or not long[0] > 0.0:
+            want = 1.0
+        else:
+            want = min(max(1.0 - short[0] / long[0], 0.0), 1.0)
+        assert model.persistent_share == want, k
+    assert model._stamps.shape[0] > 64                 # the buffers grew on the way
