@@ -157,13 +157,8 @@ def beyond_cloud(offsets_m: np.ndarray, fault_offsets_m: np.ndarray,
         cloud_cov_m2: (3, 3) position covariance of the particle set.
         dims: 2 (horizontal risk) or 3.
     """
-    offsets, faults = _array(offsets_m), _array(fault_offsets_m)
-    gm = (offsets - faults)[:, :dims]
-    # numpy's product of a matrix with itself (BLAS syrk), which the kernel's would not
-    # reproduce to the bit (core.kernels.bias).
-    moment = gm.T @ gm / max(gm.shape[0], 1)
-    return bias_kernels.beyond_cloud(offsets, faults, moment, _array(cloud_cov_m2),
-                                     int(dims))
+    return bias_kernels.beyond_cloud(_array(offsets_m), _array(fault_offsets_m),
+                                     _array(cloud_cov_m2), int(dims))
 
 
 def _array(values) -> np.ndarray:

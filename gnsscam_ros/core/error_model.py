@@ -258,31 +258,28 @@ class AdaptiveErrorModel:
             keys = None if keys is None else np.asarray(keys)[keep]
         cls = self._classes(cn0)
         # The fix rests on the line-of-sight satellites: their count, not all, says how
-        # much of their errors it absorbed. Two compiled passes around numpy's exp (the
-        # kernels' rounds differently) and numpy's sum: the densities were some twenty
-        # numpy calls on a dozen values.
+        # much of their errors it absorbed (each residual's probability of the core, as
+        # the EM's E-step gives it).
         f = self.fit
-        exponents = residual_kernels.mixture_exponents(r, cls, f.core_sd_m, f.wide_mean_m,
-                                                       f.wide_sd_m)
-        line_of_sight = float(residual_kernels.core_shares(
-            np.exp(exponents), cls, f.core_sd_m, f.wide_share, f.wide_sd_m).sum())
+        line_of_sight = mixture_kernels.line_of_sight(r, cls, f.core_sd_m, f.wide_share,
+                                                      f.wide_mean_m, f.wide_sd_m)
         if line_of_sight <= n_unknowns + 1.0:
             return                         # too little redundancy to say anything
         r = r * math.sqrt(line_of_sight / (line_of_sight - n_unknowns))
         if keys is not None:
-            clip = CORRELATION_CLIP_SD * f.core_sd_m[cls]
-            # np.clip's result, without its dispatch (a dozen values).
-            self._observe_pairs(stamp_ns, np.asarray(keys), np.minimum(np.maximum(r, -clip),
-                                                                       clip))
+            self._observe_pairs(stamp_ns, np.asarray(keys), r,
+                                CORRELATION_CLIP_SD * f.core_sd_m[cls])
         self._append(stamp_ns, r, cls)
         self._refit()
 
-    def _observe_pairs(self, stamp_ns: int, keys: np.ndarray, r: np.ndarray) -> None:
-        """Pair each satellite's residual with its own about ``CORRELATION_LAG_S``
-        earlier and fold the pairs into the sums."""
+    def _observe_pairs(self, stamp_ns: int, keys: np.ndarray, r: np.ndarray,
+                       clip: np.ndarray) -> None:
+        """Pair each satellite's residual (clipped to ``+-clip``) with its own about
+        ``CORRELATION_LAG_S`` earlier and fold the pairs into the sums."""
+        decay = 1.0
         if self._pairs_stamp_ns is not None:
             dt_s = max((stamp_ns - self._pairs_stamp_ns) * 1e-9, 0.0)
-            self._pairs *= np.exp(-dt_s / self.window_s)
+            decay = math.exp(-dt_s / self.window_s)
         self._pairs_stamp_ns = stamp_ns
         first, end, k = self._lagged_first, self._lagged_end, keys.shape[0]
         size = self._lagged[0].shape[0]
@@ -297,15 +294,9 @@ class AdaptiveErrorModel:
         # Older than two lags is forgotten; the stamp closest to one lag back pairs, if
         # it is within half a lag of it. Stamps rise (the filter refuses an epoch not
         # after the last): the rows are in time order.
-        self._lagged_first, self._lagged_end, pairs = residual_kernels.lagged_pairs(
+        self._lagged_first, self._lagged_end, _ = residual_kernels.lagged_pairs(
             *self._lagged, first, end, stamp_ns, np.ascontiguousarray(keys, dtype=np.int64),
-            r, int(CORRELATION_LAG_S * 1e9))
-        if pairs.shape[0]:
-            # numpy's products (BLAS on the strided columns): a loop's sums would round
-            # differently.
-            x, y, lag = pairs.T
-            self._pairs += (float(x @ y), float(x @ x), float(y @ y), float(lag.sum()),
-                            float(x.shape[0]))
+            r, int(CORRELATION_LAG_S * 1e9), clip, self._pairs, decay)
 
     @property
     def correlation_measured(self) -> bool:

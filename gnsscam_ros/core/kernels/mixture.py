@@ -12,8 +12,30 @@ import math
 
 import numpy as np
 
-from . import kernel
+from . import inline_kernel, kernel
 from .elementary import exp
+
+
+@inline_kernel
+def _class_constants(s0, pi, s1, inv0, inv1, log_ratio):
+    """Per class ``1 / s0``, ``1 / s1`` and the log of the core's over the wide density
+    apart from their exponents (+-inf where a weight is 0: the responsibility is then
+    exactly 0 or 1)."""
+    for c in range(s0.shape[0]):
+        inv0[c] = 1.0 / s0[c]
+        inv1[c] = 1.0 / s1[c]
+        log_ratio[c] = math.log((1.0 - pi[c]) / pi[c]) + math.log(s1[c] * inv0[c])
+
+
+@inline_kernel
+def _wide_responsibility(r, inv0, inv1, mu, log_ratio):
+    """P(NLOS | r) = 1 / (1 + core / wide), from the class constants of
+    :func:`_class_constants`: the ratio stays finite where both densities underflow (a
+    residual of kilometres is the wide component's, not a 0 / 0 that would hand it to
+    the core)."""
+    z0 = r * inv0
+    z1 = (r - mu) * inv1
+    return 1.0 / (1.0 + exp(log_ratio - 0.5 * (z0 * z0 - z1 * z1)))
 
 
 @kernel
@@ -60,17 +82,10 @@ def em_fit(r, w, cls, n_classes, s0, pi, mu, s1, p_s0, p_pi, p_mu, p_s1, strengt
     at_mu = np.empty(n)
     at_log_ratio = np.empty(n)
     for _ in range(iterations):
-        for c in range(n_classes):
-            inv0[c] = 1.0 / s0[c]
-            inv1[c] = 1.0 / s1[c]
-            # log of core / wide density apart from the exponents; +-inf where a weight
-            # is 0 (the responsibility is then exactly 0 or 1).
-            log_ratio[c] = math.log((1.0 - pi[c]) / pi[c]) + math.log(s1[c] * inv0[c])
-        # E-step, P(NLOS | r) = 1 / (1 + core / wide): the ratio stays finite where both
-        # densities underflow (a residual of kilometres is the wide component's, not a
-        # 0 / 0 that would hand it to the core). The class constants are gathered first:
-        # the loop of exponentials then vectorises (with the gathers inside it did not,
-        # and took 2.5 times as long).
+        _class_constants(s0, pi, s1, inv0, inv1, log_ratio)
+        # E-step (_wide_responsibility). The class constants are gathered first: the loop
+        # of exponentials then vectorises (with the gathers inside it did not, and took
+        # 2.5 times as long).
         for i in range(n):
             c = cls[i]
             at_inv0[i] = inv0[c]
@@ -78,9 +93,8 @@ def em_fit(r, w, cls, n_classes, s0, pi, mu, s1, p_s0, p_pi, p_mu, p_s1, strengt
             at_mu[i] = mu[c]
             at_log_ratio[i] = log_ratio[c]
         for i in range(n):
-            z0 = r[i] * at_inv0[i]
-            z1 = (r[i] - at_mu[i]) * at_inv1[i]
-            resp[i] = 1.0 / (1.0 + exp(at_log_ratio[i] - 0.5 * (z0 * z0 - z1 * z1)))
+            resp[i] = _wide_responsibility(r[i], at_inv0[i], at_inv1[i], at_mu[i],
+                                           at_log_ratio[i])
         n0[:] = 0.0
         n1[:] = 0.0
         sum1_r[:] = 0.0
@@ -154,3 +168,21 @@ def refit(r, w, cls, n_classes, pooled, pooled_prior, pooled_strength, fit, shap
                     np.full(n_classes, pi[0]), np.full(n_classes, mu[0]), s1[0] * shaped,
                     class_strength, min_core_sd_m, iterations)
     return (s0, pi, mu, s1), fitted, counts
+
+
+@kernel
+def line_of_sight(r, cls, s0, pi, mu, s1):
+    """How many of the residuals ``r`` (k,) of classes ``cls`` the fit ``(s0, pi, mu,
+    s1)`` (per class) takes for line of sight: the sum of their probabilities of the core,
+    ``1 - P(NLOS | r)`` as the EM's E-step gives it (``core.error_model``: the residuals'
+    inflation)."""
+    n_classes = s0.shape[0]
+    inv0 = np.empty(n_classes)
+    inv1 = np.empty(n_classes)
+    log_ratio = np.empty(n_classes)
+    _class_constants(s0, pi, s1, inv0, inv1, log_ratio)
+    total = 0.0
+    for i in range(r.shape[0]):
+        c = cls[i]
+        total += 1.0 - _wide_responsibility(r[i], inv0[c], inv1[c], mu[c], log_ratio[c])
+    return total
