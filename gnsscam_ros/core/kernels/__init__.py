@@ -21,10 +21,9 @@ this package older than any of its sources, so an edited helper is compiled agai
 A Ctrl-C that lands in one of llvmlite's callbacks while a kernel compiles is raised again
 in the main thread (``core.interrupts``) instead of being dropped.
 
-Kernels run on the calling thread only (no numba threading layer; BLAS/LAPACK only for a
-rank-deficient snapshot system of a dozen rows, ``snapshot.robust_snapshot``, and the bias
-hypotheses' products of at most a few hundred by a dozen, ``bias``: far below any size
-that BLAS runs on threads), so an epoch costs the same whatever was imported
+Kernels run on the calling thread only (no numba threading layer; LAPACK only for a
+rank-deficient snapshot system of a dozen rows, ``snapshot.robust_snapshot``, far below
+any size that LAPACK runs on threads), so an epoch costs the same whatever was imported
 before.
 """
 from __future__ import annotations
