@@ -147,6 +147,17 @@ def test_check_epoch_rejects_bad_satellites():
     assert not check.usable and '3 usable' in check.reason
 
 
+def test_the_kept_satellites_are_the_epoch_itself_only_when_all_pass():
+    epoch = epoch_at(TRUTH_ENU, sv_ecef=sky(8))
+    assert gnss.kept_satellites(epoch, gnss.check_epoch(epoch)) is epoch
+    pr = epoch.pr_m.copy()
+    pr[2] = np.nan
+    bad = replace(epoch, pr_m=pr)
+    kept = gnss.kept_satellites(bad, gnss.check_epoch(bad))
+    assert kept.n_sv == 7 and np.isfinite(kept.pr_m).all()
+    np.testing.assert_array_equal(kept.sv_id, np.delete(epoch.sv_id, 2))
+
+
 def test_single_satellite_constellation_is_set_aside():
     system = np.array([GPS] * 6 + [GLONASS])
     epoch = epoch_at(TRUTH_ENU, sv_ecef=sky(7, seed=3), system=system)

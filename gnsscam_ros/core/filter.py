@@ -145,13 +145,6 @@ class EpochResult:
     persistent_share: float = 1.0
 
 
-def _kept(epoch: GnssEpoch, check: gnss.GnssCheck) -> GnssEpoch:
-    """The satellites of an epoch that passed its checks, for ``gnss.prepare_epoch`` (which
-    copies what it takes): the epoch itself when all did (the usual case; the subset's
-    eight copies cost about 10 us of a small epoch)."""
-    return epoch if check.keep.all() else epoch.subset(check.keep)
-
-
 class ParticleFilter:
     """Particle RAIM filter over (east, north, up, yaw) with integrity risk.
 
@@ -359,7 +352,7 @@ class ParticleFilter:
         prep = None
         if check.usable:
             centre, cov = weighted_mean_cov(priors[0], self.log_w)
-            prep = self._prepare(_kept(epoch, check), centre)
+            prep = self._prepare(gnss.kept_satellites(epoch, check), centre)
             if prep.pr_m.shape[0] < prep.n_systems + 3:
                 prep = None
                 check = replace(check, usable=False,
@@ -413,7 +406,7 @@ class ParticleFilter:
         priors = np.repeat(self.particles[None], cfg.motion_sample_count, axis=0)
         self._motion_unknown_s = 0.0
         centre, cov = weighted_mean_cov(self.particles, self.log_w)
-        prep = self._prepare(_kept(epoch, check), centre)
+        prep = self._prepare(gnss.kept_satellites(epoch, check), centre)
         return self._update(epoch, check, priors, prep, centre, cov, dt_s=0.0)
 
     def _prepare(self, epoch: GnssEpoch, centre: np.ndarray) -> gnss.PreparedEpoch:

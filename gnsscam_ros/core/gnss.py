@@ -27,7 +27,7 @@ from .frames import LocalFrame, sagnac_corrected
 # The checks need no kernel: gnss_node imports them alone (no numba).
 from .gnss_checks import (MAX_PSEUDORANGE_M, MAX_SATELLITE_RADIUS_M,  # noqa: F401
                           MAX_EPOCH_SATELLITES, MAX_VARIANCE_M2, GnssCheck, check_epoch,
-                          epoch_problem, satellite_key)
+                          epoch_problem, kept_satellites, satellite_key)
 from .kernels import gnss as gnss_kernels
 from .kernels import inliers as inlier_kernels
 from .types import GnssEpoch
