@@ -86,6 +86,9 @@ def test_a_failed_draw_ahead_is_raised_by_the_next_take():
     noise.take(LARGE)                        # drawn here; the chunk ahead fails
     with pytest.raises(MemoryError, match='no room'):
         noise.take(LARGE)
+    del noise._draw                          # the memory is back: the next take draws
+    assert noise.take(LARGE).shape == LARGE
+    assert copy.deepcopy(noise).take(LARGE).shape == LARGE
 
 
 def test_a_process_exiting_while_a_block_is_drawn_waits_for_it_and_exits_cleanly():

@@ -74,9 +74,12 @@ class ProcessNoise:
         if self._ready is None or self._ready.shape[1:] != shape:
             self._restart(shape)
         elif self._index == self._ready.shape[0]:
-            self._spare = self._ready
-            self._ready_state = self._pending_state
-            self._ready, self._index = self._collect(), 0
+            if self._pending is None:          # its draw failed, and the last take said so
+                self._restart(shape)
+            else:
+                self._spare = self._ready
+                self._ready_state = self._pending_state
+                self._ready, self._index = self._collect(), 0
         block = self._ready[self._index]
         self._index += 1
         if self._pending is None:
@@ -139,9 +142,12 @@ class ProcessNoise:
             chunk, state, index = self._ready, self._ready_state, self._index
             beyond = chunk.shape[0] - index - 1 + (
                 following.shape[0] if following is not None else 0)
-        else:
+        elif following is not None:
             chunk, state, index = following, self._pending_state, 0
             beyond = chunk.shape[0] - 1
+        else:                                   # nothing ahead: its draw failed
+            self._ready, self._ready_state = None, None
+            return
         if beyond:
             # Drawn again up to the block ahead, from the state before its chunk.
             self.rng.bit_generator.state = state
