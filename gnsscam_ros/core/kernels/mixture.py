@@ -4,7 +4,9 @@ An epoch refits the mixture twice (pooled, then per signal class) over the windo
 residuals, a few iterations each, so its cost grows with the window: some 4,500 residuals
 at 5 Hz. Each iteration is one loop giving every residual its responsibility (one
 exponential of the log density ratio: no divisions, no class sums, so it vectorises),
-one loop folding them into the class sums, and the M-step per class.
+one loop folding them into the class sums, and the M-step per class. The epoch's two fits
+and the class prior between them are one call (:func:`refit`), and how many residuals the
+fit takes for line of sight is the E-step's responsibility summed (:func:`line_of_sight`).
 """
 from __future__ import annotations
 
