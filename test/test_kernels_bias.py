@@ -126,3 +126,8 @@ def test_the_small_symmetric_decompositions_are_numpys(rng):
                 want = np.linalg.inv(matrix)
                 np.testing.assert_allclose(bias_kernels._inverse(matrix), want, rtol=0,
                                            atol=1e-8 * np.abs(want).max())
+        # A matrix that is not finite has no inverse: NaN, never a finite stand-in.
+        for bad in (np.inf, np.nan):
+            matrix = np.eye(n)
+            matrix[-1, 0] = matrix[0, -1] = bad
+            assert np.isnan(bias_kernels._inverse(matrix)).all()

@@ -103,8 +103,11 @@ def _from_eigen(values, vectors):
 @kernel
 def _inverse(matrix):
     """Inverse of a symmetric positive definite matrix by Cholesky; one that is not
-    (a pivot not positive) by its eigenvalues, as numpy's ``inv`` would give it."""
+    (a pivot not positive) by its eigenvalues, as numpy's ``inv`` would give it; NaN for
+    a matrix that is not finite (a broken state, which the filter's checks discard)."""
     n = matrix.shape[0]
+    if not np.isfinite(matrix).all():
+        return np.full((n, n), np.nan)
     low = np.zeros((n, n))
     for j in range(n):
         pivot = matrix[j, j]
