@@ -205,22 +205,30 @@ def leverages(line_of_sight, weights, sys_index, n_systems):
 
 
 @kernel
-def _projected_gain(biases, line_of_sight, weights, sys_index, n_systems):
-    """``G^T Wp b`` of each hypothesis, (3, M): ``Wp`` the weights with each
-    constellation's clock out (``W - W S (S^T W S)^-1 S^T W``), so that satellite i
-    weighs ``w_i (b_i - bbar_s)`` with ``bbar_s`` the weighted mean bias of its
-    constellation; ``G = -line of sight``."""
-    k, m = biases.shape
+def _system_shares(weights, sys_index, n_systems):
+    """Each satellite's share of its constellation's weight, ``w_i / sum_s w``, (k,)."""
     per_system = np.zeros(n_systems)
-    for i in range(k):
+    for i in range(weights.shape[0]):
         per_system[sys_index[i]] += weights[i]
     for c in range(n_systems):
         per_system[c] = max(per_system[c], 1e-300)
+    shares = np.empty(weights.shape[0])
+    for i in range(weights.shape[0]):
+        shares[i] = weights[i] / per_system[sys_index[i]]
+    return shares
+
+
+@kernel
+def _projected_gain(biases, line_of_sight, weights, shares, sys_index, n_systems):
+    """``G^T Wp b`` of each hypothesis, (3, M): ``Wp`` the weights with each
+    constellation's clock out (``W - W S (S^T W S)^-1 S^T W``), so that satellite i
+    weighs ``w_i (b_i - bbar_s)`` with ``bbar_s`` the mean bias of its constellation
+    weighted by ``shares`` (:func:`_system_shares`); ``G = -line of sight``."""
+    k, m = biases.shape
     mean = np.zeros((n_systems, m))
     for i in range(k):
-        share = weights[i] / per_system[sys_index[i]]
         for j in range(m):
-            mean[sys_index[i], j] += share * biases[i, j]
+            mean[sys_index[i], j] += shares[i] * biases[i, j]
     gain = np.zeros((3, m))
     for i in range(k):
         s = sys_index[i]
@@ -261,8 +269,10 @@ def update_offsets(offsets, fault_offsets, biases, fault_biases, line_of_sight, 
     prior_info = _inverse(prior_cov + cov_floor * eye)
     gained = psd_part(_inverse(posterior_cov + cov_floor * eye) - prior_info)
     cov = _inverse(prior_info + gained)
-    gain = _projected_gain(biases, line_of_sight, weights, sys_index, n_systems)
-    fault_gain = (_projected_gain(fault_biases, line_of_sight, weights, sys_index, n_systems)
+    shares = _system_shares(weights, sys_index, n_systems)
+    gain = _projected_gain(biases, line_of_sight, weights, shares, sys_index, n_systems)
+    fault_gain = (_projected_gain(fault_biases, line_of_sight, weights, shares, sys_index,
+                                  n_systems)
                   if fault_biases.shape[1] == biases.shape[1] else np.zeros((3, 0)))
     return (_moved(offsets, prior_info, gain, cov),
             _moved(fault_offsets, prior_info, fault_gain, cov))
